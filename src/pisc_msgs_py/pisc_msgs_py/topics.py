@@ -1,0 +1,126 @@
+"""Every topic of the PISC graph: name, message type, QoS and meaning, in one place.
+
+Only standard messages from ROS 2 common_interfaces are used, so a recorded bag opens in
+any ROS tool. The plant simulator and the serial driver publish and subscribe exactly
+the same topics, so either is a drop-in for the other.
+
+One control cycle, all messages stamped with the stamp of the sample that started it::
+
+    plant | driver --JOINT_STATES, MOTOR_CURRENT-->  (sample k, stamp t_k)
+    estimator      --STATE------------------------>  (t_k)
+    supervisor     --CART_FORCE, MODE (on change)->  (t_k)
+    current loop   --CURRENT_SETPOINT, VOLTAGE---->  (t_k)
+    plant | driver applies VOLTAGE until sample k+1
+
+There is no stamped scalar in common_interfaces, and ROS's policy is to carry a quantity
+in the message that names its meaning. The armature quantities therefore travel as a
+``sensor_msgs/JointState`` of the single joint ``motor`` with the value in ``effort``,
+the way ros2_control's joint_state_broadcaster maps a motor's current interface onto
+``effort``; the unit is fixed per topic (A or V). The supervisor's mode travels as a
+``diagnostic_msgs/DiagnosticArray`` with one status (a stamped, named state with a
+level and a reason), published when it changes and latched for late joiners.
+
+QoS is described here as plain data (the recorder stores it in ``metadata.yaml``);
+nodes turn it into rclpy profiles in :mod:`pisc_msgs_py.base_node`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = [
+    "CART_FORCE",
+    "CLOCK",
+    "CONTROL_QOS",
+    "CURRENT_SETPOINT",
+    "DIAGNOSTICS",
+    "GRAPH_TOPICS",
+    "JOINT_NAMES",
+    "JOINT_STATES",
+    "LATCHED_QOS",
+    "MODE",
+    "MOTOR_CURRENT",
+    "MOTOR_JOINT",
+    "QosSpec",
+    "SIM_STATE",
+    "STATE",
+    "Topic",
+    "VOLTAGE",
+]
+
+
+@dataclass(frozen=True)
+class QosSpec:
+    """A QoS profile as data: history depth, reliability and durability."""
+
+    depth: int
+    reliable: bool = True
+    transient_local: bool = False
+
+
+@dataclass(frozen=True)
+class Topic:
+    name: str
+    type: str  # ROS 2 type name, e.g. 'sensor_msgs/msg/JointState'
+    qos: QosSpec
+    description: str
+
+
+# Every sample matters (lockstep simulation waits for each answer, the recorder must
+# lose nothing): reliable, with a history deep enough to ride out a slow subscriber.
+CONTROL_QOS = QosSpec(depth=100, reliable=True, transient_local=False)
+# The last value is what counts and late joiners need it.
+LATCHED_QOS = QosSpec(depth=1, reliable=True, transient_local=True)
+
+#: Joint order of every JointState on the mechanical topics.
+JOINT_NAMES = ("cart", "pendulum")
+#: The single joint of the armature topics.
+MOTOR_JOINT = "motor"
+
+JOINT_STATES = Topic(
+    "/pisc/joint_states", "sensor_msgs/msg/JointState", CONTROL_QOS,
+    "measured cart position [m] and pendulum angle [rad] (position), joints cart, pendulum",
+)
+MOTOR_CURRENT = Topic(
+    "/pisc/motor/current", "sensor_msgs/msg/JointState", CONTROL_QOS,
+    "measured armature current [A] (effort of joint motor)",
+)
+STATE = Topic(
+    "/pisc/state", "sensor_msgs/msg/JointState", CONTROL_QOS,
+    "estimated state: positions as measured, velocities by differences (4.7), (4.9)",
+)
+CART_FORCE = Topic(
+    "/pisc/cart_force", "geometry_msgs/msg/WrenchStamped", CONTROL_QOS,
+    "force the supervisor asks of the cart [N] (force.x, frame cart)",
+)
+MODE = Topic(
+    "/pisc/mode", "diagnostic_msgs/msg/DiagnosticArray", LATCHED_QOS,
+    "supervisor mode (status message: swing_up, catch or fault) and why, on change",
+)
+CURRENT_SETPOINT = Topic(
+    "/pisc/motor/current_setpoint", "sensor_msgs/msg/JointState", CONTROL_QOS,
+    "desired armature current i_d [A] (effort of joint motor), (4.2) saturated",
+)
+VOLTAGE = Topic(
+    "/pisc/motor/voltage", "sensor_msgs/msg/JointState", CONTROL_QOS,
+    "armature voltage command u [V] (effort of joint motor), PI output (3.47)",
+)
+SIM_STATE = Topic(
+    "/pisc/sim/true_state", "sensor_msgs/msg/JointState", CONTROL_QOS,
+    "simulator only: true state (cart, pendulum, motor: position, velocity; motor effort "
+    "= current [A]) at each sample, for analysis",
+)
+DIAGNOSTICS = Topic(
+    "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", QosSpec(depth=100),
+    "health of every node; faults say why",
+)
+CLOCK = Topic(
+    "/clock", "rosgraph_msgs/msg/Clock", QosSpec(depth=10, reliable=False),
+    "simulated time, published by the plant in lockstep mode",
+)
+
+#: The topics a run records by default.
+GRAPH_TOPICS = (
+    JOINT_STATES, MOTOR_CURRENT, STATE, CART_FORCE, MODE, CURRENT_SETPOINT, VOLTAGE,
+    SIM_STATE, DIAGNOSTICS, CLOCK,
+)
