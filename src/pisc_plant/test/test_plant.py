@@ -1,0 +1,132 @@
+"""Full-fidelity plant: stability, conservation, armature, end stops, sampled interface."""
+
+import math
+
+import numpy as np
+import pytest
+
+from pisc_msgs_py.config import ConfigError
+from pisc_plant import motor as motor_model
+from pisc_plant.dynamics import energy
+from pisc_plant.params import MotorParams, RigParams, TrackParams
+from pisc_plant.plant import (
+    CURRENT,
+    THETA,
+    THETA_DOT,
+    X_DOT,
+    IntegratorParams,
+    Plant,
+    PlantConfig,
+    X,
+)
+from pisc_plant.sampled import SampledPlant
+
+DEFAULT = PlantConfig()
+
+
+def test_default_integrator_is_rk4_and_refuses_too_few_substeps():
+    assert DEFAULT.integrator == IntegratorParams(method="rk4", substeps=20)
+    with pytest.raises(ConfigError, match=r"integrator.substeps = 5 is too few for rk4.*at least"):
+        Plant(PlantConfig(integrator=IntegratorParams(method="rk4", substeps=5)))
+
+
+@pytest.mark.parametrize("integrator", [IntegratorParams("etdrk4", 1),
+                                        IntegratorParams("etdrk4", 5),
+                                        IntegratorParams("rk4", 20)])
+def test_stable_with_the_armature_at_every_supported_step(integrator):
+    """Bang-bang voltage at the 5 ms period for 2 s: the state stays finite and bounded."""
+    plant = Plant(PlantConfig(integrator=integrator))
+    y = plant.initial_state(0.0)
+    for k in range(400):
+        y = plant.advance(y, 11.47 if (k // 20) % 2 else -11.47, 0.005)
+        assert np.all(np.isfinite(y))
+        assert abs(y[CURRENT]) < 11.47 / 14.0 + 0.05
+
+
+def test_energy_is_conserved_without_the_motor():
+    """An open-circuit motor without rotor leaves a conservative cart-pole (2.54)."""
+    motor = MotorParams(resistance_ohm=1e15, rotor_inertia_kgm2=0.0, viscous_friction_nms=0.0)
+    plant = Plant(PlantConfig(motor=motor, integrator=IntegratorParams("etdrk4", 20),
+                              track=TrackParams(min_m=-100.0, max_m=100.0)))
+    y = plant.initial_state(0.0, 0.1, math.pi / 2, 0.0)
+    rig = RigParams()
+    e0 = energy(rig, y[X_DOT], y[THETA], y[THETA_DOT])
+    for _ in range(2000):  # 10 s
+        y = plant.advance(y, 0.0, 0.005)
+    e1 = energy(rig, y[X_DOT], y[THETA], y[THETA_DOT])
+    assert abs(e1 - e0) / rig.mgl < 1e-9
+
+
+def test_armature_settles_to_the_quasi_static_current():
+    plant = Plant(DEFAULT)
+    y = plant.initial_state(0.0)
+    y = plant.advance(y, 5.0, 0.005)
+    applied = float(DEFAULT.actuator.apply(5.0))
+    expected = motor_model.quasi_static_current(DEFAULT.motor, applied, y[X_DOT])
+    # L/R = 0.14 ms: after 5 ms only the lag behind the accelerating cart remains
+    assert y[CURRENT] == pytest.approx(expected, abs=2e-4)
+
+
+def test_end_stop_stops_the_cart_with_an_impulse_that_spares_the_pendulum_row():
+    plant = Plant(DEFAULT)
+    y = plant.initial_state(0.125, 1.0, 2.5, 3.0)
+    y_before = y.copy()
+    y = plant.end_stops(np.array([0.131, 1.0, 2.5, 3.0, 0.0, 1.0, 2.5]))
+    assert (y[X], y[X_DOT]) == (0.13, 0.0)
+    rig = RigParams()
+    dx_dot = y[X_DOT] - 1.0
+    dth_dot = y[THETA_DOT] - 3.0
+    # second row of M(q) applied to the velocity change is zero: no impulse on the pendulum
+    row2 = rig.ml * math.cos(2.5) * dx_dot + (rig.ml * rig.pendulum_com_m
+                                              + rig.pendulum_inertia_kgm2) * dth_dot
+    assert row2 == pytest.approx(0.0, abs=1e-15)
+    assert y_before[X] == 0.125
+
+
+def test_a_cart_moving_inwards_at_the_stop_keeps_its_speed():
+    y = Plant(DEFAULT).end_stops(np.array([0.1305, -0.5, 3.0, 0.0, 0.0, 1.0, 2.5]))
+    assert (y[X], y[X_DOT]) == (0.13, -0.5)
+
+
+def test_measurement_of_a_settled_state_is_within_one_code():
+    plant = Plant(DEFAULT)
+    for x in (-0.2, -0.05, 0.0, 0.1):
+        xm, theta_m, i_m = plant.measurement(plant.initial_state(x, theta=math.pi + 0.01))
+        assert xm <= x and x - xm < 2e-3
+        assert abs(theta_m - (math.pi + 0.01)) <= math.pi / 4000
+        assert abs(i_m) < 0.013  # one code of the current ADC
+
+
+def test_sampled_plant_applies_a_late_command_from_its_arrival():
+    plant = Plant(DEFAULT)
+    start = plant.initial_state(0.0)
+
+    def run(delay):
+        sp = SampledPlant(plant, start)
+        sp.command(6.0)
+        sp.advance()
+        sp.command(-6.0, delay)
+        sp.advance()
+        return sp
+
+    delayed = run(0.002)
+    manual = plant.advance(plant.advance(plant.advance(start, 6.0, 0.005), 6.0, 0.002), -6.0, 0.003)
+    np.testing.assert_array_equal(delayed.state, manual)
+    missed = run(0.006)  # arrived after the next sample: the whole period at the old voltage
+    np.testing.assert_array_equal(missed.state, plant.advance(plant.advance(start, 6.0, 0.005),
+                                                              6.0, 0.005))
+    assert missed.applied_v == -6.0 and missed.index == 2 and missed.time_ns == 10_000_000
+
+
+def test_sampled_plant_refuses_non_finite_commands():
+    sp = SampledPlant(Plant(DEFAULT), Plant(DEFAULT).initial_state())
+    with pytest.raises(ValueError, match="not finite"):
+        sp.command(float("nan"))
+
+
+def test_batch_advance_matches_single_rigs():
+    plant = Plant(DEFAULT)
+    batch = plant.initial_state(np.array([-0.1, 0.0, 0.1]))
+    out = plant.advance(batch, np.array([3.0, -2.0, 1.0]), 0.005)
+    single = plant.advance(plant.initial_state(0.1), 1.0, 0.005)
+    np.testing.assert_allclose(out[2], single, rtol=1e-13, atol=1e-15)
