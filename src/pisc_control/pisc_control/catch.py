@@ -1,0 +1,120 @@
+"""Linear state feedback that catches and balances the pendulum upright, thesis 3.3."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import control
+import numpy as np
+from numpy.typing import ArrayLike
+
+from pisc_msgs_py.config import ConfigError, finite, nonnegative, one_of, param, positive
+from pisc_plant.dynamics import linearise_upright, wrap_to_upright
+from pisc_plant.params import RigParams
+
+__all__ = ["CatchParams", "catch_force", "catch_gain"]
+
+
+@dataclass(frozen=True)
+class CatchParams:
+    """How the catch gain K is designed from the linearisation (3.41)-(3.42).
+
+    K is always computed from the model, never typed in: by pole placement (the
+    thesis's method, Table 6.3) or by LQR.
+    """
+
+    design: str = param("poles", "gain design: 'poles' (placement) or 'lqr'", "",
+                        one_of("poles", "lqr"))
+    poles: tuple[float, ...] = param(
+        [-15.0, -11.0, -2.0, -1.5],
+        "real parts of the closed-loop poles for design 'poles' (thesis: -15, -11, -2, -1.5)",
+        "1/s",
+    )
+    poles_imag: tuple[float, ...] = param(
+        [0.0, 0.0, 0.0, 0.0], "imaginary parts of the poles, in conjugate pairs", "rad/s")
+    lqr_q: tuple[float, ...] = param(
+        [1.0, 1.0, 1.0, 1.0], "diagonal of Q on [x, x_dot, theta, theta_dot] for design 'lqr'",
+        "", nonnegative)
+    lqr_r: float = param(1.0, "R, weight of f^2 for design 'lqr'", "1/N^2", positive)
+    target_m: float = param(0.0, "x*, where the catch balances the cart", "m", finite)
+
+    @property
+    def pole_set(self) -> np.ndarray:
+        """The poles as complex numbers."""
+        return np.array(self.poles) + 1j * np.array(self.poles_imag)
+
+    def __post_init__(self) -> None:
+        if self.design == "poles":
+            if len(self.poles) != 4 or len(self.poles_imag) != 4:
+                raise ConfigError(
+                    f"catch.poles, catch.poles_imag: expected 4 values each, got "
+                    f"{len(self.poles)} and {len(self.poles_imag)}")
+            if not all(p < 0.0 for p in self.poles):
+                raise ConfigError(
+                    f"catch.poles = {list(self.poles)}: every pole must have a negative real "
+                    "part (a stable closed loop)")
+            pairs = sorted(zip(self.poles, self.poles_imag, strict=True))
+            if pairs != sorted(zip(self.poles, (-i for i in self.poles_imag), strict=True)):
+                raise ConfigError(
+                    f"catch.poles_imag = {list(self.poles_imag)}: complex poles must come in "
+                    "conjugate pairs (same real part, opposite imaginary parts)")
+        if len(self.lqr_q) != 4:
+            raise ConfigError(f"catch.lqr_q: expected 4 weights, got {len(self.lqr_q)}")
+
+
+def catch_gain(rig: RigParams, params: CatchParams) -> np.ndarray:
+    """K (shape (4,)) such that ``f = -K z`` places the poles or minimises the LQR cost.
+
+    Raises :class:`ConfigError` if the linearisation is not controllable.
+
+    Notes
+    -----
+    Controllability by the rank of [B AB A^2B A^3B] (its determinant is (3.45));
+    pole placement by python-control's ``place`` (Ackermann's ``acker`` when a pole is
+    repeated, which ``place`` cannot do with one input); LQR by ``control.lqr``.
+    """
+    a, b = linearise_upright(rig)
+    ctrb = control.ctrb(a, b)
+    rank = np.linalg.matrix_rank(ctrb)
+    if rank < 4:
+        raise ConfigError(
+            f"rig: the linearisation about upright is not controllable (rank of the "
+            f"controllability matrix (3.45) is {rank} < 4); check rig.gravity_mps2 and the "
+            "masses"
+        )
+    if params.design == "poles":
+        poles = params.pole_set
+        if len(np.unique(poles)) < len(poles):
+            k = control.acker(a, b, poles)
+        else:
+            k = control.place(a, b, poles)
+    else:
+        k, _, _ = control.lqr(a, b, np.diag(params.lqr_q), np.array([[params.lqr_r]]))
+    k = np.asarray(k, dtype=float).reshape(4)
+    if not np.all(np.isfinite(k)):
+        raise ConfigError(f"catch: the gain design produced non-finite gains {k}")
+    return k
+
+
+def catch_force(
+    gain: np.ndarray,
+    x: ArrayLike,
+    x_dot: ArrayLike,
+    theta: ArrayLike,
+    theta_dot: ArrayLike,
+    target_m: ArrayLike = 0.0,
+) -> np.ndarray:
+    """``f = -K z``, z relative to the upright equilibrium at ``target_m``.
+
+    Notes
+    -----
+    Implements (3.46) with theta wrapped to the nearest upright (2 pi n), as the C++
+    program does with ``thetad``.
+    """
+    k1, k2, k3, k4 = gain
+    return -(
+        k1 * (np.asarray(x, dtype=float) - target_m)
+        + k2 * np.asarray(x_dot, dtype=float)
+        + k3 * wrap_to_upright(theta)
+        + k4 * np.asarray(theta_dot, dtype=float)
+    )

@@ -1,0 +1,195 @@
+"""The supervisor: swing-up, catch, the switching rule between them, and safety.
+
+Each sample the supervisor decides the mode and the force on the cart:
+
+* **catch** (3.46) while the switching criterion (4.1),
+  ``theta^2 + k_va theta_dot^2``, with theta from the nearest upright, is below
+  ``delta_s``; once catching it keeps catching until the criterion reaches
+  ``delta_exit`` (``delta_exit = delta_s`` is the thesis's rule without hysteresis);
+* **swing_up** (3.30) otherwise;
+* **fault** when the state is not finite or the cart leaves the safe range: the force
+  is zero, the mode latches, and downstream the current loop commands zero volts.
+
+Start-up: (3.30) gives f = 0 for a pendulum hanging at rest with the cart at the
+target, so a rig started there never moves; and from rest the thesis's own convergence
+argument does not apply (it needs V(0) < k_e (2 m g l)^2 / 2, section 3.2, which a
+pendulum hanging at rest never satisfies). With ``startup.distance_m = D > 0`` the
+swing-up target starts at D from the first measured position, towards the middle of
+the safe range, and stays there until the first catch. Pulling the cart over D is what
+swings the pendulum up; because (3.30) does not depend on where the cart is, every
+start then sees the same swing-up, whatever its position on the track.
+
+The functions are pure and broadcast over arrays, so one call steps one rig in the
+supervisor node or many in a batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from pisc_control.catch import CatchParams, catch_force, catch_gain
+from pisc_control.swing_up import SwingUpParams, check_gain_condition, swing_up_force
+from pisc_msgs_py.config import ConfigError, nonnegative, param, positive
+from pisc_msgs_py.types import Mode
+from pisc_plant.dynamics import wrap_to_upright
+from pisc_plant.params import RigParams
+
+__all__ = [
+    "FAULT_NONE",
+    "FAULT_NOT_FINITE",
+    "FAULT_OUT_OF_RANGE",
+    "SafetyParams",
+    "StartupParams",
+    "Supervisor",
+    "SupervisorConfig",
+    "SupervisorState",
+    "SwitchingParams",
+    "switching_criterion",
+]
+
+FAULT_NONE = 0
+FAULT_NOT_FINITE = 1
+FAULT_OUT_OF_RANGE = 2
+
+
+@dataclass(frozen=True)
+class SwitchingParams:
+    """Switching rule (4.1); thesis values (Table 6.5) are k_va = 0.015, delta_s = 0.6."""
+
+    k_va: float = param(0.015, "k_va, weight of theta_dot^2 in the criterion (4.1)", "s^2",
+                        nonnegative)
+    delta_s: float = param(0.6, "delta_s, catch when the criterion is below it (4.1)", "rad^2",
+                           positive)
+    delta_exit: float = param(0.6, "stop catching when the criterion reaches it "
+                              "(hysteresis; = delta_s is the thesis's rule)", "rad^2", positive)
+
+    def __post_init__(self) -> None:
+        if self.delta_exit < self.delta_s:
+            raise ConfigError(
+                f"switching.delta_exit = {self.delta_exit} must not be below "
+                f"switching.delta_s = {self.delta_s} (the catch would release at once)")
+
+
+@dataclass(frozen=True)
+class StartupParams:
+    distance_m: float = param(
+        0.0, "D: until the first catch the swing-up target is D from the first measured "
+        "position, towards the middle of the safe range (0 = swing_up.target_m from the "
+        "start, the thesis's behaviour)", "m", nonnegative)
+
+
+@dataclass(frozen=True)
+class SafetyParams:
+    """Soft limits: outside them the supervisor faults and the motor gets zero volts."""
+
+    x_min_m: float = param(-0.225, "lowest safe cart position", "m")
+    x_max_m: float = param(0.125, "highest safe cart position", "m")
+
+    def __post_init__(self) -> None:
+        if not self.x_min_m < self.x_max_m:
+            raise ConfigError(
+                f"safety.x_min_m = {self.x_min_m} must be below safety.x_max_m = {self.x_max_m}")
+
+
+@dataclass(frozen=True)
+class SupervisorConfig:
+    rig: RigParams = field(default_factory=RigParams)
+    swing_up: SwingUpParams = field(default_factory=SwingUpParams)
+    catch: CatchParams = field(default_factory=CatchParams)
+    switching: SwitchingParams = field(default_factory=SwitchingParams)
+    startup: StartupParams = field(default_factory=StartupParams)
+    safety: SafetyParams = field(default_factory=SafetyParams)
+
+
+@dataclass(frozen=True)
+class SupervisorState:
+    """Per-rig memory of the supervisor; ``None`` fields before the first sample."""
+
+    mode: np.ndarray | None = None
+    fault: np.ndarray | None = None
+    startup_target_m: np.ndarray | None = None
+    caught: np.ndarray | None = None  # has caught at least once
+
+
+def switching_criterion(k_va: float, theta: ArrayLike, theta_dot: ArrayLike) -> np.ndarray:
+    """``theta^2 + k_va theta_dot^2`` with theta from the nearest upright (4.1)."""
+    th = wrap_to_upright(theta)
+    theta_dot = np.asarray(theta_dot, dtype=float)
+    return th * th + k_va * theta_dot * theta_dot
+
+
+class Supervisor:
+    """A validated configuration with its catch gain; stateless apart from constants.
+
+    Construction refuses a configuration that breaks (3.29) or whose linearisation is
+    not controllable, with a :class:`ConfigError` naming the parameters.
+    """
+
+    def __init__(self, config: SupervisorConfig) -> None:
+        check_gain_condition(config.rig, config.swing_up)
+        self.config = config
+        self.gain = catch_gain(config.rig, config.catch)
+
+    def update(
+        self,
+        state: SupervisorState,
+        x: ArrayLike,
+        x_dot: ArrayLike,
+        theta: ArrayLike,
+        theta_dot: ArrayLike,
+    ) -> tuple[SupervisorState, np.ndarray, np.ndarray]:
+        """Decide the mode and force for one sample; returns (state, force, mode code)."""
+        c = self.config
+        x = np.asarray(x, dtype=float)
+        x_dot = np.asarray(x_dot, dtype=float)
+        theta = np.asarray(theta, dtype=float)
+        theta_dot = np.asarray(theta_dot, dtype=float)
+        shape = np.broadcast_shapes(x.shape, x_dot.shape, theta.shape, theta_dot.shape)
+
+        if state.mode is None:
+            mode = np.full(shape, Mode.SWING_UP.code)
+            fault = np.full(shape, FAULT_NONE)
+            caught = np.zeros(shape, dtype=bool)
+            middle = 0.5 * (c.safety.x_min_m + c.safety.x_max_m)
+            direction = np.where(x >= middle, -1.0, 1.0)
+            startup_target = np.where(c.startup.distance_m > 0.0,
+                                      x + direction * c.startup.distance_m, c.swing_up.target_m)
+        else:
+            mode, fault, caught = state.mode, state.fault, state.caught
+            startup_target = state.startup_target_m
+
+        finite = np.isfinite(x) & np.isfinite(x_dot) & np.isfinite(theta) & np.isfinite(theta_dot)
+        in_range = (x >= c.safety.x_min_m) & (x <= c.safety.x_max_m)
+        new_fault = np.where(fault != FAULT_NONE, fault,
+                             np.where(~finite, FAULT_NOT_FINITE,
+                                      np.where(~in_range, FAULT_OUT_OF_RANGE, FAULT_NONE)))
+
+        criterion = switching_criterion(c.switching.k_va, theta, theta_dot)
+        catching = mode == Mode.CATCH.code
+        threshold = np.where(catching, c.switching.delta_exit, c.switching.delta_s)
+        new_mode = np.where(criterion < threshold, Mode.CATCH.code, Mode.SWING_UP.code)
+        new_mode = np.where(new_fault != FAULT_NONE, Mode.FAULT.code, new_mode)
+
+        caught = caught | (new_mode == Mode.CATCH.code)
+        target = np.where(caught, c.swing_up.target_m, startup_target)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            f_swing = swing_up_force(c.rig, c.swing_up, x, x_dot, theta, theta_dot, target)
+            f_catch = catch_force(self.gain, x, x_dot, theta, theta_dot, c.catch.target_m)
+        force = np.where(new_mode == Mode.CATCH.code, f_catch,
+                         np.where(new_mode == Mode.SWING_UP.code, f_swing, 0.0))
+        # (3.29) keeps the swing-up denominator positive; a non-finite force can only come
+        # from non-finite inputs, which fault above. Never pass one on.
+        force = np.where(np.isfinite(force), force, 0.0)
+        return SupervisorState(new_mode, new_fault, startup_target, caught), force, new_mode
+
+    def fault_reason(self, fault: int, x: float) -> str:
+        c = self.config.safety
+        if fault == FAULT_NOT_FINITE:
+            return "non-finite state estimate"
+        if fault == FAULT_OUT_OF_RANGE:
+            return (f"cart at x = {x:.4f} m outside the safe range "
+                    f"[{c.x_min_m}, {c.x_max_m}] m (safety.x_min_m, safety.x_max_m)")
+        return ""

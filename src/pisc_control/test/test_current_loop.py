@@ -1,0 +1,63 @@
+"""Force to current (4.2) and the sampled PI loop (3.47) exactly as the C++ program."""
+
+import numpy as np
+import pytest
+
+from pisc_control.current_loop import (
+    CurrentLoopParams,
+    CurrentLoopState,
+    current_loop_update,
+    current_setpoint,
+)
+from pisc_plant.params import MotorParams
+
+P = CurrentLoopParams()
+TS = 0.005
+
+
+def cpp_reference(forces, currents):
+    """Appendix A.2, transcribed line by line (float arithmetic in double)."""
+    VM, IM, radioR, km, kpi, kii = 11.47, 0.9, 0.032, 0.0637, 2.9, 1800.0
+    intei = 0.0
+    out = []
+    for f, curr in zip(forces, currents, strict=True):
+        i_d = f * (radioR / km)
+        i_d = min(max(i_d, -IM), IM)
+        ei = i_d - curr
+        propi = kpi * ei
+        if intei < VM and intei > -VM:
+            intei = intei + kii * TS * ei
+        else:
+            if intei >= VM:
+                intei = 0.95 * VM
+            if intei <= -VM:
+                intei = -0.95 * VM
+        uf = propi + intei
+        uf = min(max(uf, -VM), VM)
+        out.append((i_d, uf))
+    return out
+
+
+def test_matches_the_cpp_program_including_anti_windup():
+    rng = np.random.default_rng(5)
+    forces = np.concatenate([np.full(50, 3.0), rng.uniform(-3, 3, 200), np.full(50, -3.0)])
+    currents = np.concatenate([np.zeros(50), rng.uniform(-1, 1, 200), np.zeros(50)])
+    state = CurrentLoopState()
+    motor = MotorParams()
+    reset_seen = False
+    for (f, i), (i_d_ref, u_ref) in zip(zip(forces, currents, strict=True),
+                                        cpp_reference(forces, currents), strict=True):
+        i_d = current_setpoint(motor, P, f)
+        before = float(state.integral_v)
+        state, u = current_loop_update(P, TS, state, i_d, i)
+        reset_seen |= before >= 11.47 and float(state.integral_v) == 0.95 * 11.47
+        assert float(i_d) == pytest.approx(i_d_ref, rel=1e-12, abs=1e-15)
+        assert float(u) == pytest.approx(u_ref, rel=1e-12, abs=1e-12)
+    assert reset_seen  # the test exercised the reset branch
+
+
+def test_setpoint_is_f_r_over_km_saturated():
+    motor = MotorParams()
+    assert current_setpoint(motor, P, 1.0) == pytest.approx(0.032 / 0.0637)
+    assert current_setpoint(motor, P, 10.0) == 0.9
+    assert current_setpoint(motor, P, -10.0) == -0.9

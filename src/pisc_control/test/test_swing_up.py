@@ -1,0 +1,77 @@
+"""Swing-up law (3.30) and its gain condition (3.29)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from pisc_control.swing_up import (
+    SwingUpParams,
+    check_gain_condition,
+    gain_condition,
+    swing_up_force,
+)
+from pisc_msgs_py.config import ConfigError
+from pisc_plant.dynamics import accelerations, energy
+from pisc_plant.params import RigParams
+
+RIG = RigParams()
+THESIS = SwingUpParams()
+
+
+def test_thesis_gains_satisfy_3_29_with_the_published_numbers():
+    ratio, bound = gain_condition(RIG, THESIS)
+    assert round(ratio, 5) == 0.01235
+    assert round(bound, 5) == 0.00867
+    check_gain_condition(RIG, THESIS)
+
+
+def test_gains_breaking_3_29_are_refused_with_the_condition_named():
+    with pytest.raises(ConfigError, match=r"swing_up.k_v / swing_up.k_e .* \(3.29\)"):
+        check_gain_condition(RIG, SwingUpParams(k_v=0.05, k_e=8.1))
+
+
+def test_energy_target_raises_the_bound():
+    ratio, bound = gain_condition(RIG, SwingUpParams(energy_target_j=0.002))
+    assert bound == pytest.approx(RIG.a2 * (2 * RIG.mgl + 0.002))
+
+
+def test_law_at_a_worked_state():
+    x, x_d, th, th_d = 0.03, -0.2, 2.5, 4.0
+    m, l, i, g = RIG.pendulum_mass_kg, RIG.pendulum_com_m, RIG.pendulum_inertia_kgm2, 9.81
+    a1 = m * m * l * l / (m * l * l + i)
+    a2 = RIG.cart_mass_kg + m
+    e = (0.5 * a2 * x_d**2 + m * l * x_d * th_d * math.cos(th)
+         + 0.5 * (i + m * l * l) * th_d**2 + m * g * l * (math.cos(th) - 1))
+    den = a2 - a1 * math.cos(th) ** 2
+    expected = ((0.1 * math.sin(th) * (a1 * g * math.cos(th) - m * l * th_d**2)
+                 - den * (55.5 * x + 1.55 * x_d)) / (0.1 + den * 8.1 * e))
+    assert swing_up_force(RIG, THESIS, x, x_d, th, th_d) == pytest.approx(expected, rel=1e-13)
+
+
+@pytest.mark.parametrize("gains", [THESIS, SwingUpParams(k_v=0.008, k_x=6.3, k_delta=0.087,
+                                                         k_e=0.47, energy_target_j=0.0012,
+                                                         target_m=-0.04)])
+def test_lyapunov_derivative_is_minus_k_delta_x_dot_squared(gains):
+    """(3.31): with f from (3.30) and the dynamics (3.3), V_dot = -k_delta x_dot^2."""
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        x, x_d, th, th_d = (rng.uniform(-0.2, 0.1), rng.uniform(-1, 1), rng.uniform(-7, 7),
+                            rng.uniform(-12, 12))
+        f = swing_up_force(RIG, gains, x, x_d, th, th_d)
+        x_dd, _ = accelerations(RIG, th, th_d, f)
+        e = energy(RIG, x_d, th, th_d) - gains.energy_target_j
+        v_dot = (gains.k_e * e * x_d * f + gains.k_v * x_d * x_dd
+                 + gains.k_x * (x - gains.target_m) * x_d)
+        assert v_dot == pytest.approx(-gains.k_delta * x_d**2, rel=1e-7, abs=1e-12)
+
+
+def test_denominator_stays_positive_at_the_boundary_of_3_29():
+    """Just inside (3.29) the force is finite for every state, including hanging at rest."""
+    bound = 2 * RIG.mgl * RIG.a2
+    gains = SwingUpParams(k_v=0.1, k_e=0.1 / (bound * (1 + 1e-9)))
+    rng = np.random.default_rng(4)
+    states = rng.uniform([-0.2, -2, -10, -30], [0.2, 2, 10, 30], size=(20000, 4))
+    forces = swing_up_force(RIG, gains, *states.T)
+    assert np.all(np.isfinite(forces))
+    assert np.isfinite(swing_up_force(RIG, gains, 0.01, 0.0, math.pi, 0.0))
