@@ -1,0 +1,83 @@
+"""Supervisor node: state in, cart force out every cycle, mode out when it changes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pisc_control.catch import CatchParams
+from pisc_control.supervisor import (
+    SafetyParams,
+    StartupParams,
+    Supervisor,
+    SupervisorConfig,
+    SupervisorState,
+    SwitchingParams,
+)
+from pisc_control.swing_up import SwingUpParams
+from pisc_msgs_py.base_node import ERROR, OK, PiscNode, run_node
+from pisc_msgs_py.convert import MessageError, cart_force_to_msg, mode_to_msg, state_from_msg
+from pisc_msgs_py.topics import CART_FORCE, MODE, STATE
+from pisc_msgs_py.types import CartForce, Mode, ModeReport
+from pisc_plant.params import RigParams
+
+SECTIONS = {
+    "rig": RigParams,
+    "swing_up": SwingUpParams,
+    "catch": CatchParams,
+    "switching": SwitchingParams,
+    "startup": StartupParams,
+    "safety": SafetyParams,
+}
+
+
+class SupervisorNode(PiscNode):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("supervisor", SECTIONS, **kwargs)
+        self._state = SupervisorState()
+        self._mode: Mode | None = None
+        self._last: tuple[int, Any] | None = None  # (stamp, published force) for resends
+        self._force_pub = self.publisher(CART_FORCE)
+        self._mode_pub = self.publisher(MODE)
+        self._sub = self.subscription(STATE, self._on_state)
+        self.get_logger().info(f"catch gain K = {np.array2string(self.config.gain, precision=5)}")
+
+    def build(self, flat: dict[str, Any]) -> Supervisor:
+        return Supervisor(SupervisorConfig(**{s: self.section(flat, s) for s in SECTIONS}))
+
+    def _on_state(self, msg: Any) -> None:
+        try:
+            state = state_from_msg(msg)
+        except MessageError as exc:
+            self.diagnose(ERROR, f"rejected state: {exc}")
+            return
+        if self._last is not None and self._last[0] == state.stamp_ns:
+            self._force_pub.publish(self._last[1])  # a resent cycle: same answer, same state
+            return
+        supervisor: Supervisor = self.config
+        self._state, force, code = supervisor.update(
+            self._state, state.position_m, state.velocity_mps, state.angle_rad, state.rate_radps)
+        mode = Mode.from_code(int(code))
+        if mode is not self._mode:
+            # Announce a change before the force of the same cycle, so that the current
+            # loop normally knows of a fault before it handles that cycle.
+            reason = ""
+            if mode is Mode.FAULT:
+                reason = supervisor.fault_reason(int(self._state.fault), state.position_m)
+                self.diagnose(ERROR, f"fault: {reason}; force set to 0", state.stamp_ns)
+            else:
+                self.diagnose(OK, mode.value, state.stamp_ns)
+            self._mode_pub.publish(mode_to_msg(ModeReport(state.stamp_ns, mode, reason)))
+            self._mode = mode
+        out = cart_force_to_msg(CartForce(state.stamp_ns, float(force)))
+        self._last = (state.stamp_ns, out)
+        self._force_pub.publish(out)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(SupervisorNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,177 @@
+"""Plant node: the simulated rig on the graph's topics, against the wall clock or lockstep.
+
+``simulation.clock = wall``: a sample every period of the wall clock, stamped with the
+time it is published; a voltage takes effect when it arrives, as on the rig.
+``simulation.clock = lockstep``: the node owns simulated time and publishes ``/clock``;
+it publishes sample k, waits for the voltage stamped with sample k, integrates one
+period and publishes sample k+1, so a run goes as fast as the graph answers. The other
+nodes run with ``use_sim_time``; nothing in the loop depends on timers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from rclpy.time import Time
+from rosgraph_msgs.msg import Clock
+
+from pisc_msgs_py.base_node import OK, WARN, PiscNode, run_node
+from pisc_msgs_py.config import in_range, one_of, param
+from pisc_msgs_py.convert import (
+    MessageError,
+    joint_sample_to_msg,
+    motor_sample_from_msg,
+    motor_sample_to_msg,
+    stamp_to_msg,
+    true_state_to_msg,
+)
+from pisc_msgs_py.topics import CLOCK, JOINT_STATES, MOTOR_CURRENT, SIM_STATE, VOLTAGE
+from pisc_msgs_py.types import JointSample, MotorSample, TrueState
+from pisc_plant.params import (
+    ActuatorParams,
+    InitialParams,
+    LoopParams,
+    MotorParams,
+    RigParams,
+    SensorParams,
+    TrackParams,
+)
+from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
+from pisc_plant.sampled import SampledPlant
+
+DIAGNOSTIC_EVERY = 200
+
+
+@dataclass(frozen=True)
+class SimulationParams:
+    clock: str = param("lockstep", "'wall': real time; 'lockstep': simulated time on /clock, "
+                       "advancing as soon as the graph answers", "", one_of("wall", "lockstep"))
+    min_subscribers: int = param(1, "lockstep: subscribers of joint_states and of the motor "
+                                 "current to wait for before the first sample", "",
+                                 in_range(0, 64))
+    min_true_state_subscribers: int = param(0, "lockstep: subscribers of the true state to "
+                                            "wait for (a recorder)", "", in_range(0, 64))
+    publish_true_state: bool = param(True, "publish the true state on /pisc/sim/true_state", "")
+    resend_after_s: float = param(0.5, "lockstep: send the current sample again when no voltage "
+                                  "answered it for this long (the controllers answer a repeated "
+                                  "stamp with their first answer)", "s", in_range(0.01, 60.0))
+
+
+SECTIONS = {
+    "rig": RigParams, "motor": MotorParams, "sensors": SensorParams, "actuator": ActuatorParams,
+    "track": TrackParams, "loop": LoopParams, "integrator": IntegratorParams,
+    "initial": InitialParams, "simulation": SimulationParams,
+}
+
+
+class PlantNode(PiscNode):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("plant", SECTIONS, **kwargs)
+        plant_config, initial, self._sim_params = self.config
+        plant = Plant(plant_config)
+        state = plant.initial_state(initial.x_m, initial.x_dot_mps, initial.theta_rad,
+                                    initial.theta_dot_radps)
+        self._lockstep = self._sim_params.clock == "lockstep"
+        self._sim = SampledPlant(plant, state)
+        self._stamp_ns = 0  # stamp of the current sample
+        self._published_ns = 0  # wall time the current sample was published
+        self._started = False
+        self._resent = 0
+        self._stale = 0
+        self._missed = 0
+        self._joint_pub = self.publisher(JOINT_STATES)
+        self._current_pub = self.publisher(MOTOR_CURRENT)
+        self._true_pub = self.publisher(SIM_STATE)
+        self._clock_pub = self.publisher(CLOCK) if self._lockstep else None
+        self._sub = self.subscription(VOLTAGE, self._on_voltage)
+        period = plant_config.loop.period_s
+        self._timer = self.create_timer(0.01 if self._lockstep else period, self._on_timer)
+
+    def build(self, flat: dict[str, Any]) -> tuple[PlantConfig, InitialParams, SimulationParams]:
+        names = ("rig", "motor", "sensors", "actuator", "track", "loop", "integrator")
+        config = PlantConfig(**{n: self.section(flat, n) for n in names})
+        return config, self.section(flat, "initial"), self.section(flat, "simulation")
+
+    def on_config(self, config: Any) -> None:
+        self.get_logger().warning("plant parameters are read at start-up; restart to apply")
+
+    def _wall_ns(self) -> int:
+        return self._clock_now().nanoseconds
+
+    def _clock_now(self) -> Time:
+        return self.get_clock().now()
+
+    def _publish_sample(self) -> None:
+        sample = self._sim.sample()
+        if self._lockstep:
+            self._stamp_ns = self._sim.time_ns
+            self._clock_pub.publish(Clock(clock=stamp_to_msg(self._stamp_ns)))
+        else:
+            self._stamp_ns = self._wall_ns()
+        self._joint_pub.publish(joint_sample_to_msg(
+            JointSample(self._stamp_ns, sample.position_m, sample.angle_rad)))
+        self._current_pub.publish(
+            motor_sample_to_msg(MotorSample(self._stamp_ns, sample.current_a)))
+        if self._sim_params.publish_true_state:
+            self._true_pub.publish(true_state_to_msg(TrueState(self._stamp_ns, *sample.true_state)))
+        self._published_ns = self._wall_ns()
+        if sample.index % DIAGNOSTIC_EVERY == 0:
+            self.diagnose(OK, "simulating", self._stamp_ns, sample=sample.index,
+                          deadline_misses=self._missed, stale_commands=self._stale,
+                          resent_samples=self._resent)
+
+    def _on_timer(self) -> None:
+        if self._lockstep:
+            if not self._started:
+                need = self._sim_params.min_subscribers
+                if (self._joint_pub.get_subscription_count() >= need
+                        and self._current_pub.get_subscription_count() >= need
+                        and self._true_pub.get_subscription_count()
+                        >= self._sim_params.min_true_state_subscribers
+                        and self._sub.get_publisher_count() > 0):
+                    self._started = True
+                    self._publish_sample()
+            else:
+                waited_s = (self._wall_ns() - self._published_ns) * 1e-9
+                if waited_s > self._sim_params.resend_after_s:
+                    self._resent += 1
+                    self.diagnose(WARN, f"lockstep: no voltage answered sample {self._sim.index} "
+                                  f"for {waited_s:.2f} s; sending it again", self._stamp_ns,
+                                  resent=self._resent)
+                    self._publish_sample()
+            return
+        if self._started:
+            if not self._sim.answered:
+                self._missed += 1
+            self._sim.advance()
+        self._started = True
+        self._publish_sample()
+
+    def _on_voltage(self, msg: Any) -> None:
+        try:
+            command = motor_sample_from_msg(msg)
+        except MessageError as exc:
+            self.diagnose(WARN, f"rejected voltage command: {exc}")
+            return
+        if not self._started:
+            return
+        if command.stamp_ns != self._stamp_ns:
+            self._stale += 1
+            if self._lockstep:
+                return  # a repeat of an answered sample; lockstep only takes the awaited one
+        if self._lockstep:
+            self._sim.command(command.value)
+            self._sim.advance()
+            self._publish_sample()
+        else:
+            delay_s = (self._wall_ns() - self._published_ns) * 1e-9
+            self._sim.command(command.value, delay_s)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(PlantNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
