@@ -1,0 +1,431 @@
+"""Run the PISC graph against the simulator, record it, and summarise the run.
+
+    pisc_graph [--config default|thesis|FILE] [--x0 M] [--duration S]
+               [--clock lockstep|wall] [--processes] [--executor events|single|multi]
+               [--bag DIR] [--set NAME=VALUE ...]
+
+The recorder (``pisc_record``) always runs as a process of its own. By default the
+plant, estimator, supervisor and current loop run in this process on one
+``EventsExecutor`` (the measured choice, see README); ``--processes`` starts each node
+as its own process through its console entry point, with the merged parameter file,
+as ``ros2 run`` would.
+
+The plant starts publishing once its subscribers are matched (in one process, once
+every controller's are too); a lockstep sample that is lost anyway is sent again. The
+run ends when the voltage answering the sample at ``--duration`` has been received;
+the bag is closed, read back and summarised. Exit status: 0 caught and held, 1 not
+caught, 2 bad configuration or the graph did not run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import importlib
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import rclpy
+import yaml
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.task import Future
+
+from pisc_bringup.bag import BagError
+from pisc_bringup.configuration import load_graph_config
+from pisc_bringup.recorder_node import header_stamp_ns
+from pisc_bringup.summary import RunSummary, summarise_bag
+from pisc_msgs_py.base_node import message_class, qos_profile
+from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.topics import (
+    CART_FORCE,
+    CLOCK,
+    CURRENT_SETPOINT,
+    DIAGNOSTICS,
+    GRAPH_TOPICS,
+    JOINT_STATES,
+    MODE,
+    MOTOR_CURRENT,
+    SIM_STATE,
+    STATE,
+    VOLTAGE,
+    Topic,
+)
+
+__all__ = ["GRAPH", "NodeSpec", "RunOptions", "RunResult", "main", "run_graph"]
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    name: str
+    executable: str  # console entry point
+    module: str
+    cls: str
+    subscribes: tuple[Topic, ...]
+    publishes: tuple[Topic, ...]
+
+
+GRAPH = (
+    NodeSpec("estimator", "estimator_node", "pisc_control.estimator_node", "EstimatorNode",
+             (JOINT_STATES,), (STATE, DIAGNOSTICS)),
+    NodeSpec("supervisor", "supervisor_node", "pisc_control.supervisor_node", "SupervisorNode",
+             (STATE,), (CART_FORCE, MODE, DIAGNOSTICS)),
+    NodeSpec("current_loop", "current_loop_node", "pisc_control.current_loop_node",
+             "CurrentLoopNode", (CART_FORCE, MOTOR_CURRENT, MODE),
+             (CURRENT_SETPOINT, VOLTAGE, DIAGNOSTICS)),
+    NodeSpec("plant", "plant_node", "pisc_plant.plant_node", "PlantNode",
+             (VOLTAGE,), (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, CLOCK, DIAGNOSTICS)),
+)
+PLANT = GRAPH[-1]
+CONTROLLERS = GRAPH[:-1]
+
+
+def expected_subscribers(topic: Topic, recording: bool, nodes: Sequence[NodeSpec] = GRAPH) -> int:
+    """Subscribers ``topic`` has among ``nodes`` (and the recorder)."""
+    return sum(topic in n.subscribes for n in nodes) + (1 if recording else 0)
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    config: str = "default"
+    overrides: dict[str, Any] = field(default_factory=dict)
+    duration_s: float = 10.0
+    clock: str = "lockstep"
+    processes: bool = False
+    executor: str = "events"  # in one process: 'events', 'single' or 'multi'
+    bag_dir: Path | None = None
+    domain_id: int | None = None
+    timeout_s: float | None = None  # wall-clock limit; default scales with duration
+
+
+@dataclass(frozen=True)
+class RunResult:
+    bag_dir: Path
+    summary: RunSummary
+    recorded: dict[str, int]  # messages per topic, as pisc_record reported on closing
+    wall_s: float
+    processes: list[str]  # executables started with --processes
+
+
+EXECUTORS = {"events": EventsExecutor, "single": SingleThreadedExecutor,
+             "multi": MultiThreadedExecutor}
+
+
+class GraphError(RuntimeError):
+    """The graph did not run to the end; the message says what happened."""
+
+
+def _default_bag_dir(options: RunOptions) -> Path:
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S-%f")
+    x0 = options.overrides.get("initial.x_m", "file")
+    name = Path(options.config).stem
+    return Path("bags") / f"run-{name}-{options.clock}-x0_{x0}-{stamp}"
+
+
+def _nested(flat: dict[str, Any]) -> dict[str, Any]:
+    tree: dict[str, Any] = {}
+    for name, value in flat.items():
+        node = tree
+        *parents, leaf = name.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = list(value) if isinstance(value, tuple) else value
+    return tree
+
+
+def write_params_file(path: Path, flat: dict[str, Any]) -> None:
+    path.write_text(yaml.safe_dump({"/**": {"ros__parameters": _nested(flat)}}, sort_keys=False))
+
+
+def _parameters(flat: dict[str, Any]) -> list[Parameter]:
+    return [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in flat.items()]
+
+
+class _Progress:
+    """Watches the recorder's voltage stamps for the end of the run."""
+
+    def __init__(self, duration_s: float) -> None:
+        self.duration_ns = round(duration_s * 1e9)
+        self.first_ns: int | None = None
+        self.last_ns: int | None = None
+        self.done = threading.Event()
+        self.future = Future()  # for an executor spinning until the end
+
+    def __call__(self, topic: str, data: bytes) -> None:
+        if topic != VOLTAGE.name:
+            return
+        stamp = header_stamp_ns(data)
+        if stamp is None:
+            return
+        if self.first_ns is None:
+            self.first_ns = stamp
+        self.last_ns = stamp
+        if stamp - self.first_ns >= self.duration_ns and not self.done.is_set():
+            self.done.set()
+            self.future.set_result(stamp)
+
+
+def _wait(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise GraphError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+        time.sleep(0.01)
+
+
+def run_graph(options: RunOptions) -> RunResult:
+    """Run, record and summarise; raises ConfigError, BagError or GraphError."""
+    config, flat = load_graph_config(options.config, options.overrides)
+    if options.clock not in ("lockstep", "wall"):
+        raise ConfigError(f"--clock {options.clock!r}: expected 'lockstep' or 'wall'")
+    if options.executor not in EXECUTORS:
+        raise ConfigError(
+            f"--executor {options.executor!r}: expected one of {', '.join(EXECUTORS)}")
+    lockstep = options.clock == "lockstep"
+    bag_dir = options.bag_dir or _default_bag_dir(options)
+    if bag_dir.exists() and any(bag_dir.iterdir()):
+        raise BagError(f"{bag_dir}: exists and is not empty; not overwriting a bag")
+    timeout = options.timeout_s or (60.0 + 20.0 * options.duration_s)
+    plant_flat = {"simulation.clock": options.clock,
+                  "simulation.min_subscribers": expected_subscribers(JOINT_STATES, True),
+                  "simulation.min_true_state_subscribers": 1}
+    env = dict(os.environ)
+    if options.domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(options.domain_id)
+
+    started = time.monotonic()
+    recorder = _spawn([*_command("pisc_record", "pisc_bringup.record"), "--bag", str(bag_dir)],
+                      env, subprocess.PIPE)
+    children: list[subprocess.Popen] = []
+    context = Context()
+    rclpy.init(context=context, domain_id=options.domain_id)
+    progress = _Progress(options.duration_s)
+    watcher = Node("pisc_graph", context=context)
+    watcher.create_subscription(message_class(VOLTAGE.type), VOLTAGE.name,
+                                lambda data: progress(VOLTAGE.name, data),
+                                qos_profile(VOLTAGE.qos), raw=True)
+    nodes: list[Node] = []
+    finished = False
+    try:
+        _wait(lambda: _recorder_ready(watcher, recorder), 30.0, "pisc_record to subscribe")
+        write_params_file(bag_dir / "pisc_params.yaml", flat)
+        if options.processes:
+            children = _start_processes(flat, plant_flat, bag_dir, watcher, env, lockstep)
+            executor: Any = SingleThreadedExecutor(context=context)
+        else:
+            params = _parameters(flat)
+            sim = [Parameter("use_sim_time", value=lockstep)]
+            for spec in CONTROLLERS:
+                cls = getattr(importlib.import_module(spec.module), spec.cls)
+                nodes.append(cls(context=context, parameter_overrides=params + sim))
+            # DDS matches in its own threads: no spinning is needed to wait for it.
+            _wait(lambda: _matched(nodes), 30.0, "the graph to connect")
+            plant_cls = getattr(importlib.import_module(PLANT.module), PLANT.cls)
+            nodes.append(plant_cls(context=context,
+                                   parameter_overrides=params + _parameters(plant_flat)))
+            # The executor spins in the main thread: an EventsExecutor spun from another
+            # thread holds the interpreter lock and starves the rest of the process.
+            executor = EXECUTORS[options.executor](context=context)
+        for node in [*nodes, watcher]:
+            executor.add_node(node)
+        executor.spin_until_future_complete(progress.future, timeout)
+        finished = progress.done.is_set()
+    finally:
+        # the plant first, so the controllers see no sample after their peers stopped
+        failures = [_stop(child)[0] for child in reversed(children)]
+        for node in [*nodes, watcher]:
+            node.destroy_node()
+        context.try_shutdown()
+        recorder_problem, recorder_output = _stop(recorder)
+    failed = [f for f in failures if f]
+    if failed:
+        raise GraphError("; ".join(failed))
+    if recorder_problem:
+        raise GraphError(f"pisc_record failed: {recorder_problem}")
+    if not finished:
+        raise GraphError(
+            f"the run did not reach {options.duration_s} s within {timeout:.0f} s of wall "
+            f"time (last voltage stamp: {progress.last_ns})")
+    wall = time.monotonic() - started
+    recorded = {}
+    for line in recorder_output.splitlines():
+        topic, _, count = line.rpartition(" ")
+        if topic:
+            recorded[topic] = int(count)
+    summary = summarise_bag(bag_dir, config.loop.period_s)
+    started_as = [Path(c.args[0]).name for c in children]
+    return RunResult(bag_dir, summary, recorded, wall, started_as)
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    """Linux: have the kernel send SIGTERM to this child if the runner dies."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
+    except OSError:
+        pass
+
+
+def _spawn(args: list[str], env: dict[str, str], stdout: int) -> subprocess.Popen:
+    return subprocess.Popen(args, env=env, stdout=stdout, stderr=subprocess.PIPE,
+                            preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+
+
+def _stop(child: subprocess.Popen) -> tuple[str, str]:
+    """SIGTERM a child (SIGINT may be ignored in background jobs) and wait for it.
+
+    Returns (what went wrong or "", its standard output).
+    """
+    if child.poll() is None:
+        child.send_signal(signal.SIGTERM)
+    try:
+        out, err = child.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        out, err = child.communicate()
+    output = out.decode(errors="replace") if out else ""
+    if child.returncode not in (0, -signal.SIGTERM):
+        return (f"{Path(child.args[0]).name} exited with status {child.returncode}: "
+                f"{(err or b'').decode(errors='replace').strip()}"), output
+    return "", output
+
+
+def _recorder_ready(watcher: Node, recorder: subprocess.Popen) -> bool:
+    if recorder.poll() is not None:
+        _, err = recorder.communicate()
+        raise GraphError(f"pisc_record exited: {err.decode(errors='replace').strip()}")
+    return all(watcher.count_subscribers(t.name) >= 1 + (t is VOLTAGE) for t in GRAPH_TOPICS)
+
+
+def _matched(nodes: Sequence[Node]) -> bool:
+    """Every controller publisher sees its subscribers among the controllers and recorder.
+
+    The plant comes later and waits for its own edges (``simulation.min_subscribers``).
+    """
+    for node in nodes:
+        for publisher in node.publishers:
+            topic = next((t for t in GRAPH_TOPICS if t.name == publisher.topic_name), None)
+            if topic is None or topic in (DIAGNOSTICS, CLOCK):
+                continue
+            expected = expected_subscribers(topic, True, CONTROLLERS) + (topic is VOLTAGE)
+            if publisher.get_subscription_count() < expected:
+                return False
+    return True
+
+
+def _command(executable: str, module: str) -> list[str]:
+    """The console entry point: beside this interpreter (a virtual environment), on PATH
+    (a colcon install), else ``python -m module``."""
+    beside = Path(sys.executable).parent / executable
+    if beside.is_file() and os.access(beside, os.X_OK):
+        return [str(beside)]
+    path = shutil.which(executable)
+    return [path] if path else [sys.executable, "-m", module]
+
+
+def _start_processes(flat: dict[str, Any], plant_flat: dict[str, Any], bag_dir: Path,
+                     watcher: Node, env: dict[str, str],
+                     lockstep: bool) -> list[subprocess.Popen]:
+    params_file = bag_dir / "pisc_params.yaml"
+    children = []
+
+    def start(spec: NodeSpec, extra: dict[str, Any]) -> None:
+        args = [*_command(spec.executable, spec.module), "--ros-args",
+                "--params-file", str(params_file)]
+        for name, value in extra.items():
+            args += ["-p", f"{name}:={str(value).lower() if isinstance(value, bool) else value}"]
+        children.append(_spawn(args, env, subprocess.DEVNULL))
+
+    for spec in CONTROLLERS:
+        start(spec, {"use_sim_time": lockstep})
+
+    def connected() -> bool:
+        for child in children:
+            if child.poll() is not None:
+                raise GraphError(_stop(child)[0] or f"{child.args[0]} exited")
+        for spec in CONTROLLERS:
+            for topic in spec.publishes:
+                if topic is DIAGNOSTICS:
+                    continue
+                expected = expected_subscribers(topic, True, CONTROLLERS) + (topic is VOLTAGE)
+                if watcher.count_subscribers(topic.name) < expected:
+                    return False
+            if watcher.count_publishers(spec.publishes[0].name) < 1:
+                return False
+        return True
+
+    _wait(connected, 60.0, "the node processes to connect")
+    start(PLANT, plant_flat)
+    return children
+
+
+def _parse_value(text: str) -> Any:
+    return yaml.safe_load(text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="pisc_graph", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", default="default",
+                        help="named configuration (default, thesis) or a parameter file")
+    parser.add_argument("--x0", type=float, help="initial cart position [m]")
+    parser.add_argument("--duration", type=float, default=10.0, help="run length [s]")
+    parser.add_argument("--clock", choices=("lockstep", "wall"), default="lockstep")
+    parser.add_argument("--processes", action="store_true",
+                        help="one process per node through the console entry points")
+    parser.add_argument("--executor", choices=sorted(EXECUTORS), default="events",
+                        help="executor of the nodes in one process (default: events)")
+    parser.add_argument("--bag", type=Path,
+                        help="bag directory (default ./bags/run-<config>-<clock>-x0_<x0>-<time>)")
+    parser.add_argument("--domain-id", type=int, help="ROS domain id (default: environment)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="override a parameter, e.g. --set swing_up.k_v=0.1")
+    args = parser.parse_args(argv)
+    overrides: dict[str, Any] = {}
+    for item in args.set:
+        name, sep, value = item.partition("=")
+        if not sep:
+            parser.error(f"--set {item!r}: expected NAME=VALUE")
+        overrides[name] = _parse_value(value)
+    if args.x0 is not None:
+        overrides["initial.x_m"] = args.x0
+    options = RunOptions(config=args.config, overrides=overrides, duration_s=args.duration,
+                         clock=args.clock, processes=args.processes,
+                         executor=args.executor, bag_dir=args.bag,
+                         domain_id=args.domain_id)
+    try:
+        result = run_graph(options)
+    except ConfigError as exc:
+        print(f"pisc_graph: invalid configuration: {exc}", file=sys.stderr)
+        return 2
+    except (GraphError, BagError) as exc:
+        print(f"pisc_graph: {exc}", file=sys.stderr)
+        return 2
+    names = {"events": "EventsExecutor", "single": "SingleThreadedExecutor",
+             "multi": "MultiThreadedExecutor"}
+    mode = ("separate processes" if options.processes
+            else f"one process, {names[options.executor]}")
+    print(f"PISC run: config {options.config}, {options.clock} clock, {mode}, "
+          f"x0 = {overrides.get('initial.x_m', 'from file')}")
+    if result.processes:
+        print(f"entry points: {', '.join(result.processes)}")
+    print(f"bag: {result.bag_dir} ({sum(result.recorded.values())} messages, "
+          f"{result.wall_s:.1f} s wall)")
+    print(result.summary.format())
+    return 0 if result.summary.caught else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,80 @@
+"""Recorder node: every graph topic, raw, into a rosbag2 MCAP bag, off the control path.
+
+Subscriptions take the serialized CDR bytes (no decoding) together with the DDS message
+info, and hand them to a writer thread through a queue, so a slow disk never delays a
+callback of the control loop. rclpy's EventsExecutor cannot deliver message info, so
+this node runs on its own SingleThreadedExecutor (see :mod:`pisc_bringup.graph`).
+"""
+
+from __future__ import annotations
+
+import queue
+import struct
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from rclpy.node import Node
+
+from pisc_bringup.bag import BagWriter
+from pisc_msgs_py.base_node import message_class, qos_profile
+from pisc_msgs_py.topics import Topic
+
+__all__ = ["RecorderNode", "header_stamp_ns"]
+
+_STOP = object()
+
+
+def header_stamp_ns(data: bytes) -> int | None:
+    """Stamp of a CDR message that starts with std_msgs/Header (little-endian CDR)."""
+    if len(data) < 12 or data[1] not in (0x01, 0x03):  # CDR_LE or PL_CDR_LE
+        return None
+    sec, nanosec = struct.unpack_from("<iI", data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+class RecorderNode(Node):
+    """Record ``topics`` into ``writer``; ``on_message(topic, data)`` observes arrivals."""
+
+    def __init__(
+        self,
+        writer: BagWriter,
+        topics: Sequence[Topic],
+        on_message: Callable[[str, bytes], None] | None = None,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__("recorder", **kwargs)
+        self._writer = writer
+        self._on_message = on_message
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self.received: dict[str, int] = {t.name: 0 for t in topics}
+        self._subs = [
+            self.create_subscription(
+                message_class(t.type), t.name, self._callback(t.name), qos_profile(t.qos),
+                raw=True)
+            for t in topics
+        ]
+        self._thread = threading.Thread(target=self._write_loop, name="bag-writer", daemon=True)
+        self._thread.start()
+
+    def _callback(self, topic: str) -> Callable[[bytes, dict], None]:
+        def callback(data: bytes, info: dict) -> None:
+            self.received[topic] += 1
+            self._queue.put((topic, data, info["received_timestamp"], info["source_timestamp"]))
+            if self._on_message is not None:
+                self._on_message(topic, data)
+
+        return callback
+
+    def _write_loop(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            self._writer.write(*item)
+
+    def close(self) -> None:
+        """Write what is queued, then finish the bag."""
+        self._queue.put(_STOP)
+        self._thread.join()
+        self._writer.close()

@@ -1,0 +1,28 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'pisc_bringup'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/pisc_bringup']),
+        ('share/pisc_bringup', ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='PISC maintainers',
+    maintainer_email='maintainers@users.noreply.h-seed-5c3c3dbe.example',
+    description='PISC graph runner, recorder, run summary and parameter files.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'pisc_graph = pisc_bringup.graph:main',
+            'pisc_record = pisc_bringup.record:main',
+        ],
+    },
+)

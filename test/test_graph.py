@@ -1,0 +1,114 @@
+"""The whole graph over ROS 2 topics: acceptance of issue 2, exactness, clocks, processes."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pisc_bringup.bag import read_bag
+from pisc_bringup.closed_loop import simulate
+from pisc_bringup.configuration import load_graph_config
+from pisc_bringup.graph import RunOptions, run_graph
+from pisc_msgs_py.convert import mode_from_msg, motor_sample_from_msg
+from pisc_msgs_py.topics import DIAGNOSTICS, GRAPH_TOPICS, MODE, VOLTAGE
+from pisc_msgs_py.types import Mode
+
+pytestmark = pytest.mark.integration
+
+STARTS = (-0.10, -0.05, 0.0, 0.05, 0.10)
+
+
+def assert_acceptance(summary):
+    """Issue 2: caught within 3.0 s of sim time, held from 6 s, cart inside the IR range."""
+    assert summary.caught_at_s is not None and summary.caught_at_s <= 3.0, summary.format()
+    assert summary.held and summary.hold_theta_rad < 0.05 and summary.hold_x_m < 0.02
+    assert summary.state_source == "true"
+    assert -0.22 <= summary.x_range_m[0] and summary.x_range_m[1] <= 0.12, summary.format()
+    assert summary.duration_s >= 10.0 and not summary.faults
+
+
+@pytest.fixture(scope="module")
+def lockstep_runs(tmp_path_factory):
+    runs = {}
+    for n, x0 in enumerate(STARTS):
+        runs[x0] = run_graph(RunOptions(
+            overrides={"initial.x_m": x0}, duration_s=10.0, clock="lockstep",
+            bag_dir=tmp_path_factory.mktemp("bags") / f"x0_{x0}", domain_id=60 + n))
+    return runs
+
+
+@pytest.mark.parametrize("x0", STARTS)
+def test_lockstep_graph_swings_up_and_holds(lockstep_runs, x0):
+    assert_acceptance(lockstep_runs[x0].summary)
+
+
+def test_every_topic_is_recorded_once_per_cycle(lockstep_runs):
+    result = lockstep_runs[0.05]
+    cycles = result.summary.cycles
+    for topic in ("/pisc/joint_states", "/pisc/motor/current", "/pisc/state",
+                  "/pisc/cart_force", "/pisc/motor/current_setpoint", "/pisc/motor/voltage"):
+        # the plant may have published the sample after the last voltage: at most one more
+        assert result.recorded[topic] in (cycles, cycles + 1), (topic, result.recorded)
+    assert result.recorded[MODE.name] == 2  # swing_up at the start, catch once
+    assert set(result.recorded) == {t.name for t in GRAPH_TOPICS}
+
+
+def test_lockstep_graph_reproduces_the_pure_closed_loop_bit_for_bit(lockstep_runs):
+    """Same cores, same order: every voltage of the ROS run equals the pure simulation's."""
+    result = lockstep_runs[0.05]
+    cfg, _ = load_graph_config("default", {"initial.x_m": 0.05})
+    log = simulate(cfg, 10.0)
+    voltages = {}
+    for m in read_bag(result.bag_dir, [VOLTAGE.name]):
+        sample = motor_sample_from_msg(m.message)
+        voltages[sample.stamp_ns] = sample.value
+    recorded = np.array([voltages[s] for s in sorted(voltages)])
+    assert len(recorded) == len(log["u"])
+    assert np.array_equal(recorded, log["u"])
+
+
+def test_wall_clock_graph_in_one_process_catches(tmp_path, domain_id):
+    result = run_graph(RunOptions(overrides={"initial.x_m": 0.0}, duration_s=10.0,
+                                  clock="wall", bag_dir=tmp_path / "wall", domain_id=domain_id))
+    assert_acceptance(result.summary)
+    # a real-time run measures latency per cycle from the recorded send times
+    assert result.summary.latency_ms["median"] < 5.0
+
+
+def test_nodes_as_separate_processes_through_their_entry_points(tmp_path, env_for_domain):
+    completed = subprocess.run(
+        [sys.executable, "-m", "pisc_bringup.graph", "--processes", "--x0", "-0.05",
+         "--duration", "10", "--bag", str(tmp_path / "procs")],
+        env=env_for_domain, capture_output=True, text=True, timeout=240)
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+    assert "separate processes" in completed.stdout
+    assert "entry points: estimator_node, supervisor_node, current_loop_node, plant_node" in (
+        completed.stdout)
+    assert "result                 CAUGHT" in completed.stdout
+
+
+def test_leaving_the_safe_range_goes_to_zero_volts_and_says_why(tmp_path, domain_id):
+    """A fault mid-run: no force, 0 V from the current loop, /diagnostics says why."""
+    result = run_graph(RunOptions(
+        overrides={"initial.x_m": 0.05, "safety.x_min_m": -0.03}, duration_s=2.0,
+        bag_dir=tmp_path / "fault", domain_id=domain_id))
+    fault_stamp = None
+    voltages = []
+    errors = []
+    for m in read_bag(result.bag_dir, [MODE.name, VOLTAGE.name, DIAGNOSTICS.name]):
+        if m.topic == MODE.name:
+            report = mode_from_msg(m.message)
+            if report.mode is Mode.FAULT:
+                fault_stamp = report.stamp_ns
+        elif m.topic == VOLTAGE.name:
+            voltages.append(motor_sample_from_msg(m.message))
+        else:
+            errors += [s.message for s in m.message.status if s.level == 2]
+    assert fault_stamp is not None
+    after = [v.value for v in voltages if v.stamp_ns > fault_stamp]
+    assert after and all(v == 0.0 for v in after)
+    assert any("outside the safe range" in e and "safety.x_min_m" in e for e in errors), errors
+    assert result.summary.faults and not result.summary.caught
