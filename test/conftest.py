@@ -2,23 +2,62 @@
 
 from __future__ import annotations
 
-import itertools
+import fcntl
 import os
+import tempfile
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 import rclpy
 from rclpy.context import Context
 
-# Domains 1..99 are free for tests; each test process takes a different block so parallel
-# runs on one machine do not hear each other.
-_domains = itertools.count(1 + (os.getpid() % 9) * 10)
+_LOCK_DIR = Path(tempfile.gettempdir()) / "pisc-ros-domains"
+
+
+class DomainClaim:
+    """A ROS domain id no other process on this machine uses while the claim is held.
+
+    Each id 1..100 has a lock file; a claim holds an exclusive lock on one, so test runs
+    in parallel (several checkouts, CI and a developer) never hear each other's graphs.
+    """
+
+    def __init__(self) -> None:
+        _LOCK_DIR.mkdir(exist_ok=True)
+        for domain in range(1, 101):
+            handle = (_LOCK_DIR / f"{domain}.lock").open("w")
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                handle.close()
+                continue
+            self.domain_id = domain
+            self._handle = handle
+            return
+        raise RuntimeError(f"no free ROS domain id: all of 1..100 are claimed in {_LOCK_DIR}")
+
+    def release(self) -> None:
+        self._handle.close()
 
 
 @pytest.fixture
-def domain_id() -> int:
-    return next(_domains) % 100 or 1
+def claim_domain() -> Iterator[Callable[[], int]]:
+    """Claim as many domain ids as a test needs; all are released after it."""
+    claims: list[DomainClaim] = []
+
+    def claim() -> int:
+        claims.append(DomainClaim())
+        return claims[-1].domain_id
+
+    yield claim
+    for c in claims:
+        c.release()
+
+
+@pytest.fixture
+def domain_id(claim_domain: Callable[[], int]) -> int:
+    return claim_domain()
 
 
 @pytest.fixture

@@ -8,6 +8,7 @@ import sys
 import numpy as np
 import pytest
 
+from conftest import DomainClaim
 from pisc_bringup.bag import read_bag
 from pisc_bringup.closed_loop import simulate
 from pisc_bringup.configuration import load_graph_config
@@ -33,10 +34,15 @@ def assert_acceptance(summary):
 @pytest.fixture(scope="module")
 def lockstep_runs(tmp_path_factory):
     runs = {}
-    for n, x0 in enumerate(STARTS):
-        runs[x0] = run_graph(RunOptions(
-            overrides={"initial.x_m": x0}, duration_s=10.0, clock="lockstep",
-            bag_dir=tmp_path_factory.mktemp("bags") / f"x0_{x0}", domain_id=60 + n))
+    for x0 in STARTS:
+        claim = DomainClaim()
+        try:
+            runs[x0] = run_graph(RunOptions(
+                overrides={"initial.x_m": x0}, duration_s=10.0, clock="lockstep",
+                bag_dir=tmp_path_factory.mktemp("bags") / f"x0_{x0}",
+                domain_id=claim.domain_id))
+        finally:
+            claim.release()
     return runs
 
 
