@@ -12,6 +12,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/pisc_bringup']),
         ('share/pisc_bringup', ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/scenes', glob('scenes/*.yaml')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
@@ -23,6 +24,8 @@ setup(
         'console_scripts': [
             'pisc_graph = pisc_bringup.graph:main',
             'pisc_record = pisc_bringup.record:main',
+            'pisc_integrators = pisc_bringup.integrators_cli:main',
+            'pisc_scene = pisc_bringup.scene_cli:main',
         ],
     },
 )

@@ -10,6 +10,7 @@ lockstep run of the graph reproduces this simulation bit for bit.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,7 @@ from pisc_plant.dynamics import wrap_to_upright
 from pisc_plant.plant import THETA, Plant, X
 from pisc_plant.sampled import SampledPlant
 
-__all__ = ["BatchOutcome", "CycleLog", "simulate", "simulate_batch"]
+__all__ = ["BatchOutcome", "CycleLog", "plant_command", "simulate", "simulate_batch"]
 
 COLUMNS = ("t", "x", "theta", "x_dot", "theta_dot", "i", "i_d", "u", "f", "mode",
            "true_x", "true_x_dot", "true_theta", "true_theta_dot", "true_i")
@@ -36,6 +37,14 @@ class CycleLog:
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.data[:, COLUMNS.index(name)]
+
+
+def plant_command(config: GraphConfig, i_d: Any, voltage: Any) -> Any:
+    """What the plant is driven by: the voltage, or with an ideal current loop
+    (``models.current_loop = ideal``) the force k_m i_d / r of the set-point (4.2)."""
+    if config.plant.models.force_input:
+        return config.plant.motor.force_per_amp * i_d
+    return voltage
 
 
 def simulate(config: GraphConfig, duration_s: float) -> CycleLog:
@@ -72,7 +81,7 @@ def simulate(config: GraphConfig, duration_s: float) -> CycleLog:
         rows.append((sampled.time_ns * 1e-9, sample.position_m, sample.angle_rad, x_dot,
                      theta_dot, sample.current_a, i_d, voltage, force, mode.code,
                      *sample.true_state))
-        sampled.command(voltage)
+        sampled.command(plant_command(config, i_d, voltage))
         sampled.advance()
     return CycleLog(np.array(rows))
 
@@ -121,9 +130,11 @@ def simulate_batch(
     hold_x = np.zeros_like(x0)
     faulted = np.zeros(x0.shape, dtype=bool)
     previous_mode = np.full(x0.shape, Mode.SWING_UP.code)
+    rng = np.random.default_rng(config.plant.noise.seed) if config.plant.noise.any else None
     for k in range(int(round(duration_s / period)) + 1):
         t = k * period
-        x, theta, current = plant.measurement(y)
+        noise = None if rng is None else rng.standard_normal(x0.shape + (3,))
+        x, theta, current = plant.measurement(y, applied, noise)
         est_state, x_dot, theta_dot = estimator_update(
             config.estimator, period, est_state, x, theta)
         sup_state, force, mode = supervisor.update(sup_state, x, x_dot, theta, theta_dot)
@@ -134,6 +145,7 @@ def simulate_batch(
         cl_state, voltage = current_loop_update(config.current_loop, period, cl_state, i_d,
                                                 current)
         voltage = np.where(fault, 0.0, voltage)
+        command = np.where(fault, 0.0, plant_command(config, i_d, voltage))
         entered = (mode == Mode.CATCH.code) & (previous_mode != Mode.CATCH.code)
         caught_at = np.where(entered, t, np.where(mode == Mode.CATCH.code, caught_at, np.inf))
         previous_mode = mode
@@ -142,10 +154,10 @@ def simulate_batch(
             hold_x = np.maximum(hold_x, np.abs(y[..., X]))
         if command_delay_s > 0.0:
             y = plant.advance(y, applied, command_delay_s)
-            y = plant.advance(y, voltage, period - command_delay_s)
+            y = plant.advance(y, command, period - command_delay_s)
         else:
-            y = plant.advance(y, voltage, period)
-        applied = voltage
+            y = plant.advance(y, command, period)
+        applied = command
         x_min = np.minimum(x_min, y[..., X])
         x_max = np.maximum(x_max, y[..., X])
     return BatchOutcome(caught_at, x_min, x_max, hold_theta, hold_x, faulted)

@@ -26,9 +26,12 @@ from pisc_control.swing_up import SwingUpParams
 from pisc_msgs_py.config import ConfigError, from_flat, load_params_file
 from pisc_plant.params import (
     ActuatorParams,
+    FrictionParams,
     InitialParams,
     LoopParams,
+    ModelParams,
     MotorParams,
+    NoiseParams,
     RigParams,
     SensorParams,
     TrackParams,
@@ -58,7 +61,8 @@ CONFIG_DIR = _config_dir()
 SECTIONS: dict[str, type] = {
     "rig": RigParams, "motor": MotorParams, "sensors": SensorParams,
     "actuator": ActuatorParams, "track": TrackParams, "loop": LoopParams,
-    "integrator": IntegratorParams, "initial": InitialParams, "estimator": EstimatorParams,
+    "integrator": IntegratorParams, "models": ModelParams, "friction": FrictionParams,
+    "noise": NoiseParams, "initial": InitialParams, "estimator": EstimatorParams,
     "swing_up": SwingUpParams, "catch": CatchParams, "switching": SwitchingParams,
     "startup": StartupParams, "safety": SafetyParams, "current_loop": CurrentLoopParams,
 }
@@ -103,7 +107,8 @@ def load_graph_config(
     config = GraphConfig(
         plant=PlantConfig(rig=s["rig"], motor=s["motor"], sensors=s["sensors"],
                           actuator=s["actuator"], track=s["track"], loop=s["loop"],
-                          integrator=s["integrator"]),
+                          integrator=s["integrator"], models=s["models"],
+                          friction=s["friction"], noise=s["noise"]),
         initial=s["initial"],
         estimator=s["estimator"],
         supervisor=SupervisorConfig(rig=s["rig"], swing_up=s["swing_up"], catch=s["catch"],

@@ -381,7 +381,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", default="default",
                         help="named configuration (default, thesis) or a parameter file")
     parser.add_argument("--x0", type=float, help="initial cart position [m]")
-    parser.add_argument("--duration", type=float, default=10.0, help="run length [s]")
+    parser.add_argument("--scene", help="a scene (pisc_scene list): its configuration, "
+                        "overrides and duration; --config is then ignored")
+    parser.add_argument("--duration", type=float,
+                        help="run length [s] (default: the scene's, else 10)")
     parser.add_argument("--clock", choices=("lockstep", "wall"), default="lockstep")
     parser.add_argument("--processes", action="store_true",
                         help="one process per node through the console entry points")
@@ -401,7 +404,23 @@ def main(argv: list[str] | None = None) -> int:
         overrides[name] = _parse_value(value)
     if args.x0 is not None:
         overrides["initial.x_m"] = args.x0
-    options = RunOptions(config=args.config, overrides=overrides, duration_s=args.duration,
+    config, duration = args.config, args.duration
+    if args.scene is not None:
+        from pisc_bringup.scene import load_scene
+
+        try:
+            scene = load_scene(args.scene, overrides)
+        except ConfigError as exc:
+            print(f"pisc_graph: invalid scene: {exc}", file=sys.stderr)
+            return 2
+        if not scene.closed_loop:
+            print(f"pisc_graph: scene {scene.name} has no controller (controller: "
+                  f"{scene.controller}); run it with pisc_scene run", file=sys.stderr)
+            return 2
+        config, overrides = scene.configuration, scene.overrides
+        duration = duration if duration is not None else scene.duration_s
+    options = RunOptions(config=config, overrides=overrides,
+                         duration_s=duration if duration is not None else 10.0,
                          clock=args.clock, processes=args.processes,
                          executor=args.executor, bag_dir=args.bag,
                          domain_id=args.domain_id)

@@ -14,10 +14,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from pisc_msgs_py.config import ConfigError, in_range, nonnegative, param, positive
+from pisc_msgs_py.config import ConfigError, in_range, nonnegative, one_of, param, positive
 
 __all__ = [
     "ActuatorParams",
+    "FrictionParams",
+    "ModelParams",
+    "NoiseParams",
     "InitialParams",
     "LoopParams",
     "MotorParams",
@@ -201,3 +204,97 @@ class InitialParams:
     x_dot_mps: float = param(0.0, "initial cart velocity", "m/s")
     theta_rad: float = param(math.pi, "initial pendulum angle (pi = hanging down)", "rad")
     theta_dot_radps: float = param(0.0, "initial pendulum rate", "rad/s")
+
+
+ARMATURE_MODELS = ("full", "quasi_static", "ideal_force")
+CURRENT_LOOP_MODELS = ("sampled_pi", "ideal")
+SENSOR_MODELS = ("quantised", "ideal")
+FRICTION_MODELS = ("none", "viscous", "coulomb")
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    """Which sub-models a scene needs; the plant composes only these.
+
+    ``armature``: ``full`` keeps the armature current as a state, (2.81); ``quasi_static``
+    sets L di/dt = 0, i = (u - k_e phi_dot) / R, and has no electrical state;
+    ``ideal_force`` drops the motor: the cart force is the plant's input. ``current_loop``:
+    ``sampled_pi`` closes the PI loop (3.47) at the sample rate on the measured current;
+    ``ideal`` makes the current equal its set-point (3.46), which only an ideal force
+    source can do, so it goes with ``armature: ideal_force``. ``sensors``: ``quantised``
+    reads the cart through the IR curve (4.8) and a 10-bit ADC, the angle through the
+    encoder and the current through the ACS712 and the ADC, as the rig does; ``ideal``
+    reads the true x, theta and i. ``sensor_filters`` adds the 10 Hz IR and 72 Hz current
+    RC filters as states (quantised sensors only).
+    """
+
+    armature: str = param("full", "DC motor armature: 'full', 'quasi_static' or 'ideal_force'",
+                          "", one_of(*ARMATURE_MODELS))
+    current_loop: str = param("sampled_pi", "current loop: 'sampled_pi' or 'ideal'", "",
+                              one_of(*CURRENT_LOOP_MODELS))
+    sensors: str = param("quantised", "sensors: 'quantised' (the rig's) or 'ideal'", "",
+                         one_of(*SENSOR_MODELS))
+    sensor_filters: bool = param(True, "the IR (10 Hz) and current (72 Hz) RC filters as states",
+                                 "")
+    friction: str = param("none", "friction on the cart and at the pivot besides the motor's: "
+                          "'none', 'viscous' or 'coulomb' (Coulomb and viscous)", "",
+                          one_of(*FRICTION_MODELS))
+    end_stops: bool = param(True, "inelastic end stops at the ends of the track", "")
+
+    def __post_init__(self) -> None:
+        if (self.armature == "ideal_force") != (self.current_loop == "ideal"):
+            raise ConfigError(
+                f"models.current_loop = {self.current_loop!r} does not go with models.armature "
+                f"= {self.armature!r}: an ideal current loop is an ideal force source "
+                "(armature: ideal_force, current_loop: ideal); a motor armature needs the "
+                "sampled PI loop")
+        if self.sensor_filters and self.sensors == "ideal":
+            raise ConfigError("models.sensor_filters = true needs models.sensors = 'quantised': "
+                              "the RC filters act on the sensors' voltages")
+
+    @property
+    def has_current_state(self) -> bool:
+        return self.armature == "full"
+
+    @property
+    def has_current(self) -> bool:
+        return self.armature != "ideal_force"
+
+    @property
+    def force_input(self) -> bool:
+        return self.armature == "ideal_force"
+
+
+@dataclass(frozen=True)
+class FrictionParams:
+    """Friction besides the motor's own b_m (used when ``models.friction`` asks for it).
+
+    Cart: f_fric = -b_c x_dot - F_c tanh(x_dot / v_c); pivot: tau = -b_p theta_dot. The
+    thesis neglects both; the Coulomb term is regularised over v_c so that fixed-step
+    integrators see a smooth right-hand side.
+    """
+
+    cart_viscous_ns_per_m: float = param(0.0, "b_c, cart viscous friction", "N s/m",
+                                         nonnegative)
+    pivot_viscous_nms: float = param(0.0, "b_p, pivot viscous friction", "N m s/rad",
+                                     nonnegative)
+    cart_coulomb_n: float = param(0.0, "F_c, cart Coulomb friction", "N", nonnegative)
+    coulomb_velocity_mps: float = param(1e-3, "v_c, velocity over which the Coulomb force "
+                                        "builds up (tanh regularisation)", "m/s", positive)
+
+
+@dataclass(frozen=True)
+class NoiseParams:
+    """Measurement noise: Gaussian, added to the true value before the sensor chain."""
+
+    seed: int = param(0, "seed of the noise generator (same seed, same run)", "",
+                      in_range(0, 2**31 - 1))
+    x_std_m: float = param(0.0, "cart position noise, standard deviation", "m", nonnegative)
+    theta_std_rad: float = param(0.0, "pendulum angle noise, standard deviation", "rad",
+                                 nonnegative)
+    current_std_a: float = param(0.0, "armature current noise, standard deviation", "A",
+                                 nonnegative)
+
+    @property
+    def any(self) -> bool:
+        return self.x_std_m > 0.0 or self.theta_std_rad > 0.0 or self.current_std_a > 0.0

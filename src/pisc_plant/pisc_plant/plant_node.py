@@ -26,13 +26,23 @@ from pisc_msgs_py.convert import (
     stamp_to_msg,
     true_state_to_msg,
 )
-from pisc_msgs_py.topics import CLOCK, JOINT_STATES, MOTOR_CURRENT, SIM_STATE, VOLTAGE
+from pisc_msgs_py.topics import (
+    CLOCK,
+    CURRENT_SETPOINT,
+    JOINT_STATES,
+    MOTOR_CURRENT,
+    SIM_STATE,
+    VOLTAGE,
+)
 from pisc_msgs_py.types import JointSample, MotorSample, TrueState
 from pisc_plant.params import (
     ActuatorParams,
+    FrictionParams,
     InitialParams,
     LoopParams,
+    ModelParams,
     MotorParams,
+    NoiseParams,
     RigParams,
     SensorParams,
     TrackParams,
@@ -61,6 +71,7 @@ class SimulationParams:
 SECTIONS = {
     "rig": RigParams, "motor": MotorParams, "sensors": SensorParams, "actuator": ActuatorParams,
     "track": TrackParams, "loop": LoopParams, "integrator": IntegratorParams,
+    "models": ModelParams, "friction": FrictionParams, "noise": NoiseParams,
     "initial": InitialParams, "simulation": SimulationParams,
 }
 
@@ -85,11 +96,18 @@ class PlantNode(PiscNode):
         self._true_pub = self.publisher(SIM_STATE)
         self._clock_pub = self.publisher(CLOCK) if self._lockstep else None
         self._sub = self.subscription(VOLTAGE, self._on_voltage)
+        # An ideal current loop (models.current_loop = ideal) makes the current equal its
+        # set-point: the plant is then driven by the force k_m i_d / r of the set-point
+        # (4.2), and the voltage the current loop computes acts on nothing.
+        self._force_per_amp = plant_config.motor.force_per_amp
+        if plant.force_input:
+            self._setpoint_sub = self.subscription(CURRENT_SETPOINT, self._on_setpoint)
         period = plant_config.loop.period_s
         self._timer = self.create_timer(0.01 if self._lockstep else period, self._on_timer)
 
     def build(self, flat: dict[str, Any]) -> tuple[PlantConfig, InitialParams, SimulationParams]:
-        names = ("rig", "motor", "sensors", "actuator", "track", "loop", "integrator")
+        names = ("rig", "motor", "sensors", "actuator", "track", "loop", "integrator", "models",
+                 "friction", "noise")
         config = PlantConfig(**{n: self.section(flat, n) for n in names})
         return config, self.section(flat, "initial"), self.section(flat, "simulation")
 
@@ -149,11 +167,19 @@ class PlantNode(PiscNode):
         self._publish_sample()
 
     def _on_voltage(self, msg: Any) -> None:
+        if not self._sim.plant.force_input:
+            self._on_command(msg, "voltage command", 1.0)
+
+    def _on_setpoint(self, msg: Any) -> None:
+        self._on_command(msg, "current set-point", self._force_per_amp)
+
+    def _on_command(self, msg: Any, what: str, scale: float) -> None:
         try:
             command = motor_sample_from_msg(msg)
         except MessageError as exc:
-            self.diagnose(WARN, f"rejected voltage command: {exc}")
+            self.diagnose(WARN, f"rejected {what}: {exc}")
             return
+        command = MotorSample(command.stamp_ns, command.value * scale)
         if not self._started:
             return
         if command.stamp_ns != self._stamp_ns:

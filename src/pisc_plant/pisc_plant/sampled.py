@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pisc_plant.plant import CURRENT, THETA, THETA_DOT, X_DOT, Plant, X
+from pisc_plant.plant import THETA, THETA_DOT, X_DOT, Plant, X
 
 __all__ = ["Sample", "SampledPlant"]
 
@@ -31,8 +31,9 @@ class Sample:
 
 class SampledPlant:
     def __init__(self, plant: Plant, state: np.ndarray, start_ns: int = 0) -> None:
-        if state.shape != (7,):
-            raise ValueError(f"expected the state of one rig, shape (7,), got {state.shape}")
+        if state.shape != (plant.size,):
+            raise ValueError(f"expected the state of one rig, shape ({plant.size},), "
+                             f"got {state.shape}")
         self.plant = plant
         self.state = state
         self.index = 0
@@ -41,6 +42,9 @@ class SampledPlant:
         self.period_ns = plant.config.loop.period_ns
         self.applied_v = 0.0  # voltage held since the last command took effect
         self._next: tuple[float, float] | None = None  # (voltage, delay) for this period
+        noise = plant.config.noise
+        # same scene and seed, same draws: one generator per simulated rig
+        self._rng = np.random.default_rng(noise.seed) if noise.any else None
 
     @property
     def time_ns(self) -> int:
@@ -48,12 +52,14 @@ class SampledPlant:
         return self.start_ns + self.index * self.period_ns
 
     def sample(self) -> Sample:
-        x, theta, current = self.plant.measurement(self.state)
+        noise = None if self._rng is None else self._rng.standard_normal(3)
         y = self.state
+        x, theta, current = self.plant.measurement(y, self.applied_v, noise)
+        true_current = self.plant.current(y, self.applied_v)
         return Sample(
             self.index, float(x), float(theta), float(current),
             (float(y[X]), float(y[X_DOT]), float(y[THETA]), float(y[THETA_DOT]),
-             float(y[CURRENT])),
+             float(true_current)),
         )
 
     @property

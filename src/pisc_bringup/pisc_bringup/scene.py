@@ -1,0 +1,141 @@
+"""Scenes: what one simulation needs, in one YAML file.
+
+A scene names a configuration (``default``, ``thesis`` or a parameter file) and
+overrides any of its parameters, including the plant's sub-models (``models``), its
+friction and measurement noise, the integrator and the initial state; it also says how
+long to run, whether the controllers close the loop, and what to record::
+
+    scene:
+      description: the ideal force-driven cart-pole
+      configuration: default
+      duration_s: 10.0
+      controller: graph           # 'graph': estimator, supervisor, current loop; 'none': zero input
+      record: all                 # 'all' or a list of topic names
+      parameters:                 # sections as in a ROS 2 parameter file
+        models: {armature: ideal_force, current_loop: ideal, sensors: ideal,
+                 sensor_filters: false}
+        initial: {x_m: 0.05}
+
+Scenes ship in ``pisc_bringup/scenes``; :func:`load_scene` takes a name or a path. The
+scene's flat parameters are what every node of the graph gets, and
+:func:`write_scene_params` writes them as a ROS 2 parameter file for ``ros2 run``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from pisc_bringup.configuration import CONFIG_DIR, GraphConfig, load_graph_config
+from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.topics import GRAPH_TOPICS
+
+__all__ = ["DEFAULT_SCENE", "SCENE_DIR", "Scene", "load_scene", "scene_names", "scene_path"]
+
+SCENE_DIR = CONFIG_DIR.parent / "scenes"
+DEFAULT_SCENE = "thesis-rig"
+CONTROLLERS = ("graph", "none")
+KEYS = ("description", "configuration", "duration_s", "controller", "record", "parameters")
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str
+    description: str
+    configuration: str
+    duration_s: float
+    controller: str
+    record: tuple[str, ...]
+    overrides: dict[str, Any]  # flat parameter overrides of the configuration
+    config: GraphConfig
+    flat: dict[str, Any]  # the configuration's flat parameters with the overrides
+
+    @property
+    def closed_loop(self) -> bool:
+        return self.controller == "graph"
+
+
+def scene_names() -> list[str]:
+    return sorted(p.stem for p in SCENE_DIR.glob("*.yaml"))
+
+
+def scene_path(name_or_path: str) -> Path:
+    candidate = SCENE_DIR / f"{name_or_path}.yaml"
+    if candidate.exists():
+        return candidate
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml") and path.exists():
+        return path
+    raise ConfigError(f"{name_or_path}: no such scene (shipped: {', '.join(scene_names())}) "
+                      "or scene file")
+
+
+def _flatten(prefix: str, value: Any, out: dict[str, Any]) -> None:
+    if isinstance(value, Mapping):
+        for key, item in value.items():
+            _flatten(f"{prefix}.{key}" if prefix else str(key), item, out)
+    else:
+        out[prefix] = value
+
+
+def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) -> Scene:
+    """Read and check a scene; ``overrides`` (flat names) go on top of the scene's own.
+
+    Raises :class:`ConfigError` naming the file and the offending key or parameter.
+    """
+    path = scene_path(name_or_path)
+    try:
+        document = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(document, Mapping) or not isinstance(document.get("scene"), Mapping):
+        raise ConfigError(f"{path}: a scene file holds one mapping under the key 'scene'")
+    body = document["scene"]
+    unknown = sorted(set(body) - set(KEYS))
+    if unknown:
+        raise ConfigError(f"{path}: scene.{unknown[0]}: unknown key (known: {', '.join(KEYS)})")
+    configuration = str(body.get("configuration", "default"))
+    duration = body.get("duration_s", 10.0)
+    if isinstance(duration, bool) or not isinstance(duration, (int, float)) or not (
+            math.isfinite(duration) and duration > 0):
+        raise ConfigError(f"{path}: scene.duration_s = {duration!r} must be a positive number")
+    controller = body.get("controller", "graph")
+    if controller not in CONTROLLERS:
+        raise ConfigError(f"{path}: scene.controller = {controller!r} must be one of "
+                          f"{', '.join(CONTROLLERS)}")
+    record = body.get("record", "all")
+    known_topics = [t.name for t in GRAPH_TOPICS]
+    if record == "all":
+        record = tuple(known_topics)
+    elif isinstance(record, list) and all(isinstance(t, str) for t in record):
+        bad = [t for t in record if t not in known_topics]
+        if bad:
+            raise ConfigError(f"{path}: scene.record: {bad[0]} is not a topic of the graph "
+                              f"(topics: {', '.join(known_topics)})")
+        record = tuple(record)
+    else:
+        raise ConfigError(f"{path}: scene.record must be 'all' or a list of topic names")
+    parameters = body.get("parameters") or {}
+    if not isinstance(parameters, Mapping):
+        raise ConfigError(f"{path}: scene.parameters must be a mapping of sections")
+    flat_overrides: dict[str, Any] = {}
+    _flatten("", parameters, flat_overrides)
+    flat_overrides.update(overrides or {})
+    try:
+        config, flat = load_graph_config(configuration, flat_overrides)
+    except ConfigError as exc:
+        raise ConfigError(f"scene {path.stem}: {exc}") from exc
+    return Scene(path.stem, str(body.get("description", "")), configuration, float(duration),
+                 controller, record, flat_overrides, config, flat)
+
+
+def write_scene_params(scene: Scene, path: Path) -> None:
+    """The scene as a ROS 2 parameter file every node of the graph reads."""
+    from pisc_bringup.graph import write_params_file
+
+    write_params_file(path, scene.flat)
