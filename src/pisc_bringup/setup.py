@@ -26,6 +26,7 @@ setup(
             'pisc_record = pisc_bringup.record:main',
             'pisc_integrators = pisc_bringup.integrators_cli:main',
             'pisc_scene = pisc_bringup.scene_cli:main',
+            'pisc_batch_bench = pisc_bringup.batch_bench:main',
         ],
     },
 )

@@ -20,6 +20,7 @@ fastest ``solve_ivp`` setting as accurate), and writes a log-log work-precision 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -184,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="playback length [s] (default 10)")
     parser.add_argument("--conservative", default="conservative",
                         help="conservative scene (default: conservative); 'none' to skip")
+    parser.add_argument("--conservative-duration", type=float,
+                        help="length of the conservative run [s] (default: the scene's)")
     parser.add_argument("--png", type=Path, default=Path("work-precision.png"),
                         help="where to write the plot (default: work-precision.png)")
     parser.add_argument("--quick", action="store_true",
@@ -197,6 +200,9 @@ def main(argv: list[str] | None = None) -> int:
                    playback_table(scene, commands, args.quick, sys.stdout))]
         if args.conservative != "none":
             conservative = load_scene(args.conservative)
+            if args.conservative_duration is not None:
+                conservative = dataclasses.replace(conservative,
+                                                   duration_s=args.conservative_duration)
             panels.append((f"conservative: {conservative.name}",
                            conservative_table(conservative, args.quick, sys.stdout)))
     except ConfigError as exc:

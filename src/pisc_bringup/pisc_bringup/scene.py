@@ -32,6 +32,7 @@ from typing import Any
 import yaml
 
 from pisc_bringup.configuration import CONFIG_DIR, GraphConfig, load_graph_config
+from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import ConfigError
 from pisc_msgs_py.topics import GRAPH_TOPICS
 
@@ -128,6 +129,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     flat_overrides.update(overrides or {})
     try:
         config, flat = load_graph_config(configuration, flat_overrides)
+        Supervisor(config.supervisor)  # refuses (3.29) and an uncontrollable linearisation
     except ConfigError as exc:
         raise ConfigError(f"scene {path.stem}: {exc}") from exc
     return Scene(path.stem, str(body.get("description", "")), configuration, float(duration),

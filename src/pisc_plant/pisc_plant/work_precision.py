@@ -135,13 +135,18 @@ def energy_drift(plant: Plant, states: np.ndarray) -> float:
 
 
 def methods_for(plant_config: PlantConfig) -> list[tuple[str, Sequence[int]]]:
-    """The plant's integrators and the substep counts worth measuring for a scene."""
+    """The plant's integrators and the step counts worth measuring for a scene: a range
+    for each method (for rk4 from the smallest stable count when the scene is stiff)
+    and always the scene's own setting."""
     stiff = Plant(dataclasses.replace(plant_config, integrator=IntegratorParams("exprk4", 1)))
     rates = -stiff.lam
-    rk4_min = 1
+    own = plant_config.integrator
+    exp_counts = {1, 2, 3, 4, 6, 8, 16}
     if rates.size and rates.max() > 0.0:
-        # the smallest stable count (see Plant's check), then a few above it
+        # the smallest count the plant accepts (its check), then a few above it
         rk4_min = int(np.ceil(plant_config.loop.period_s * rates.max() / 2.785 * 1.0001))
-    rk4 = sorted({max(rk4_min, n) for n in (rk4_min, 16, 20, 32, 64)})
-    return [("exprk4", (1, 2, 3, 4, 6, 8, 16)), ("rk4", rk4)]
-
+        rk4_counts = {rk4_min, 16, 20, 32, 64}
+    else:
+        rk4_counts = {1, 2, 4, 8, 16}
+    (exp_counts if own.method == "exprk4" else rk4_counts).add(own.substeps)
+    return [("exprk4", sorted(exp_counts)), ("rk4", sorted(rk4_counts))]
