@@ -156,7 +156,7 @@ def plot(panels: list[tuple[str, list[wp.Result]]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 5), squeeze=False)
-    for ax, (title, results) in zip(axes[0], panels):
+    for ax, (title, results) in zip(axes[0], panels, strict=True):
         reference = results[0].states
         families: dict[str, list[wp.Result]] = {}
         for r in results[1:]:

@@ -2,8 +2,6 @@
 
 import re
 
-import pytest
-
 from pisc_bringup.integrators_cli import main
 
 

@@ -283,12 +283,23 @@ class Plant:
                          noise: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         s = self.config.sensors
         x, theta, current = self._noisy(y, command, noise)
-        if self.config.models.sensor_filters:
-            return (y[..., self.layout.ir_index], y[..., self.layout.current_sensor_index],
-                    theta)
-        return sensors.ir_voltage(s, x), sensors.current_sensor_voltage(s, current), theta
+        if not self.config.models.sensor_filters:
+            return sensors.ir_voltage(s, x), sensors.current_sensor_voltage(s, current), theta
+        v_ir = y[..., self.layout.ir_index]
+        v_cur = y[..., self.layout.current_sensor_index]
+        if noise is not None:
+            # behind the RC filters the noise is measurement noise at the ADC's input, of
+            # the same size in x and i: through the IR curve's slope (4.8),
+            # dv/dx = v / (exponent (origin - x)), and the current sensor's 1 / scale
+            n = self.config.noise
+            distance = np.maximum(s.ir_origin_m - y[..., X], 1e-3)
+            v_ir = v_ir + v_ir / (s.ir_exponent * distance) * n.x_std_m * noise[..., 0]
+            v_cur = v_cur + n.current_std_a * noise[..., 2] / s.current_scale_a_per_v
+        return v_ir, v_cur, theta
 
-    def _noisy(self, y, command, noise):
+    def _noisy(self, y: np.ndarray, command: ArrayLike, noise: np.ndarray | None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """True x, theta, i plus the scaled noise draws (none without draws)."""
         x = y[..., X]
         theta = y[..., THETA]
         current = self.current(y, command)
@@ -305,7 +316,8 @@ class Plant:
         """(IR ADC code, current ADC code, encoder count) of a state."""
         s = self.config.sensors
         v_ir, v_cur, theta = self._sensor_voltages(y, command, noise)
-        return sensors.adc_code(s, v_ir), sensors.adc_code(s, v_cur), sensors.encoder_count(s, theta)
+        return (sensors.adc_code(s, v_ir), sensors.adc_code(s, v_cur),
+                sensors.encoder_count(s, theta))
 
     def measurement(self, y: np.ndarray, command: ArrayLike = 0.0,
                     noise: np.ndarray | None = None

@@ -135,7 +135,7 @@ def test_exponential_scheme_stays_accurate_through_voltage_steps():
     errors = _playback_errors(config, (1, 2, 4, 8, 16), y0, commands)
     assert errors[0] < 5e-7 and errors[1] < 3e-8 and errors[4] < 1e-9, errors
     assert errors[0] / errors[1] > 10, errors
-    assert all(a > b for a, b in zip(errors, errors[1:])), errors
+    assert all(a > b for a, b in zip(errors, errors[1:], strict=False)), errors
 
 
 def test_batch_and_single_rig_are_bit_identical():
