@@ -474,6 +474,23 @@ def end_stops(y, p, lay):
     y[0] = min(max(x, p[P_XMIN]), p[P_XMAX])
 
 
+# Work rows: 0..4 the N's of the stages, then a stage's state, scratch, the state z at
+# the step's start, the new state; 9, 10 phi values; 11 the couplings.
+TMP_ROW, SCRATCH_ROW, Z_ROW, NEW_ROW = 5, 6, 7, 8
+# The scheme's stages as (operator row, work row) terms:
+# U2 = e^(hL/2) z + a21 N1; U3 = e^(hL/2) z + a31 N1 + a32 N2;
+# U4 = e^(hL) z + a41 N1 + a42 (N2 + N3); U5 = e^(hL/2) z + a51 N1 + a52 (N2 + N3) + a54 N4;
+# z_new = e^(hL) z + b1 N1 + b4 N4 + b5 N5.
+STAGE_TERMS = np.full((5, 5, 2), -1, dtype=np.int64)
+for _stage, _terms in enumerate((
+        [(1, Z_ROW), (2, 0)],
+        [(1, Z_ROW), (3, 0), (4, 1)],
+        [(0, Z_ROW), (5, 0), (6, 1), (6, 2)],
+        [(1, Z_ROW), (7, 0), (8, 1), (8, 2), (9, 3)],
+        [(0, Z_ROW), (10, 0), (11, 3), (12, 4)])):
+    STAGE_TERMS[_stage, :len(_terms)] = _terms
+
+
 @_jit
 def advance_one(y, u, p, lay, method, substeps, h, coef, work, table):
     """``substeps`` steps of size ``h`` with the input ``u`` held; updates ``y`` in place.
@@ -488,9 +505,7 @@ def advance_one(y, u, p, lay, method, substeps, h, coef, work, table):
     k2 = work[1]
     k3 = work[2]
     k4 = work[3]
-    k5 = work[4]
-    tmp = work[5]
-    scratch = work[6]
+    tmp = work[TMP_ROW]
     if method == RK4:
         for _ in range(substeps):
             rhs_one(y, u, p, lay, k1)
@@ -511,8 +526,7 @@ def advance_one(y, u, p, lay, method, substeps, h, coef, work, table):
     arm = lay[L_ARM]
     ii = lay[L_I]
     m = n + 1 if arm == ARM_FULL else n  # r joins the state
-    z = work[7]
-    out = work[8]
+    z = work[Z_ROW]
     table[:] = coef
     ph = work[9:11, :8]
     c = work[11, :5]
@@ -525,50 +539,27 @@ def advance_one(y, u, p, lay, method, substeps, h, coef, work, table):
         _couplings(z, p, lay, c)
         if arm == ARM_FULL:
             _armature_operators(c[4], table, ph)
-        _nonlinear(z, u, p, lay, c, scratch, k1)
-        _stage(table, 1, z, k1, k1, k1, k1, 0, c, lay, m, tmp)
-        _nonlinear(tmp, u, p, lay, c, scratch, k2)
-        _stage(table, 1, z, k1, k2, k2, k2, 1, c, lay, m, tmp)
-        _nonlinear(tmp, u, p, lay, c, scratch, k3)
-        _stage(table, 0, z, k1, k2, k3, k3, 2, c, lay, m, tmp)
-        _nonlinear(tmp, u, p, lay, c, scratch, k4)
-        _stage(table, 1, z, k1, k2, k3, k4, 3, c, lay, m, tmp)
-        _nonlinear(tmp, u, p, lay, c, scratch, k5)
-        # z_(n+1) = e^(hL) z + b1 N1 + b4 N4 + b5 N5
-        for j in range(m):
-            out[j] = 0.0
-        _apply_add(table[0], z, c, lay, out)
-        _apply_add(table[10], k1, c, lay, out)
-        _apply_add(table[11], k4, c, lay, out)
-        _apply_add(table[12], k5, c, lay, out)
+        # N1 at z; then each stage sums operators on z and the N's so far (STAGE_TERMS)
+        # and evaluates N there; the last sum is the new state
+        _nonlinear(z, u, p, lay, c, work[SCRATCH_ROW], work[0])
+        for stage in range(5):
+            out = work[TMP_ROW] if stage < 4 else work[NEW_ROW]
+            for j in range(m):
+                out[j] = 0.0
+            for t in range(STAGE_TERMS.shape[1]):
+                op = STAGE_TERMS[stage, t, 0]
+                if op < 0:
+                    break
+                _apply_add(table[op], work[STAGE_TERMS[stage, t, 1]], c, lay, out)
+            if stage < 4:
+                _nonlinear(out, u, p, lay, c, work[SCRATCH_ROW], work[stage + 1])
+        out = work[NEW_ROW]
         for j in range(n):
             y[j] = out[j]
         if arm == ARM_FULL:
             y[ii] += (u - p[P_KER] * y[1]) / p[P_R]
         if stops:
             end_stops(y, p, lay)
-
-
-@_inline
-def _stage(coef, exp_row, z, n1, n2, n3, n4, stage, c, lay, m, out):
-    """Stages 2..5 of the scheme into ``out``: e^(c_i h L) z + sum_j a_ij N_j."""
-    for j in range(m):
-        out[j] = 0.0
-    _apply_add(coef[exp_row], z, c, lay, out)
-    if stage == 0:  # U2 = e^(hL/2) z + a21 N1
-        _apply_add(coef[2], n1, c, lay, out)
-    elif stage == 1:  # U3 = e^(hL/2) z + a31 N1 + a32 N2
-        _apply_add(coef[3], n1, c, lay, out)
-        _apply_add(coef[4], n2, c, lay, out)
-    elif stage == 2:  # U4 = e^(hL) z + a41 N1 + a42 (N2 + N3)
-        _apply_add(coef[5], n1, c, lay, out)
-        _apply_add(coef[6], n2, c, lay, out)
-        _apply_add(coef[6], n3, c, lay, out)
-    else:  # U5 = e^(hL/2) z + a51 N1 + a52 (N2 + N3) + a54 N4
-        _apply_add(coef[7], n1, c, lay, out)
-        _apply_add(coef[8], n2, c, lay, out)
-        _apply_add(coef[8], n3, c, lay, out)
-        _apply_add(coef[9], n4, c, lay, out)
 
 
 WORK_ROWS = 12
@@ -592,3 +583,31 @@ def rhs_many(ys, us, p, lay, out):
     """:func:`rhs_one` on every row."""
     for row in range(ys.shape[0]):
         rhs_one(ys[row], us[row], p, lay, out[row])
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's cache) every kernel entry point; seconds taken.
+
+    The first compilation takes tens of seconds; ``./pisc`` runs this once at set-up so
+    that nodes and tests started later load the cache instead of compiling in parallel.
+    """
+    import time
+
+    from pisc_plant.params import ModelParams
+    from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
+
+    start = time.perf_counter()
+    for models in (ModelParams(), ModelParams(armature="ideal_force", current_loop="ideal",
+                                              sensors="ideal", sensor_filters=False)):
+        for method in METHODS:
+            plant = Plant(PlantConfig(models=models, integrator=IntegratorParams(method, 20)))
+            one = plant.initial_state(0.0)
+            plant.advance(one, 1.0, 0.005)
+            plant.advance(plant.initial_state(np.zeros(2)), np.zeros(2), 0.005)
+            plant.derivative(one, 0.0)
+            plant.end_stops(one)
+    return time.perf_counter() - start
+
+
+if __name__ == "__main__":
+    print(f"pisc_plant.kernel: compiled or loaded in {warm_up():.1f} s")
