@@ -164,6 +164,16 @@ class ActuatorParams:
         scaled = np.abs(np.asarray(voltage_v, dtype=float)) / self.step_v
         return np.minimum(np.floor(scaled + 0.5), self.command_levels).astype(np.int64)
 
+    def apply_scalar(self, voltage_v: float) -> float:
+        """:meth:`apply` for one voltage, with the same arithmetic, without numpy's
+        per-call cost (a plant node applies one command per period)."""
+        v = min(max(float(voltage_v), -self.full_scale_v), self.full_scale_v)
+        if self.command_levels == 0:
+            return v
+        magnitude = min(math.floor(abs(v) / self.step_v + 0.5), self.command_levels)
+        sign = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)
+        return sign * magnitude * self.step_v
+
     def apply(self, voltage_v: ArrayLike) -> np.ndarray:
         """Voltage the bridge applies for a commanded voltage: saturated, then quantised."""
         v = np.clip(np.asarray(voltage_v, dtype=float), -self.full_scale_v, self.full_scale_v)

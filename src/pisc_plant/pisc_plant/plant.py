@@ -256,6 +256,14 @@ class Plant:
         n = max(1, math.ceil(duration_s / self.nominal_substep_s - 1e-9))
         h = duration_s / n
         coef = self.coefficients(h)
+        if np.ndim(y) == 1 and np.ndim(command) == 0 and len(y) == self.size:
+            # one rig, one command: the same kernel call without the array bookkeeping
+            out = np.array(y, dtype=float)
+            u = (float(command) if self.force_input
+                 else self.config.actuator.apply_scalar(command))
+            kernel.advance_one(out, u, self._p, self._layout, self._method, n, h, coef,
+                               self._work, self._table)
+            return out
         ys, us = self._rows(y, command)
         if ys.shape[0] == 1:
             kernel.advance_one(ys[0], us[0], self._p, self._layout, self._method, n, h, coef,

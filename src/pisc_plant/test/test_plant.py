@@ -131,3 +131,20 @@ def test_batch_advance_matches_single_rigs():
     out = plant.advance(batch, np.array([3.0, -2.0, 1.0]), 0.005)
     single = plant.advance(plant.initial_state(0.1), 1.0, 0.005)
     np.testing.assert_allclose(out[2], single, rtol=1e-13, atol=1e-15)
+
+
+def test_scalar_actuator_matches_the_array_one_at_every_boundary():
+    act = DEFAULT.actuator
+    step = act.step_v
+    values = np.concatenate([np.linspace(-13, 13, 20001), (np.arange(128) + 0.5) * step,
+                             -(np.arange(128) + 0.5) * step, [0.0, -0.0, 11.47, -11.47]])
+    array = act.apply(values)
+    scalar = np.array([act.apply_scalar(v) for v in values])
+    np.testing.assert_array_equal(scalar, array)
+
+
+def test_one_rig_fast_path_is_the_batch_arithmetic():
+    plant = Plant(DEFAULT)
+    y = plant.initial_state(0.02, 0.1, 3.0, 0.5, 0.1)
+    np.testing.assert_array_equal(plant.advance(y, 3.3, 0.005),
+                                  plant.advance(y[None, :], np.array([3.3]), 0.005)[0])
