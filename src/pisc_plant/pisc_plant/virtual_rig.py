@@ -35,6 +35,7 @@ import os
 import select
 import signal
 import struct
+import subprocess
 import sys
 import time
 import tty
@@ -64,7 +65,7 @@ from pisc_plant.plant import (
     X,
 )
 
-__all__ = ["Firmware", "RigFaults", "main"]
+__all__ = ["Firmware", "Rig", "RigFaults", "RigProcess", "main"]
 
 HEADER = 0xAA
 PLANT_SECTIONS = {"rig": RigParams, "motor": MotorParams, "sensors": SensorParams,
@@ -315,6 +316,51 @@ class Rig:
                 os.close(fd)
             except OSError:
                 pass
+
+
+class RigProcess:
+    """``pisc_virtual_rig`` as a child process, controlled through its standard input.
+
+    For tests and runners: ``device`` is the path to give the driver; ``request``
+    sends a fault request; ``status()`` asks for and returns the status; ``stop()``
+    ends the rig (SIGTERM) and returns its final status.
+    """
+
+    def __init__(self, args: list[str] = (), env: dict[str, str] | None = None,
+                 timeout_s: float = 30.0) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "pisc_plant.virtual_rig", *args], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, bufsize=1)
+        line = self._line(timeout_s)
+        if not line.startswith("device "):
+            err = self.process.stderr.read() if self.process.poll() is not None else ""
+            raise RuntimeError(f"pisc_virtual_rig did not start: {line!r} {err}")
+        self.device = line.split(" ", 1)[1].strip()
+
+    def _line(self, timeout_s: float) -> str:
+        ready, _, _ = select.select([self.process.stdout], [], [], timeout_s)
+        if not ready:
+            raise TimeoutError(f"pisc_virtual_rig said nothing for {timeout_s} s")
+        return self.process.stdout.readline()
+
+    def request(self, **request: Any) -> None:
+        self.process.stdin.write(json.dumps(request) + "\n")
+        self.process.stdin.flush()
+
+    def status(self, timeout_s: float = 10.0) -> dict[str, Any]:
+        self.request(status=True)
+        line = self._line(timeout_s)
+        reply = json.loads(line)
+        if "error" in reply:
+            raise ValueError(reply["error"])
+        return reply
+
+    def stop(self, timeout_s: float = 10.0) -> dict[str, Any]:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+        out, _ = self.process.communicate(timeout=timeout_s)
+        lines = [line for line in out.splitlines() if line.startswith("{")]
+        return json.loads(lines[-1]) if lines else {}
 
 
 def _parse_set(items: list[str]) -> dict[str, Any]:
