@@ -78,6 +78,7 @@ class DriverCore:
         self.silence_ns = round(params.silence_timeout_s * 1e9)
         self.parser = FrameParser(sensors, period_s, params.parser)
         self._count: int | None = None  # unwrapped encoder count
+        self._stamp_ns: int | None = None  # stamp of the newest sample
         self.last_frame_ns: int | None = None
         self.sent_stamp_ns: int | None = None  # stamp of the newest command sent
         self.sent_byte = ZERO
@@ -88,13 +89,20 @@ class DriverCore:
         self.silences = 0
 
     def receive(self, data: bytes, now_ns: int) -> list[Measurement]:
-        """Bytes read at ``now_ns`` -> the samples they completed, stamped ``now_ns``."""
+        """Bytes read at ``now_ns`` -> the samples they completed, stamped ``now_ns``.
+
+        A stamp keys a control cycle, so it must be unique: when one read completes
+        several frames (the reader was late), each later frame is stamped 1 us after the
+        one before.
+        """
         out = []
         for frame in self.parser.feed(data, now_ns * 1e-9):
             self._count = (frame.count if self._count is None
                            else unwrap_count(self._count, frame.count))
             x, theta, current = frame_to_si(self.sensors, frame, self._count)
-            out.append(Measurement(now_ns, x, theta, current))
+            stamp = now_ns if self._stamp_ns is None else max(now_ns, self._stamp_ns + 1000)
+            self._stamp_ns = stamp
+            out.append(Measurement(stamp, x, theta, current))
         if out:
             self.last_frame_ns = now_ns
             self.silent = False

@@ -23,7 +23,9 @@ Faults on request, from the command line or as JSON lines on standard input::
     {"quit": true}        stop
 
 On exit (end of input is not an exit; SIGINT, SIGTERM or quit are) it prints its
-status as the last line. ``--log`` writes the true state of every period as CSV.
+status as the last line. ``--log`` writes the true state of every period as CSV, with
+the monotonic and the Unix time each frame was sent (a driver stamps samples with ROS
+time, the Unix clock, so a bag and the log line up).
 """
 
 from __future__ import annotations
@@ -237,7 +239,8 @@ class Rig:
         self.last_frame_time = now
         if self.log is not None:
             y = self.firmware.state
-            self.log.write(f"{self.firmware.time_s:.6f},{now:.6f},{y[X]:.9g},{y[X_DOT]:.9g},"
+            self.log.write(f"{self.firmware.time_s:.6f},{now:.6f},{time.time():.6f},"
+                           f"{y[X]:.9g},{y[X_DOT]:.9g},"
                            f"{y[THETA]:.9g},{y[THETA_DOT]:.9g},{y[CURRENT]:.9g},"
                            f"{self.firmware.applied_v:.6g}\n")
 
@@ -331,6 +334,7 @@ class RigProcess:
         self.process = subprocess.Popen(
             [sys.executable, "-m", "pisc_plant.virtual_rig", *args], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, bufsize=1)
+        self._final: dict[str, Any] | None = None
         line = self._line(timeout_s)
         if not line.startswith("device "):
             err = self.process.stderr.read() if self.process.poll() is not None else ""
@@ -356,11 +360,14 @@ class RigProcess:
         return reply
 
     def stop(self, timeout_s: float = 10.0) -> dict[str, Any]:
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-        out, _ = self.process.communicate(timeout=timeout_s)
-        lines = [line for line in out.splitlines() if line.startswith("{")]
-        return json.loads(lines[-1]) if lines else {}
+        """End the rig (once; later calls return the same final status)."""
+        if self._final is None:
+            if self.process.poll() is None:
+                self.process.send_signal(signal.SIGTERM)
+            out, _ = self.process.communicate(timeout=timeout_s)
+            lines = [line for line in out.splitlines() if line.startswith("{")]
+            self._final = json.loads(lines[-1]) if lines else {}
+        return self._final
 
 
 def _parse_set(items: list[str]) -> dict[str, Any]:
@@ -386,6 +393,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--flip-rate", type=float, default=0.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--log", help="CSV of the true state each period")
+    parser.add_argument("--realtime", type=int, default=0, metavar="PRIORITY",
+                        help="run under SCHED_FIFO at this priority (1-99) so that a loaded "
+                        "machine does not delay frames, as the PIC's timer never does; "
+                        "needs CAP_SYS_NICE (0 = normal scheduling)")
     parser.add_argument("--no-control", action="store_true",
                         help="do not read JSON requests from standard input")
     args = parser.parse_args(argv)
@@ -399,12 +410,18 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValueError) as exc:
         print(f"pisc_virtual_rig: {exc}", file=sys.stderr)
         return 2
+    if args.realtime:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime))
+        except (OSError, AttributeError) as exc:
+            print(f"pisc_virtual_rig: --realtime {args.realtime}: cannot use SCHED_FIFO "
+                  f"({exc}); running with normal scheduling", file=sys.stderr)
     plant = Plant(config)
     state = plant.initial_state(initial.x_m, initial.x_dot_mps, initial.theta_rad,
                                 initial.theta_dot_radps)
     log = open(args.log, "w") if args.log else None  # noqa: SIM115 - closed below
     if log is not None:
-        log.write("t_s,wall_s,x,x_dot,theta,theta_dot,i,applied_v\n")
+        log.write("t_s,monotonic_s,unix_s,x,x_dot,theta,theta_dot,i,applied_v\n")
     rig = Rig(Firmware(plant, state), faults, args.seed, log)
 
     def stop(signum: int, frame: Any) -> None:
