@@ -236,8 +236,8 @@ def test_parameter_change_sends_zero_and_a_vanished_port_is_reported_and_retried
     errors: list[str] = []
     probe.create_subscription(
         message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
-        lambda m: errors.extend(s.message for s in m.status
-                                if s.name == "pisc/driver" and s.level == 2),
+        lambda m: errors.extend(s.message for s in m.status  # level is a byte in rclpy
+                                if s.name == "pisc/driver" and s.level == b"\x02"),
         qos_profile(DIAGNOSTICS.qos))
     voltage = probe.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
                                      qos_profile(VOLTAGE.qos))
