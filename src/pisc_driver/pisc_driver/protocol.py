@@ -184,7 +184,8 @@ class FrameParser:
     high bytes at most ``(2^bits - 1) >> 8`` = 3) and is confirmed either by another 0xAA
     exactly 7 bytes later followed by plausible ADC high bytes (they come in the same
     burst) or, when arrival times are known, by starting a burst (no byte for
-    ``frame_gap_s`` before it) and arriving whole within that burst.
+    ``frame_gap_s`` before it) and arriving whole within that burst; with arrival times,
+    a candidate whose bytes span a gap of more than ``frame_gap_s`` is refused.
     Locked: each frame is checked and delivered as soon as its 7th byte arrives: header,
     ADC high bytes, encoder change since the last frame at most ``max_rate * period /
     rad_per_count`` counts per period, the next header if that byte is already here, and a
@@ -271,6 +272,11 @@ class FrameParser:
         t0, t6 = self._times[p], self._times[p + 6]
         return t0 is not None and t6 is not None and t6 - t0 > self.gap_s
 
+    def _spans_gap(self, p: int) -> bool:
+        """While hunting: the candidate's bytes came in two bursts, so it is not a frame."""
+        t0, t6 = self._times[p], self._times[p + 6]
+        return bool(self.gap_s) and t0 is not None and t6 is not None and t6 - t0 > self.gap_s
+
     def _locked_ok(self) -> bool:
         if not self._plausible(0) or not self._count_ok(0) or self._lost_byte(0):
             return False
@@ -293,7 +299,7 @@ class FrameParser:
                 q = p + FRAME_LENGTH  # the confirming header and its ADC high bytes
                 if q + 3 < n:
                     confirmed = (b[q] == HEADER and b[q + 1] <= self.max_adc_high
-                                 and b[q + 3] <= self.max_adc_high and not self._lost_byte(p))
+                                 and b[q + 3] <= self.max_adc_high and not self._spans_gap(p))
                 elif self._starts_burst(p) and t_end is not None:
                     t0 = self._times[p]
                     confirmed = t0 is not None and t_end - t0 <= self.gap_s
