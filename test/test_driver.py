@@ -121,7 +121,12 @@ def test_swing_up_and_catch_through_the_driver_and_the_virtual_rig(tmp_path, env
     assert_acceptance_measured(summary)
     assert_acceptance_true(true_log(tmp_path), *run_window(tmp_path / "bag"))
     assert "serial driver on /dev/pts/" in output and "result                 CAUGHT" in output
-    assert summary.cycles >= 2000
+    # every frame the rig sent during the run is a recorded cycle (the rig's own pacing
+    # is the wall clock's: on a loaded machine it can be late, the driver loses nothing)
+    start, end = run_window(tmp_path / "bag")
+    log = true_log(tmp_path)
+    sent = np.sum((log["unix_s"] >= start - 0.004) & (log["unix_s"] <= end))
+    assert summary.cycles == sent, (summary.cycles, sent)
     statuses = driver_statuses(tmp_path / "bag")
     assert any(s.message.startswith("opened /dev/pts/") for s in statuses)
     assert final["last_byte"] == 0  # the graph's end: the driver sent 0 V last

@@ -419,7 +419,8 @@ def main(argv: list[str] | None = None) -> int:
     plant = Plant(config)
     state = plant.initial_state(initial.x_m, initial.x_dot_mps, initial.theta_rad,
                                 initial.theta_dot_radps)
-    log = open(args.log, "w") if args.log else None  # noqa: SIM115 - closed below
+    # a large buffer: a flush that waits for the disk must not delay a frame
+    log = open(args.log, "w", buffering=1 << 20) if args.log else None  # noqa: SIM115
     if log is not None:
         log.write("t_s,monotonic_s,unix_s,x,x_dot,theta,theta_dot,i,applied_v\n")
     rig = Rig(Firmware(plant, state), faults, args.seed, log)
