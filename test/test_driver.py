@@ -211,13 +211,18 @@ def test_killing_the_driver_leaves_zero_volts_as_the_last_byte(tmp_path, env_for
         rig.stop()
 
 
-def test_missing_or_busy_port_refuses_to_start_and_says_why(tmp_path, env_for_domain):
+def test_missing_or_busy_port_or_bad_parameter_refuses_to_start_and_says_why(tmp_path, env_for_domain):
     command = [sys.executable, "-m", "pisc_driver.driver_node", "--ros-args", "-p"]
     missing = subprocess.run(command + ["driver.port:=/dev/pisc-no-such-port"],
                              env=env_for_domain, capture_output=True, text=True, timeout=60)
     assert missing.returncode == 2
     assert ("refusing to start: invalid parameter: driver.port = '/dev/pisc-no-such-port': "
             "no such device") in missing.stderr
+    bad = subprocess.run(command + ["driver.port:=/dev/null", "-p",
+                                    "driver.silence_timeout_s:=0.0"],
+                         env=env_for_domain, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2
+    assert "driver.silence_timeout_s = 0.0 must lie in [0.001, 10.0]" in bad.stderr
     rig = start_rig(tmp_path)
     holder = SerialLink(rig.device)
     holder.open()

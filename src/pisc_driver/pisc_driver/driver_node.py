@@ -40,6 +40,7 @@ class DriverNode(PiscNode):
         self._sub = self.subscription(VOLTAGE, self._on_voltage)
         self._reader: threading.Thread | None = None
         self._running = False
+        self._unwritten = 0  # command bytes the port did not take
         self._start(self.config)  # a missing or busy port raises LinkError here
 
     def build(self, flat: dict[str, Any]) -> DriverCore:
@@ -92,11 +93,13 @@ class DriverNode(PiscNode):
         return self.get_clock().now().nanoseconds
 
     def _send(self, byte: int) -> None:
+        """Write a command byte (under the lock); the reader alone closes a failed port."""
         if self._link.is_open:
             try:
-                self._link.write(byte)
-            except LinkError as exc:
-                self.diagnose(ERROR, str(exc))
+                if not self._link.write(byte):
+                    self._unwritten += 1
+            except LinkError:
+                self._unwritten += 1  # the reader finds the port gone and reports it
 
     def _on_voltage(self, msg: Any) -> None:
         try:
@@ -136,10 +139,10 @@ class DriverNode(PiscNode):
                     self._report(ERROR, fault, now)
             except LinkError as exc:
                 with self._lock:
+                    link.close()
                     core.silent = False  # report silence again after the port comes back
                 self._report(ERROR, f"{exc}; retrying every {core.params.reopen_interval_s} s",
                              self._now_ns())
-                link.close()
             except Exception as exc:  # a bug must not leave the motor driven
                 with self._lock:
                     self._send(ZERO)
@@ -155,7 +158,8 @@ class DriverNode(PiscNode):
                       bytes_discarded=core.parser.discarded, rehunts=core.parser.rehunts,
                       command_age_ms="none" if age is None else f"{age * 1e-6:.2f}",
                       commands_sent=core.commands, stale_commands=core.stale_commands,
-                      zeroed_for_age=core.zeroed, silences=core.silences)
+                      zeroed_for_age=core.zeroed, silences=core.silences,
+                      bytes_not_written=self._unwritten)
 
 
 def main(args: list[str] | None = None) -> int:

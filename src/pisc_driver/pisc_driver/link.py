@@ -55,7 +55,7 @@ class SerialLink:
         try:
             port = serial.Serial(self.port, self.baud, bytesize=serial.EIGHTBITS,
                                  parity=serial.PARITY_NONE, stopbits=serial.STOPBITS_ONE,
-                                 timeout=self.read_timeout_s, write_timeout=0.1,
+                                 timeout=self.read_timeout_s,
                                  exclusive=True)
         except serial.SerialException as exc:
             raise LinkError(_why(self.port, exc)) from exc
@@ -66,7 +66,8 @@ class SerialLink:
 
     def read(self) -> bytes:
         """The bytes that arrived: waits up to ``read_timeout_s`` for the first, then takes
-        what is there (a device burst), so a frame reaches the parser when it arrives."""
+        what is there (a device burst), so a frame reaches the parser when it arrives.
+        A device that went away raises LinkError; the caller closes the port."""
         port = self._require()
         try:
             data = port.read(1)
@@ -76,16 +77,23 @@ class SerialLink:
                     data += port.read(waiting)
             return data
         except (serial.SerialException, OSError) as exc:
-            self.close()
             raise LinkError(f"driver.port = {self.port!r}: read failed, the device went away "
                             f"({exc})") from exc
 
-    def write(self, byte: int) -> None:
+    def write(self, byte: int) -> bool:
+        """Send one byte at once; False when the port cannot take it now (output full).
+
+        Written straight to the non-blocking descriptor pyserial opened: pyserial's own
+        write reports a timeout whenever the calling thread was descheduled past the
+        timeout, even after the byte went out. A write never closes the port (the reader
+        owns it); a device that went away raises LinkError.
+        """
         port = self._require()
         try:
-            port.write(bytes([byte]))
+            return os.write(port.fileno(), bytes([byte])) == 1
+        except BlockingIOError:
+            return False
         except (serial.SerialException, OSError) as exc:
-            self.close()
             raise LinkError(f"driver.port = {self.port!r}: write failed, the device went away "
                             f"({exc})") from exc
 

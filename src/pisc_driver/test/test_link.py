@@ -61,8 +61,7 @@ def test_old_bytes_are_dropped_on_open_then_a_burst_is_read_whole(pty):
         os.write(master, bytes([0xAA, 0x01, 0xF4, 0x02, 0x08, 0x00, 0x0A]))
         time.sleep(0.01)
         assert link.read() == bytes([0xAA, 0x01, 0xF4, 0x02, 0x08, 0x00, 0x0A])
-        link.write(0x81)
-        link.write(0x00)
+        assert link.write(0x81) and link.write(0x00)
         time.sleep(0.01)
         assert os.read(master, 16) == b"\x81\x00"
     finally:
@@ -79,6 +78,8 @@ def test_a_device_that_goes_away_is_a_link_error_not_a_crash(pty):
     with pytest.raises(LinkError, match=r"read failed, the device went away"):
         for _ in range(3):
             link.read()
+    assert link.is_open  # the caller (the driver's reader) closes it
+    link.close()
     assert not link.is_open
     with pytest.raises(LinkError, match="no such device|cannot open"):
         link.open()
