@@ -230,6 +230,7 @@ class Rig:
             data = self.rng.integers(0, 256, f.garbage, dtype=np.uint8).tobytes() + data
             f.garbage = 0
         data = self._damage(data)
+        sent_unix = time.time()  # before the write: a reader's arrival stamp is later
         try:
             os.write(self.master, data)
             self.bytes_sent += len(data)
@@ -239,7 +240,7 @@ class Rig:
         self.last_frame_time = now
         if self.log is not None:
             y = self.firmware.state
-            self.log.write(f"{self.firmware.time_s:.6f},{now:.6f},{time.time():.6f},"
+            self.log.write(f"{self.firmware.time_s:.6f},{now:.6f},{sent_unix:.6f},"
                            f"{y[X]:.9g},{y[X_DOT]:.9g},"
                            f"{y[THETA]:.9g},{y[THETA_DOT]:.9g},{y[CURRENT]:.9g},"
                            f"{self.firmware.applied_v:.6g}\n")
