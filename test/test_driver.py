@@ -95,8 +95,8 @@ def assert_acceptance_measured(summary) -> None:
 
 def assert_acceptance_true(log: np.ndarray, start: float, end: float) -> None:
     """The same limits on the rig's true state: held from 6 s, inside the IR range."""
-    run = log[(log["unix_s"] >= start) & (log["unix_s"] <= end)]
-    assert len(run) >= 1900
+    run = log[(log["unix_s"] >= start - 0.005) & (log["unix_s"] <= end)]
+    assert run["unix_s"][0] - start < 0.05 and end - run["unix_s"][-1] < 0.05  # covers the run
     late = run[run["unix_s"] >= start + 6.0]
     theta_up = np.abs((late["theta"] + math.pi) % (2 * math.pi) - math.pi)
     assert theta_up.max() < 0.05 and np.abs(late["x"]).max() < 0.02, (
@@ -121,12 +121,12 @@ def test_swing_up_and_catch_through_the_driver_and_the_virtual_rig(tmp_path, env
     assert_acceptance_measured(summary)
     assert_acceptance_true(true_log(tmp_path), *run_window(tmp_path / "bag"))
     assert "serial driver on /dev/pts/" in output and "result                 CAUGHT" in output
-    # every frame the rig sent during the run is a recorded cycle (the rig's own pacing
-    # is the wall clock's: on a loaded machine it can be late, the driver loses nothing)
-    start, end = run_window(tmp_path / "bag")
-    log = true_log(tmp_path)
-    sent = np.sum((log["unix_s"] >= start - 0.004) & (log["unix_s"] <= end))
-    assert summary.cycles == sent, (summary.cycles, sent)
+    # nothing lost on the way: every byte the rig sent made an accepted frame, and every
+    # sample the driver published was answered and recorded
+    joints = sum(1 for _ in read_bag(tmp_path / "bag", [JOINT_STATES.name]))
+    assert summary.cycles in (joints, joints - 1)  # the last sample may await its answer
+    values = {kv.key: kv.value for kv in driver_statuses(tmp_path / "bag")[-1].values}
+    assert (values["rehunts"], values["bytes_discarded"]) == ("0", "0"), values
     statuses = driver_statuses(tmp_path / "bag")
     assert any(s.message.startswith("opened /dev/pts/") for s in statuses)
     assert final["last_byte"] == 0  # the graph's end: the driver sent 0 V last
