@@ -61,7 +61,7 @@ def finish(graph: subprocess.Popen, timeout_s: float = 120.0) -> tuple[int, str]
     return graph.returncode, out + err
 
 
-def wait_cycles(rig: RigProcess, commands: int, timeout_s: float = 60.0) -> dict:
+def wait_cycles(rig: RigProcess, commands: int, timeout_s: float = 120.0) -> dict:
     """Wait until the rig has received ``commands`` command bytes (about 5 ms each)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
