@@ -75,16 +75,18 @@ def test_rig_injects_faults_on_request(rig):
     parser = FrameParser()
     try:
         read_for(link, parser, 0.1)
-        rig.request(silence_s=0.1)
-        time.sleep(0.01)
-        frames, _ = read_for(link, parser, 0.08)
+        rig.request(silence_s=0.3)
+        rig.status()  # requests are handled in order: the silence has begun
+        read_for(link, parser, 0.01)  # frames sent before it, still in the pty
+        frames, _ = read_for(link, parser, 0.1)
         assert frames == []
-        time.sleep(0.05)
+        time.sleep(0.25)
         rig.request(garbage=40)
         frames, _ = read_for(link, parser, 0.2)
         assert len(frames) >= 20 and parser.discarded >= 40
         rig.request(drop_rate=1.0)
-        time.sleep(0.02)
+        rig.status()
+        read_for(link, parser, 0.01)
         assert read_for(link, parser, 0.05)[0] == []
         rig.request(drop_rate=0.0, flip_rate=0.0)
         status = rig.status()
