@@ -221,8 +221,9 @@ def run_graph(options: RunOptions) -> RunResult:
         env["ROS_DOMAIN_ID"] = str(options.domain_id)
 
     started = time.monotonic()
+    # the recorder never runs under --realtime: it must not take the CPU from the loop
     recorder = _spawn([*_command("pisc_record", "pisc_bringup.record"), "--bag", str(bag_dir)],
-                      env, subprocess.PIPE)
+                      env, subprocess.PIPE, normal_scheduling=True)
     children: list[subprocess.Popen] = []
     context = Context()
     rclpy.init(context=context, domain_id=options.domain_id)
@@ -294,9 +295,17 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
         pass
 
 
-def _spawn(args: list[str], env: dict[str, str], stdout: int) -> subprocess.Popen:
+def _normal_scheduling() -> None:  # pragma: no cover - runs in the child before exec
+    _die_with_parent()
+    if os.sched_getscheduler(0) != os.SCHED_OTHER:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def _spawn(args: list[str], env: dict[str, str], stdout: int,
+           normal_scheduling: bool = False) -> subprocess.Popen:
+    preexec = _normal_scheduling if normal_scheduling else _die_with_parent
     return subprocess.Popen(args, env=env, stdout=stdout, stderr=subprocess.PIPE,
-                            preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+                            preexec_fn=preexec if sys.platform == "linux" else None)
 
 
 def _stop(child: subprocess.Popen) -> tuple[str, str]:
