@@ -14,12 +14,12 @@ pytestmark = pytest.mark.integration
 
 ROOT = Path(__file__).resolve().parent.parent
 EXECUTABLES = {
-    "pisc_plant": ["plant_node"],
+    "pisc_plant": ["plant_node", "pisc_virtual_rig"],
     "pisc_control": ["estimator_node", "supervisor_node", "current_loop_node"],
     "pisc_bringup": ["pisc_graph", "pisc_record", "pisc_scene", "pisc_integrators",
                      "pisc_batch_bench"],
     "pisc_msgs_py": [],
-    "pisc_driver": [],
+    "pisc_driver": ["driver_node", "pisc_parser_bench"],
 }
 
 

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 from pisc_bringup.configuration import SECTIONS
+from pisc_driver.driver import DriverParams
 from pisc_msgs_py.config import describe
 from pisc_msgs_py.topics import GRAPH_TOPICS
 from pisc_plant.plant_node import SimulationParams
@@ -12,7 +13,7 @@ README = (ROOT / "README.md").read_text()
 
 
 def test_every_parameter_is_listed():
-    sections = {**SECTIONS, "simulation": SimulationParams}
+    sections = {**SECTIONS, "simulation": SimulationParams, "driver": DriverParams}
     missing = [name for s, cls in sections.items() for name, *_ in describe(cls, s)
                if f"`{name}`" not in README]
     assert not missing

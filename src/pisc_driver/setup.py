@@ -15,12 +15,13 @@ setup(
     maintainer='PISC maintainers',
     maintainer_email='maintainers@users.noreply.h-seed-5c3c3dbe.example',
     description=(
-        'PISC serial driver for the PIC16F877A rig (package skeleton; the driver is issue 3).'
+        'PISC serial driver for the PIC16F877A rig: frame codec, serial link, driver node.'
     ),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-
+            'driver_node = pisc_driver.driver_node:main',
+            'pisc_parser_bench = pisc_driver.bench:main',
         ],
     },
 )

@@ -2,13 +2,17 @@
 
     pisc_graph [--config default|thesis|FILE] [--x0 M] [--duration S]
                [--clock lockstep|wall] [--processes] [--executor events|single|multi]
-               [--bag DIR] [--set NAME=VALUE ...]
+               [--driver PORT] [--realtime PRIORITY] [--bag DIR] [--set NAME=VALUE ...]
 
 The recorder (``pisc_record``) always runs as a process of its own. By default the
 plant, estimator, supervisor and current loop run in this process on one
 ``EventsExecutor`` (the measured choice, see README); ``--processes`` starts each node
 as its own process through its console entry point, with the merged parameter file,
-as ``ros2 run`` would.
+as ``ros2 run`` would. ``--driver PORT`` puts the serial driver (``pisc_driver
+driver_node``) in the plant's place, on the rig's port or on the pseudo-terminal of
+``pisc_virtual_rig``, against the wall clock. ``--realtime PRIORITY`` runs this process and the processes it
+starts under SCHED_FIFO, as a control computer runs its loop: a real device does not
+wait for a loaded machine (README, "Serial driver").
 
 The plant starts publishing once its subscribers are matched (in one process, once
 every controller's are too); a lockstep sample that is lost anyway is sent again. The
@@ -91,6 +95,8 @@ GRAPH = (
 )
 PLANT = GRAPH[-1]
 CONTROLLERS = GRAPH[:-1]
+DRIVER = NodeSpec("driver", "driver_node", "pisc_driver.driver_node", "DriverNode",
+                  (VOLTAGE,), (JOINT_STATES, MOTOR_CURRENT, DIAGNOSTICS))
 
 
 def expected_subscribers(topic: Topic, recording: bool, nodes: Sequence[NodeSpec] = GRAPH) -> int:
@@ -109,6 +115,7 @@ class RunOptions:
     bag_dir: Path | None = None
     domain_id: int | None = None
     timeout_s: float | None = None  # wall-clock limit; default scales with duration
+    driver_port: str | None = None  # run the serial driver on this port instead of the plant
 
 
 @dataclass(frozen=True)
@@ -195,20 +202,28 @@ def run_graph(options: RunOptions) -> RunResult:
         raise ConfigError(
             f"--executor {options.executor!r}: expected one of {', '.join(EXECUTORS)}")
     lockstep = options.clock == "lockstep"
+    if options.driver_port is not None and lockstep:
+        raise ConfigError("--driver runs against the wall clock (the device paces the "
+                          "samples): use --clock wall")
+    source = PLANT if options.driver_port is None else DRIVER
     bag_dir = options.bag_dir or _default_bag_dir(options)
     if bag_dir.exists() and any(bag_dir.iterdir()):
         raise BagError(f"{bag_dir}: exists and is not empty; not overwriting a bag")
     timeout = options.timeout_s or (60.0 + 20.0 * options.duration_s)
-    plant_flat = {"simulation.clock": options.clock,
-                  "simulation.min_subscribers": expected_subscribers(JOINT_STATES, True),
-                  "simulation.min_true_state_subscribers": 1}
+    plant_flat: dict[str, Any] = {
+        "simulation.clock": options.clock,
+        "simulation.min_subscribers": expected_subscribers(JOINT_STATES, True),
+        "simulation.min_true_state_subscribers": 1}
+    if source is DRIVER:
+        plant_flat = {"driver.port": options.driver_port}
     env = dict(os.environ)
     if options.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(options.domain_id)
 
     started = time.monotonic()
+    # the recorder never runs under --realtime: it must not take the CPU from the loop
     recorder = _spawn([*_command("pisc_record", "pisc_bringup.record"), "--bag", str(bag_dir)],
-                      env, subprocess.PIPE)
+                      env, subprocess.PIPE, normal_scheduling=True)
     children: list[subprocess.Popen] = []
     context = Context()
     rclpy.init(context=context, domain_id=options.domain_id)
@@ -223,7 +238,8 @@ def run_graph(options: RunOptions) -> RunResult:
         _wait(lambda: _recorder_ready(watcher, recorder), 30.0, "pisc_record to subscribe")
         write_params_file(bag_dir / "pisc_params.yaml", flat)
         if options.processes:
-            children = _start_processes(flat, plant_flat, bag_dir, watcher, env, lockstep)
+            children = _start_processes(flat, plant_flat, bag_dir, watcher, env, lockstep,
+                                        source)
             executor: Any = SingleThreadedExecutor(context=context)
         else:
             params = _parameters(flat)
@@ -233,7 +249,7 @@ def run_graph(options: RunOptions) -> RunResult:
                 nodes.append(cls(context=context, parameter_overrides=params + sim))
             # DDS matches in its own threads: no spinning is needed to wait for it.
             _wait(lambda: _matched(nodes), 30.0, "the graph to connect")
-            plant_cls = getattr(importlib.import_module(PLANT.module), PLANT.cls)
+            plant_cls = getattr(importlib.import_module(source.module), source.cls)
             nodes.append(plant_cls(context=context,
                                    parameter_overrides=params + _parameters(plant_flat)))
             # The executor spins in the main thread: an EventsExecutor spun from another
@@ -279,9 +295,17 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
         pass
 
 
-def _spawn(args: list[str], env: dict[str, str], stdout: int) -> subprocess.Popen:
+def _normal_scheduling() -> None:  # pragma: no cover - runs in the child before exec
+    _die_with_parent()
+    if os.sched_getscheduler(0) != os.SCHED_OTHER:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def _spawn(args: list[str], env: dict[str, str], stdout: int,
+           normal_scheduling: bool = False) -> subprocess.Popen:
+    preexec = _normal_scheduling if normal_scheduling else _die_with_parent
     return subprocess.Popen(args, env=env, stdout=stdout, stderr=subprocess.PIPE,
-                            preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+                            preexec_fn=preexec if sys.platform == "linux" else None)
 
 
 def _stop(child: subprocess.Popen) -> tuple[str, str]:
@@ -337,8 +361,8 @@ def _command(executable: str, module: str) -> list[str]:
 
 
 def _start_processes(flat: dict[str, Any], plant_flat: dict[str, Any], bag_dir: Path,
-                     watcher: Node, env: dict[str, str],
-                     lockstep: bool) -> list[subprocess.Popen]:
+                     watcher: Node, env: dict[str, str], lockstep: bool,
+                     source: NodeSpec = PLANT) -> list[subprocess.Popen]:
     params_file = bag_dir / "pisc_params.yaml"
     children = []
 
@@ -368,7 +392,7 @@ def _start_processes(flat: dict[str, Any], plant_flat: dict[str, Any], bag_dir: 
         return True
 
     _wait(connected, 60.0, "the node processes to connect")
-    start(PLANT, plant_flat)
+    start(source, plant_flat)
     return children
 
 
@@ -385,11 +409,18 @@ def main(argv: list[str] | None = None) -> int:
                         "overrides and duration; --config is then ignored")
     parser.add_argument("--duration", type=float,
                         help="run length [s] (default: the scene's, else 10)")
-    parser.add_argument("--clock", choices=("lockstep", "wall"), default="lockstep")
+    parser.add_argument("--clock", choices=("lockstep", "wall"),
+                        help="lockstep (default) or wall; --driver runs on the wall clock")
+    parser.add_argument("--driver", metavar="PORT",
+                        help="run the serial driver on PORT (the rig, or the device "
+                        "pisc_virtual_rig prints) instead of the simulated plant")
     parser.add_argument("--processes", action="store_true",
                         help="one process per node through the console entry points")
     parser.add_argument("--executor", choices=sorted(EXECUTORS), default="events",
                         help="executor of the nodes in one process (default: events)")
+    parser.add_argument("--realtime", type=int, default=0, metavar="PRIORITY",
+                        help="SCHED_FIFO priority 1-99 for the graph and its processes "
+                        "(needs CAP_SYS_NICE; 0 = normal scheduling)")
     parser.add_argument("--bag", type=Path,
                         help="bag directory (default ./bags/run-<config>-<clock>-x0_<x0>-<time>)")
     parser.add_argument("--domain-id", type=int, help="ROS domain id (default: environment)")
@@ -419,11 +450,20 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         config, overrides = scene.configuration, scene.overrides
         duration = duration if duration is not None else scene.duration_s
+    clock = args.clock or ("wall" if args.driver else "lockstep")
+    if args.realtime:
+        try:
+            # threads and processes started from here on inherit the policy
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime))
+        except (OSError, AttributeError) as exc:
+            print(f"pisc_graph: --realtime {args.realtime}: cannot use SCHED_FIFO ({exc})",
+                  file=sys.stderr)
+            return 2
     options = RunOptions(config=config, overrides=overrides,
                          duration_s=duration if duration is not None else 10.0,
-                         clock=args.clock, processes=args.processes,
+                         clock=clock, processes=args.processes,
                          executor=args.executor, bag_dir=args.bag,
-                         domain_id=args.domain_id)
+                         domain_id=args.domain_id, driver_port=args.driver)
     try:
         result = run_graph(options)
     except ConfigError as exc:
@@ -436,7 +476,8 @@ def main(argv: list[str] | None = None) -> int:
              "multi": "MultiThreadedExecutor"}
     mode = ("separate processes" if options.processes
             else f"one process, {names[options.executor]}")
-    print(f"PISC run: config {options.config}, {options.clock} clock, {mode}, "
+    against = "" if options.driver_port is None else f", serial driver on {options.driver_port}"
+    print(f"PISC run: config {options.config}, {options.clock} clock, {mode}{against}, "
           f"x0 = {overrides.get('initial.x_m', 'from file')}")
     if result.processes:
         print(f"entry points: {', '.join(result.processes)}")

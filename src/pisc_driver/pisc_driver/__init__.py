@@ -1,7 +1,8 @@
-"""PISC serial driver for the PIC16F877A rig.
+"""PISC serial driver for the PIC16F877A rig (SPEC section 4).
 
-Only the package skeleton exists so far; the frame codec, transport and driver node
-are issue 3.
+``protocol`` (frame codec and lock-hunting parser, pure), ``link`` (the serial port,
+pyserial), ``driver`` (the driver's decisions, pure), ``driver_node`` (the rclpy shell),
+``bench`` (``pisc_parser_bench``).
 """
 
-__all__: list[str] = []
+__all__ = ["driver", "link", "protocol"]

@@ -1,0 +1,142 @@
+"""The driver's decisions, free of I/O and clocks: frames to SI samples, commands to bytes.
+
+:class:`DriverCore` is what ``driver_node`` calls with the bytes it read, the voltage
+commands it received and the time (ROS time, integer nanoseconds) of each event:
+
+* ``receive(data, now)``: parse, convert each frame to SI (SPEC section 4), stamp it
+  with its arrival ``now``;
+* ``command(stamp, voltage, now)``: the byte answering a frame (SPEC section 4), unless
+  the command is older than ``driver.command_max_age_periods`` periods or older than
+  one already sent;
+* ``tick(now)``: the safety rules between events: zero voltage once the newest command
+  sent is older than the allowed age (the controllers stopped answering), and a fault
+  once the device has sent no frame for ``driver.silence_timeout_s``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pisc_driver.protocol import (
+    FrameParser,
+    ParserParams,
+    encode_command,
+    frame_to_si,
+    unwrap_count,
+)
+from pisc_msgs_py.config import any_value, in_range, param
+from pisc_plant.params import ActuatorParams, SensorParams
+
+__all__ = ["DriverCore", "DriverParams", "Measurement", "ZERO"]
+
+ZERO = 0x00  # the command byte of zero voltage
+
+
+@dataclass(frozen=True)
+class DriverParams(ParserParams):
+    """Section ``driver``: the serial link and the driver's safety rules."""
+
+    port: str = param("", "serial device of the rig, e.g. /dev/ttyUSB0 or the pseudo-terminal "
+                      "pisc_virtual_rig prints", "", any_value)
+    baud: int = param(115200, "line speed, 8N1 (SPEC section 4)", "baud",
+                      in_range(300, 4_000_000))
+    silence_timeout_s: float = param(
+        0.015, "no frame for this long (3 periods) is a device fault: report it and send 0 V",
+        "s", in_range(0.001, 10.0))
+    command_max_age_periods: float = param(
+        2.0, "send 0 V when the newest voltage command is older than this many periods",
+        "", in_range(0.5, 100.0))
+    read_timeout_s: float = param(
+        0.002, "longest wait for a byte before the safety rules are checked again", "s",
+        in_range(0.0005, 0.1))
+    reopen_interval_s: float = param(0.5, "wait between attempts to reopen a port that went "
+                                     "away", "s", in_range(0.01, 60.0))
+
+    @property
+    def parser(self) -> ParserParams:
+        return ParserParams(max_rate_radps=self.max_rate_radps, frame_gap_s=self.frame_gap_s)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One frame in SI units, stamped with its arrival (ROS time)."""
+
+    stamp_ns: int
+    position_m: float
+    angle_rad: float
+    current_a: float
+
+
+class DriverCore:
+    def __init__(self, params: DriverParams, sensors: SensorParams, actuator: ActuatorParams,
+                 period_s: float) -> None:
+        self.params = params
+        self.sensors = sensors
+        self.actuator = actuator
+        self.period_ns = round(period_s * 1e9)
+        self.max_age_ns = round(params.command_max_age_periods * period_s * 1e9)
+        self.silence_ns = round(params.silence_timeout_s * 1e9)
+        self.parser = FrameParser(sensors, period_s, params.parser)
+        self._count: int | None = None  # unwrapped encoder count
+        self._stamp_ns: int | None = None  # stamp of the newest sample
+        self.last_frame_ns: int | None = None
+        self.sent_stamp_ns: int | None = None  # stamp of the newest command sent
+        self.sent_byte = ZERO
+        self.silent = False
+        self.commands = 0
+        self.stale_commands = 0
+        self.zeroed = 0  # zero bytes sent because the commands stopped
+        self.silences = 0
+
+    def receive(self, data: bytes, now_ns: int) -> list[Measurement]:
+        """Bytes read at ``now_ns`` -> the samples they completed, stamped ``now_ns``.
+
+        A stamp keys a control cycle, so it must be unique: when one read completes
+        several frames (the reader was late), each later frame is stamped 1 us after the
+        one before.
+        """
+        out = []
+        for frame in self.parser.feed(data, now_ns * 1e-9):
+            self._count = (frame.count if self._count is None
+                           else unwrap_count(self._count, frame.count))
+            x, theta, current = frame_to_si(self.sensors, frame, self._count)
+            stamp = now_ns if self._stamp_ns is None else max(now_ns, self._stamp_ns + 1000)
+            self._stamp_ns = stamp
+            out.append(Measurement(stamp, x, theta, current))
+        if out:
+            self.last_frame_ns = now_ns
+            self.silent = False
+        return out
+
+    def command(self, stamp_ns: int, voltage_v: float, now_ns: int) -> int | None:
+        """The byte to send for a voltage answering the sample ``stamp_ns``, or None."""
+        if (now_ns - stamp_ns > self.max_age_ns
+                or (self.sent_stamp_ns is not None and stamp_ns < self.sent_stamp_ns)):
+            self.stale_commands += 1
+            return None
+        self.sent_stamp_ns = stamp_ns
+        self.sent_byte = encode_command(voltage_v, self.actuator)
+        self.commands += 1
+        return self.sent_byte
+
+    def command_age_ns(self, now_ns: int) -> int | None:
+        return None if self.sent_stamp_ns is None else now_ns - self.sent_stamp_ns
+
+    def tick(self, now_ns: int) -> tuple[int | None, str | None]:
+        """(zero byte to send or None, fault message or None) at ``now_ns``."""
+        byte = None
+        if self.sent_byte != ZERO and (self.sent_stamp_ns is None
+                                       or now_ns - self.sent_stamp_ns > self.max_age_ns):
+            byte = self.sent_byte = ZERO
+            self.zeroed += 1
+        fault = None
+        if (not self.silent and self.last_frame_ns is not None
+                and now_ns - self.last_frame_ns > self.silence_ns):
+            self.silent = True
+            self.silences += 1
+            silent_ms = (now_ns - self.last_frame_ns) * 1e-6
+            fault = (f"device silent: no frame for {silent_ms:.1f} ms (driver.silence_timeout_s "
+                     f"= {self.params.silence_timeout_s}); sending 0 V")
+            if byte is None:
+                byte = self.sent_byte = ZERO
+        return byte, fault

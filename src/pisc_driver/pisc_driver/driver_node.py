@@ -1,0 +1,170 @@
+"""Driver node: the rig's serial link on the graph's topics, a drop-in for the plant node.
+
+A reader thread blocks on the port (it releases the interpreter lock while it waits) and
+publishes each frame's sample the moment the frame's last byte arrives, stamped with its
+arrival; the voltage answering it is written from the subscription callback as soon as
+it arrives. The executor spins in the main thread (``run_node``). Every decision is
+:class:`pisc_driver.driver.DriverCore`'s; this file does I/O and ROS only.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+from pisc_driver.driver import ZERO, DriverCore, DriverParams
+from pisc_driver.link import LinkError, SerialLink
+from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, run_node
+from pisc_msgs_py.convert import (
+    MessageError,
+    joint_sample_to_msg,
+    motor_sample_from_msg,
+    motor_sample_to_msg,
+)
+from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE
+from pisc_msgs_py.types import JointSample, MotorSample
+from pisc_plant.params import ActuatorParams, LoopParams, SensorParams
+
+SECTIONS = {"driver": DriverParams, "sensors": SensorParams, "actuator": ActuatorParams,
+            "loop": LoopParams}
+DIAGNOSTIC_EVERY = 200  # frames: once a second
+
+
+class DriverNode(PiscNode):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("driver", SECTIONS, **kwargs)
+        self._lock = threading.Lock()  # the core and the port, shared with the reader
+        self._joint_pub = self.publisher(JOINT_STATES)
+        self._current_pub = self.publisher(MOTOR_CURRENT)
+        self._sub = self.subscription(VOLTAGE, self._on_voltage)
+        self._reader: threading.Thread | None = None
+        self._running = False
+        self._unwritten = 0  # command bytes the port did not take
+        self._start(self.config)  # a missing or busy port raises LinkError here
+
+    def build(self, flat: dict[str, Any]) -> DriverCore:
+        driver, sensors, actuator, loop = (self.section(flat, s) for s in SECTIONS)
+        return DriverCore(driver, sensors, actuator, loop.period_s)
+
+    # -- life cycle ----------------------------------------------------------------------
+
+    def _start(self, core: DriverCore, must_open: bool = True) -> None:
+        """Open the port and start the reader; ``must_open=False`` leaves a port that
+        cannot be opened to the reader, which retries it."""
+        p = core.params
+        self._core = core
+        self._link = SerialLink(p.port, p.baud, p.read_timeout_s)
+        try:
+            self._link.open()
+            self.diagnose(OK, f"opened {p.port} at {p.baud} baud")
+        except LinkError as exc:
+            if must_open:
+                raise
+            self.diagnose(ERROR, f"{exc}; retrying every {p.reopen_interval_s} s")
+        self._running = True
+        self._reader = threading.Thread(target=self._read_loop, name="pisc_driver_reader",
+                                        daemon=True)
+        self._reader.start()
+
+    def _stop(self) -> None:
+        """Stop the reader, send zero voltage, close the port."""
+        self._running = False
+        if self._reader is not None:
+            self._reader.join(timeout=1.0)
+            self._reader = None
+        with self._lock:
+            self._send(ZERO)
+            self._link.close()
+
+    def on_config(self, config: Any) -> None:
+        self._stop()
+        self.diagnose(WARN, "parameters changed: sent 0 V, reopening the port")
+        self.config = config
+        self._start(config, must_open=False)
+
+    def destroy_node(self) -> None:
+        self._stop()
+        super().destroy_node()
+
+    # -- I/O -----------------------------------------------------------------------------
+
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    def _send(self, byte: int) -> None:
+        """Write a command byte (under the lock); the reader alone closes a failed port."""
+        if self._link.is_open:
+            try:
+                if not self._link.write(byte):
+                    self._unwritten += 1
+            except LinkError:
+                self._unwritten += 1  # the reader finds the port gone and reports it
+
+    def _on_voltage(self, msg: Any) -> None:
+        try:
+            command = motor_sample_from_msg(msg)
+        except MessageError as exc:
+            self.diagnose(WARN, f"rejected voltage command: {exc}")
+            return
+        with self._lock:
+            byte = self._core.command(command.stamp_ns, command.value, self._now_ns())
+            if byte is not None:
+                self._send(byte)
+
+    def _read_loop(self) -> None:
+        core = self._core
+        link = self._link
+        while self._running and self.context.ok():
+            try:
+                if not link.is_open:
+                    time.sleep(core.params.reopen_interval_s)
+                    link.open()
+                    self.diagnose(OK, f"{link.port} reopened")
+                data = link.read()
+                now = self._now_ns()
+                with self._lock:
+                    samples = core.receive(data, now) if data else []
+                    byte, fault = core.tick(now)
+                    if byte is not None:
+                        self._send(byte)
+                for s in samples:
+                    self._joint_pub.publish(joint_sample_to_msg(
+                        JointSample(s.stamp_ns, s.position_m, s.angle_rad)))
+                    self._current_pub.publish(motor_sample_to_msg(
+                        MotorSample(s.stamp_ns, s.current_a)))
+                    if core.parser.frames % DIAGNOSTIC_EVERY == 1:
+                        self._report(OK, "link up", now)
+                if fault:
+                    self._report(ERROR, fault, now)
+            except LinkError as exc:
+                with self._lock:
+                    link.close()
+                    core.silent = False  # report silence again after the port comes back
+                self._report(ERROR, f"{exc}; retrying every {core.params.reopen_interval_s} s",
+                             self._now_ns())
+            except Exception as exc:  # a bug must not leave the motor driven
+                with self._lock:
+                    self._send(ZERO)
+                if not self.context.ok():
+                    return  # shutting down: the publishers are gone, _stop closes the port
+                self._report(ERROR, f"driver fault: {exc!r}; sent 0 V", self._now_ns())
+                time.sleep(core.params.reopen_interval_s)
+
+    def _report(self, level: int, message: str, now_ns: int) -> None:
+        core = self._core
+        age = core.command_age_ns(now_ns)
+        self.diagnose(level, message, now_ns, frames_accepted=core.parser.frames,
+                      bytes_discarded=core.parser.discarded, rehunts=core.parser.rehunts,
+                      command_age_ms="none" if age is None else f"{age * 1e-6:.2f}",
+                      commands_sent=core.commands, stale_commands=core.stale_commands,
+                      zeroed_for_age=core.zeroed, silences=core.silences,
+                      bytes_not_written=self._unwritten)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(DriverNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

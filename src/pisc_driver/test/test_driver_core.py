@@ -1,0 +1,86 @@
+"""DriverCore: samples from bytes, command bytes, the zero-voltage rules, with times given."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import pytest
+
+from pisc_driver.driver import ZERO, DriverCore, DriverParams
+from pisc_plant.params import ActuatorParams, SensorParams
+from pisc_plant.sensors import decode
+
+MS = 1_000_000
+
+
+def frame(ir: int, cur: int, count: int) -> bytes:
+    return struct.pack(">BHHh", 0xAA, ir, cur, count)
+
+
+def core(**params) -> DriverCore:
+    return DriverCore(DriverParams(**params), SensorParams(), ActuatorParams(), 0.005)
+
+
+def test_each_frame_becomes_a_sample_in_si_stamped_at_arrival():
+    c = core()
+    data = frame(400, 780, 0) + frame(401, 781, 3) + frame(402, 782, 6)
+    assert c.receive(data[:10], 1000 * MS) == []
+    samples = c.receive(data[10:14], 1005 * MS)  # first frame confirmed by the second
+    samples += c.receive(data[14:], 1010 * MS)
+    # the chunk that confirms the first frame also completes the second: stamps stay unique
+    assert [s.stamp_ns for s in samples] == [1005 * MS, 1005 * MS + 1000, 1010 * MS]
+    x, theta, i = decode(SensorParams(), 401, 781, 3)
+    assert samples[1].position_m == pytest.approx(float(x), abs=0)
+    assert samples[1].angle_rad == pytest.approx(math.pi + 3 * math.pi / 2000, rel=1e-12)
+    assert samples[1].current_a == pytest.approx(float(i), abs=0)
+
+
+def test_the_16_bit_count_is_unwrapped_across_its_wrap():
+    c = core()
+    counts = [32766, 32767, -32768, -32767]
+    data = b"".join(frame(400, 780, n) for n in counts) + frame(400, 780, -32766)
+    angles = [s.angle_rad for s in c.receive(data, 0)]
+    steps = [b - a for a, b in zip(angles, angles[1:])]
+    assert steps == pytest.approx([2 * math.pi / 4000] * 4)
+
+
+def test_a_fresh_command_is_sent_a_stale_or_superseded_one_is_not():
+    c = core()
+    assert c.command(100 * MS, 11.47, 101 * MS) == 0x7F
+    assert c.command(105 * MS, -5.0, 106 * MS) == 0xB7
+    assert c.command(100 * MS, 1.0, 107 * MS) is None  # older than the one sent
+    assert c.command(110 * MS, 1.0, 120 * MS + 1) is None  # 10 ms + 1 ns old: two periods
+    assert c.command(115 * MS, 0.0, 125 * MS) == ZERO  # exactly two periods old: still sent
+    assert (c.commands, c.stale_commands) == (3, 2)
+    assert c.command_age_ns(130 * MS) == 15 * MS
+
+
+def test_zero_voltage_once_the_newest_command_is_older_than_two_periods():
+    c = core()
+    assert c.tick(0) == (None, None)  # nothing sent yet, no frame yet
+    c.command(100 * MS, 3.0, 101 * MS)
+    assert c.tick(110 * MS) == (None, None)
+    assert c.tick(110 * MS + 1) == (ZERO, None)
+    assert c.tick(111 * MS) == (None, None)  # once
+    assert c.zeroed == 1
+    c3 = core(command_max_age_periods=3.0)
+    c3.command(0, 3.0, 0)
+    assert c3.tick(15 * MS) == (None, None) and c3.tick(15 * MS + 1) == (ZERO, None)
+
+
+def test_device_silence_is_a_fault_with_zero_voltage_reported_once_per_silence():
+    c = core(command_max_age_periods=10.0)  # the age rule is not what is tested here
+    c.receive(frame(400, 780, 0) + frame(400, 780, 0) + frame(400, 780, 0)[:6], 0)
+    c.receive(b"\x00", 2 * MS)  # last byte of the third frame... and then nothing
+    c.command(2 * MS, 2.0, 3 * MS)
+    assert c.tick(17 * MS) == (None, None)  # 15 ms after the last frame: not yet
+    byte, fault = c.tick(17 * MS + 1)
+    assert byte == ZERO
+    assert fault == ("device silent: no frame for 15.0 ms (driver.silence_timeout_s = 0.015); "
+                     "sending 0 V")
+    assert c.tick(30 * MS) == (None, None)
+    c.receive(frame(400, 780, 0), 40 * MS)
+    assert not c.silent
+    assert c.tick(56 * MS)[1].startswith("device silent")
+    assert c.silences == 2
