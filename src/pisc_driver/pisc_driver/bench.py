@@ -37,7 +37,7 @@ from pisc_driver.protocol import (
     wrap_count,
 )
 from pisc_plant.params import LoopParams
-from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
+from pisc_plant.plant import Plant, PlantConfig
 
 __all__ = ["ParserScore", "damage", "main", "rig_frames", "score"]
 
@@ -47,8 +47,7 @@ BYTE_S = 10 / 115200  # 8N1: ten bits per byte
 def rig_frames(n_frames: int, rigs: int = 100, seed: int = 1) -> list[list[bytes]]:
     """Frames of ``rigs`` simulated rigs, ``n_frames`` in all, as the PIC encodes them."""
     rng = np.random.default_rng(seed)
-    config = PlantConfig(integrator=IntegratorParams(method="etdrk4", substeps=5),
-                         loop=LoopParams())
+    config = PlantConfig(loop=LoopParams())
     plant = Plant(config)
     per_rig = -(-n_frames // rigs)
     x0 = rng.uniform(-0.15, 0.08, rigs)

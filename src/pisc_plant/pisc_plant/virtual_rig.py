@@ -57,7 +57,6 @@ from pisc_plant.params import (
     TrackParams,
 )
 from pisc_plant.plant import (
-    CURRENT,
     THETA,
     THETA_DOT,
     X_DOT,
@@ -73,9 +72,6 @@ HEADER = 0xAA
 PLANT_SECTIONS = {"rig": RigParams, "motor": MotorParams, "sensors": SensorParams,
                   "actuator": ActuatorParams, "track": TrackParams, "loop": LoopParams,
                   "integrator": IntegratorParams}
-#: A real-time emulator must integrate a period well inside the period: ETDRK4 in
-#: 5 steps costs 0.5 ms per period (README, "Integration"); --set overrides it.
-RIG_INTEGRATOR = {"integrator.method": "etdrk4", "integrator.substeps": 5}
 
 
 @dataclass
@@ -146,7 +142,6 @@ class Firmware:
 def load_plant(params_file: str | None, overrides: dict[str, Any]
                ) -> tuple[PlantConfig, InitialParams]:
     flat: dict[str, Any] = load_params_file(params_file) if params_file else {}
-    flat.update(RIG_INTEGRATOR)
     flat.update(overrides)
     sections = {**PLANT_SECTIONS, "initial": InitialParams}
     known = {k for k in flat if k.split(".", 1)[0] in sections}
@@ -166,6 +161,9 @@ class Rig:
     def __init__(self, firmware: Firmware, faults: RigFaults, seed: int = 0,
                  log: TextIO | None = None) -> None:
         self.firmware = firmware
+        # load (or compile) the plant's kernel now, not in the first period
+        firmware.plant.advance(firmware.state, 0.0, firmware.plant.config.loop.period_s)
+        firmware.plant.raw_measurement(firmware.state)
         self.faults = faults
         self.rng = np.random.default_rng(seed)
         self.log = log
@@ -200,7 +198,8 @@ class Rig:
             "zero_after_silence_s": self.zero_after_silence_s,
             "applied_v": self.firmware.applied_v,
             "state": {"x": float(y[X]), "x_dot": float(y[X_DOT]), "theta": float(y[THETA]),
-                      "theta_dot": float(y[THETA_DOT]), "i": float(y[CURRENT])},
+                      "theta_dot": float(y[THETA_DOT]),
+                      "i": float(self.firmware.plant.current(y))},
         }
 
     def _damage(self, data: bytes) -> bytes:
@@ -242,7 +241,7 @@ class Rig:
             y = self.firmware.state
             self.log.write(f"{self.firmware.time_s:.6f},{now:.6f},{sent_unix:.6f},"
                            f"{y[X]:.9g},{y[X_DOT]:.9g},"
-                           f"{y[THETA]:.9g},{y[THETA_DOT]:.9g},{y[CURRENT]:.9g},"
+                           f"{y[THETA]:.9g},{y[THETA_DOT]:.9g},{float(self.firmware.plant.current(y)):.9g},"
                            f"{self.firmware.applied_v:.6g}\n")
 
     def _receive(self, period_start: float) -> None:

@@ -19,12 +19,12 @@ def plant():
     return Plant(config)
 
 
-def test_the_rig_integrates_with_etdrk4_in_5_steps_unless_told_otherwise():
+def test_the_rig_integrates_with_the_plant_default_unless_told_otherwise():
     config, initial = load_plant(None, {"initial.x_m": 0.05})
-    assert (config.integrator.method, config.integrator.substeps) == ("etdrk4", 5)
+    assert (config.integrator.method, config.integrator.substeps) == ("rk4", 20)
     assert initial.x_m == 0.05
-    config, _ = load_plant(None, {"integrator.method": "rk4", "integrator.substeps": 20})
-    assert config.integrator.method == "rk4"
+    config, _ = load_plant(None, {"integrator.method": "exprk4", "integrator.substeps": 2})
+    assert config.integrator.method == "exprk4"
     with pytest.raises(ValueError, match="swing_up.k_v: not a parameter of the rig"):
         load_plant(None, {"swing_up.k_v": 0.1})
 
