@@ -19,6 +19,7 @@ EXECUTABLES = {
     "pisc_bringup": ["pisc_graph", "pisc_record"],
     "pisc_msgs_py": [],
     "pisc_driver": [],
+    "pisc_analysis": ["pisc_analysis"],
 }
 
 
