@@ -370,9 +370,11 @@ def build_report(
                        f"    criterion (4.1): k_va = {sw.k_va} s^2, delta_s = {sw.delta_s} "
                        f"rad^2; catch poles {_complex_list(cfg.supervisor.catch.pole_set)}")
         report.add("Caught at once: in catch from the first sample and |theta| < 0.05 rad over "
-                   "the last 0.5 s without a fault; the catch holds starts moving towards "
-                   "upright, and loses those moving away once the 0.9 A current limit "
-                   "saturates.")
+                   "the last 0.5 s without a fault; caught later: by the swing-up and the "
+                   "switching rule within the same time. The catch holds a band of starts "
+                   "moving towards upright; starts inside (4.1) moving away are lost, the "
+                   "pendulum falling while the 0.9 A current limit saturates the force, or "
+                   "the cart leaving the safe range on the short track.")
         if out_dir is not None:
             report.plots.append(roa.plot_roa(maps, Path(out_dir) / "region_of_attraction.png"))
 

@@ -54,6 +54,7 @@ class RoaMap:
     x0_m: float
     outcome: np.ndarray
     caught_at_s: np.ndarray
+    faulted: np.ndarray  # the cart left the safe range (or the state was not finite)
     inside_criterion: np.ndarray  # theta^2 + k_va theta_dot^2 < delta_s (4.1)
     k_va: float
     delta_s: float
@@ -73,7 +74,10 @@ class RoaMap:
                 f", caught later {np.sum(self.outcome == CAUGHT_LATER)}, not recovered "
                 f"{np.sum(self.outcome == NOT_RECOVERED)} of {n}; inside (4.1) "
                 f"({np.sum(inside)} starts) caught at once "
-                f"{100 * self.fraction(CAUGHT_AT_ONCE, inside):.1f} %")
+                f"{100 * self.fraction(CAUGHT_AT_ONCE, inside):.1f} %, not recovered "
+                f"{np.sum(inside & (self.outcome == NOT_RECOVERED))} of which "
+                f"{np.sum(inside & (self.outcome == NOT_RECOVERED) & self.faulted)} faulted "
+                "(cart out of the safe range)")
 
 
 def region_of_attraction(
@@ -113,7 +117,8 @@ def region_of_attraction(
                      np.where(held, CAUGHT_LATER, NOT_RECOVERED))
     sw = config.supervisor.switching
     inside = switching_criterion(sw.k_va, grid_theta, grid_rate) < sw.delta_s
-    return RoaMap(label, theta, rate, float(x0_m), codes, outcome.caught_at_s, inside,
+    return RoaMap(label, theta, rate, float(x0_m), codes, outcome.caught_at_s,
+                  np.asarray(outcome.faulted), inside,
                   sw.k_va, sw.delta_s, duration_s, elapsed)
 
 
