@@ -18,13 +18,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import ArrayLike
-
 import sympy as sp
+from numpy.typing import ArrayLike
 
 from pisc_analysis.symbolic import MechanicalSystem
 from pisc_control.current_loop import CurrentLoopParams
@@ -370,8 +369,6 @@ def sampled_pi_resistance_limit(
     stable), the rest of ``motor`` kept (L fixed). For the quasi-static model the
     answer is ``k_pi + k_ii Ts / 2`` (the pole at z = -1).
     """
-    from dataclasses import replace
-
     def stable(r: float) -> bool:
         return sampled_pi_check(replace(motor, resistance_ohm=r), loop, period_s, model=model,
                                 sensor_filter_hz=sensor_filter_hz).stable

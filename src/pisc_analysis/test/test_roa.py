@@ -50,6 +50,23 @@ def test_the_thesis_criterion_admits_starts_its_catch_cannot_hold():
     assert m.outcome[1, 1] == NOT_RECOVERED
 
 
+def test_two_forked_workers_give_the_same_map_as_one_batch(default_config):
+    theta = np.linspace(-0.6, 0.6, 7)
+    rate = np.linspace(-6.0, 6.0, 6)
+    calls = []
+    one = region_of_attraction(default_config, theta, rate, duration_s=1.0,
+                               hold_window_s=0.3)
+    two = region_of_attraction(default_config, theta, rate, duration_s=1.0,
+                               hold_window_s=0.3, workers=2,
+                               progress=lambda k, n: calls.append(k))
+    np.testing.assert_array_equal(one.outcome, two.outcome)
+    np.testing.assert_array_equal(one.caught_at_s, two.caught_at_s)
+    assert one.outcome.shape == (6, 7)
+    assert (one.outcome == CAUGHT_AT_ONCE).any() and (one.outcome == NOT_RECOVERED).any()
+    # the progress callback ran in the first child, not here
+    assert calls == []
+
+
 def test_plot_is_a_png(default_config, tmp_path):
     m = region_of_attraction(default_config, [-0.1, 0.1], [-1.0, 1.0], duration_s=0.5,
                              hold_window_s=0.25, label="default")
@@ -63,6 +80,8 @@ def test_refusals_name_what_is_wrong(default_config):
     with pytest.raises(ValueError, match=r"hold_window_s = 2.0 must be in \(0, duration_s = "
                                          r"1.5\]"):
         region_of_attraction(default_config, [0.0], [0.0], hold_window_s=2.0)
+    with pytest.raises(ValueError, match="workers = 0 must be at least 1"):
+        region_of_attraction(default_config, [0.0], [0.0], workers=0)
 
 
 @pytest.mark.bench
