@@ -308,7 +308,7 @@ def build_report(
     out_dir: Path | None = None,
     grid: int = 100,
     roa_duration_s: float = 1.5,
-    roa_x0_m: float = 0.0,
+    roa_x0_m: Sequence[float] = (0.0,),
     compare: Sequence[str] = (),
     progress: TextIO | None = None,
     workers: int = 1,
@@ -362,15 +362,17 @@ def build_report(
         maps = []
         for name in (config_name, *compare):
             cfg = config if name == config_name else load_graph_config(name)[0]
-            printer = _progress_printer(progress, f"region of attraction '{name}'") if progress \
-                else None
-            maps.append(roa.region_of_attraction(cfg, theta, rate, x0_m=roa_x0_m,
-                                                 duration_s=roa_duration_s, label=name,
-                                                 progress=printer, workers=workers))
             sw = cfg.supervisor.switching
-            report.add(maps[-1].summary(),
-                       f"    criterion (4.1): k_va = {sw.k_va} s^2, delta_s = {sw.delta_s} "
-                       f"rad^2; catch poles {_complex_list(cfg.supervisor.catch.pole_set)}")
+            report.add(f"{name}: criterion (4.1) k_va = {sw.k_va} s^2, delta_s = "
+                       f"{sw.delta_s} rad^2; catch poles "
+                       f"{_complex_list(cfg.supervisor.catch.pole_set)}")
+            for x0 in roa_x0_m:
+                what = f"region of attraction '{name}' x0 = {x0:+g} m"
+                printer = _progress_printer(progress, what) if progress else None
+                maps.append(roa.region_of_attraction(cfg, theta, rate, x0_m=x0,
+                                                     duration_s=roa_duration_s, label=name,
+                                                     progress=printer, workers=workers))
+                report.add("    " + maps[-1].summary())
         report.add("Caught at once: in catch from the first sample and |theta| < 0.05 rad over "
                    "the last 0.5 s without a fault; caught later: by the swing-up and the "
                    "switching rule within the same time. The catch holds a band of starts "
@@ -378,7 +380,8 @@ def build_report(
                    "pendulum falling while the 0.9 A current limit saturates the force, or "
                    "the cart leaving the safe range on the short track.")
         if out_dir is not None:
-            report.plots.append(roa.plot_roa(maps, Path(out_dir) / "region_of_attraction.png"))
+            report.plots.append(roa.plot_roa(maps, Path(out_dir) / "region_of_attraction.png",
+                                             columns=len(roa_x0_m)))
 
     if report.plots:
         report.section("Plots")
@@ -400,8 +403,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="region of attraction: N x N starts (default 100)")
     parser.add_argument("--roa-duration", type=float, default=1.5,
                         help="region of attraction: seconds per start (default 1.5)")
-    parser.add_argument("--roa-x0", type=float, default=0.0,
-                        help="region of attraction: initial cart position [m] (default 0)")
+    parser.add_argument("--roa-x0", type=float, nargs="+", default=[0.0],
+                        help="region of attraction: initial cart positions [m], one map "
+                        "each (default 0)")
     parser.add_argument("--compare", nargs="*", default=None,
                         help="configurations whose region of attraction is drawn beside "
                         "(default: thesis, or default for --config thesis)")

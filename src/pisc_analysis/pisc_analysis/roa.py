@@ -167,8 +167,9 @@ def _run_chunk(job: _Job, theta: np.ndarray, rate: np.ndarray,
     return job.run(theta, rate, _FORKED_PROGRESS if report else None)
 
 
-def plot_roa(maps: Sequence[RoaMap], path: Path) -> Path:
-    """The maps side by side, with the catch criterion (4.1) drawn on each (PNG)."""
+def plot_roa(maps: Sequence[RoaMap], path: Path, columns: int | None = None) -> Path:
+    """The maps in rows of ``columns`` (all in one row by default), with the catch
+    criterion (4.1) drawn on each (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -177,8 +178,13 @@ def plot_roa(maps: Sequence[RoaMap], path: Path) -> Path:
     from matplotlib.patches import Patch
 
     colours = ListedColormap(["#d9d9d9", "#2c7fb8", "#a1dab4"])
-    fig, axes = plt.subplots(1, len(maps), figsize=(5.5 * len(maps), 4.8), squeeze=False)
-    for ax, m in zip(axes[0], maps, strict=True):
+    columns = len(maps) if columns is None else columns
+    rows = -(-len(maps) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(5.5 * columns, 4.4 * rows + 0.4),
+                             squeeze=False)
+    for ax in axes.flat[len(maps):]:
+        ax.set_visible(False)
+    for ax, m in zip(axes.flat, maps, strict=False):
         ax.pcolormesh(m.theta_rad, m.theta_dot_radps, m.outcome, cmap=colours, vmin=-0.5,
                       vmax=2.5, shading="nearest")
         th = np.linspace(-np.sqrt(m.delta_s), np.sqrt(m.delta_s), 400)
@@ -195,7 +201,7 @@ def plot_roa(maps: Sequence[RoaMap], path: Path) -> Path:
                Patch(color="#d9d9d9", label="not recovered"),
                plt.Line2D([], [], color="k", ls="--", label="catch criterion (4.1) = delta_s")]
     fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8)
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    fig.tight_layout(rect=(0, 0.4 / (4.4 * rows + 0.4) + 0.03, 1, 1))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)

@@ -26,7 +26,7 @@ def thesis_run(tmp_path_factory):
     stdout, stderr = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
         status = main(["--config", "thesis", "--out", str(out), "--grid", "6",
-                       "--roa-duration", "0.5"])
+                       "--roa-duration", "0.5", "--roa-x0", "0", "-0.1"])
     return status, stdout.getvalue(), stderr.getvalue(), out
 
 
@@ -67,10 +67,12 @@ def test_report_prints_seed_000_largest_difference_and_writes_the_plots(thesis_r
 
 def test_region_of_attraction_is_computed_for_both_gain_sets_with_progress(thesis_run):
     _, text, progress, _ = thesis_run
-    assert "thesis: 6 x 6 starts at x0 = +0.000 m, 0.50 s each" in text
-    assert "default: 6 x 6 starts at x0 = +0.000 m, 0.50 s each" in text
-    assert "region of attraction 'thesis': 100 % (101/101 cycles)" in progress
-    assert "region of attraction 'default': 50 % (51/101 cycles)" in progress
+    for name in ("thesis", "default"):
+        for x0 in ("+0.000", "-0.100"):
+            assert f"    {name}: 6 x 6 starts at x0 = {x0} m, 0.50 s each" in text
+    assert "thesis: criterion (4.1) k_va = 0.015 s^2, delta_s = 0.6 rad^2" in text
+    assert "region of attraction 'thesis' x0 = +0 m: 100 % (101/101 cycles)" in progress
+    assert "region of attraction 'default' x0 = -0.1 m: 50 % (51/101 cycles)" in progress
 
 
 def test_an_unknown_configuration_is_refused_with_status_2(capsys):
