@@ -79,12 +79,13 @@ class Comparison:
 
     def summary_lines(self) -> list[str]:
         lines = []
+        half = self.t[-1] / 2
         for name in self.names:
             d, t = self.max_difference(name)
             peak = float(np.max(np.abs(self.nonlinear[:, self.names.index(name)])))
             lines.append(f"{name:<10} largest |nonlinear - linear| {d:.4g} {UNITS[name]} at "
                          f"t = {t:.3f} s (peak |value| {peak:.4g}); after t = "
-                         f"{self.t[-1] / 2:.2f} s: {self.difference_after(name, self.t[-1] / 2):.2g}")
+                         f"{half:.2f} s: {self.difference_after(name, half):.2g}")
         return lines
 
 

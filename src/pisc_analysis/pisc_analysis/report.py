@@ -276,9 +276,10 @@ def _stability_section(report: Report, config: GraphConfig, system: Any, values:
     report.section("7. Krasovskii's test on the catch loop (seed 001 section 3)")
     jac = stability.closed_loop_jacobian(system, values, k)
     plain = stability.krasovskii(jac, np.zeros((1, 4)))
+    verdict = "negative definite" if plain.negative_definite else "NOT negative definite"
     report.add(f"P = I (seed 001's form): largest eigenvalue of A + A^T at the origin "
-               f"{plain.max_eigenvalue:.4g} -> {'negative definite' if plain.negative_definite else 'NOT negative definite'}; "
-               "F[0,0] = 2 d(x_dot)/dx = 0 for any [q, q'] model, so this form cannot pass")
+               f"{plain.max_eigenvalue:.4g} -> {verdict}; F[0,0] = 2 d(x_dot)/dx = 0 for any "
+               "[q, q'] model, so this form cannot pass")
     a_cl = a - b @ k.reshape(1, 4)
     p = stability.lyapunov_matrix(a_cl)
     scale = (0.1, 0.5, 0.1, 1.0)

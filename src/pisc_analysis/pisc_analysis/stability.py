@@ -5,9 +5,9 @@
   ``A = df/dz``. As seed 001 states it (P = I) the test can never pass for a
   mechanical system written as ``[q, q']``: ``f_1 = q_1'`` makes ``F[0, 0] = 0``.
   The generalised form (Slotine and Li, seed 001's reference [5], "generalised
-  Krasovskii theorem") asks ``P A(z) + A(z)^T P < 0`` for some P > 0; with P from the Lyapunov equation of the
-  linearisation it passes in a neighbourhood whose size :func:`krasovskii_radius`
-  estimates.
+  Krasovskii theorem") asks ``P A(z) + A(z)^T P < 0`` for some P > 0; with P from
+  the Lyapunov equation of the linearisation it passes in a neighbourhood whose size
+  :func:`krasovskii_radius` estimates.
 * Routh's table of the continuous PI current loop (3.51), Table 3.1 of the thesis.
 * The PI loop as it runs: sampled every Ts, the voltage held for a period, the current
   measured through the sensor's RC filter. Its poles in z decide stability; unlike

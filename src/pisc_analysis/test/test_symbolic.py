@@ -64,7 +64,8 @@ def test_matrices_by_differentiation_are_seed_001s_7_to_9():
     assert sp.simplify(damping - sp.Matrix([[-k4, -2 * ml * sp.sin(theta) * theta_dot - k2],
                                             [0, 0]])) == sp.zeros(2, 2)
     # (7) as it should read (the seed's typesetting lost the dots):
-    # K = [[-k3, -m l cos(q2) q2'^2 - m l sin(q2) q2'' - k1], [0, -m l sin(q2) q1'' - m g l cos(q2)]]
+    # K = [[-k3, -m l cos(q2) q2'^2 - m l sin(q2) q2'' - k1],
+    #      [0, -m l sin(q2) q1'' - m g l cos(q2)]]
     expected = sp.Matrix([
         [-k3, -ml * sp.cos(theta) * theta_dot**2 - ml * sp.sin(theta) * theta_ddot - k1],
         [0, -ml * sp.sin(theta) * x_ddot - s.m * s.g * s.l * sp.cos(theta)]])
