@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+import sympy as sp
 
 from pisc_analysis.linear import (
     ackermann_gain,
@@ -124,3 +125,20 @@ def test_refusals_name_what_is_wrong():
     system, s = cart_pole()
     with pytest.raises(ValueError, match="expected 4 states and 1 inputs, got 2 and 1"):
         linearise(system, {s.M: 1.0}, state=[0.0, 0.0])
+
+
+def test_symbolic_jacobians_at_upright_are_seed_000s_24_and_25():
+    from pisc_analysis.linear import jacobians
+
+    system, s = cart_pole(with_inertia=False)
+    a_sym, b_sym = jacobians(system)
+    origin = {v: 0 for v in (*system.state(), s.f)}
+    a0 = a_sym.subs(origin).applyfunc(sp.simplify)
+    b0 = b_sym.subs(origin).applyfunc(sp.simplify)
+    # seed 000 (24)-(25), M1 = M (cart), M2 = m (bob), order [x, x_dot, theta, theta_dot]
+    assert sp.simplify(a0[3, 2] - s.g * (s.M + s.m) / (s.l * s.M)) == 0
+    assert sp.simplify(a0[1, 2] + s.g * s.m / s.M) == 0
+    assert sp.simplify(b0[3, 0] + 1 / (s.l * s.M)) == 0
+    assert sp.simplify(b0[1, 0] - 1 / s.M) == 0
+    assert a0[0, 1] == 1 and a0[2, 3] == 1
+    assert sum(1 for e in a0 if e != 0) == 4
