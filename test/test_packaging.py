@@ -20,6 +20,7 @@ EXECUTABLES = {
                      "pisc_batch_bench"],
     "pisc_msgs_py": [],
     "pisc_driver": ["driver_node", "pisc_parser_bench"],
+    "pisc_analysis": ["pisc_analysis"],
 }
 
 

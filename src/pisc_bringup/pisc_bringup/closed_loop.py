@@ -9,10 +9,12 @@ lockstep run of the graph reproduces this simulation bit for bit.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from pisc_bringup.configuration import GraphConfig
 from pisc_control.current_loop import CurrentLoopState, current_loop_update, current_setpoint
@@ -104,22 +106,47 @@ def simulate_batch(
     duration_s: float,
     hold_start_s: float = 6.0,
     command_delay_s: float = 0.0,
+    *,
+    x_dot0_mps: ArrayLike | None = None,
+    theta0_rad: ArrayLike | None = None,
+    theta_dot0_radps: ArrayLike | None = None,
+    prime_estimator: bool = False,
+    progress: Callable[[int, int], None] | None = None,
 ) -> BatchOutcome:
-    """The cycle of :func:`simulate` for many starting positions at once.
+    """The cycle of :func:`simulate` for many starting states at once.
 
     The same cores over arrays (one rig per element). ``command_delay_s`` applies each
     voltage that long after its sample, as a real-time graph's latency does. Results
     agree with :func:`simulate` to rounding; they are not guaranteed bit for bit,
     because numpy may evaluate array and scalar expressions with different
     instructions.
+
+    The initial velocity, angle and rate default to ``config.initial``; given, they
+    broadcast with ``x0_m`` (e.g. a grid over angle and rate for a region of
+    attraction). ``prime_estimator`` gives the estimator a previous sample, the sensors'
+    reading of the state one period earlier moving at the initial velocities, so that
+    the first difference (4.7), (4.9) sees the initial rates instead of zero: a rig
+    that was already moving. ``progress(k, n)`` is called after each of the n cycles.
     """
     plant = Plant(config.plant)
-    x0 = np.asarray(x0_m, dtype=float)
     i0 = config.initial
-    y = plant.initial_state(x0, i0.x_dot_mps, i0.theta_rad, i0.theta_dot_radps)
+    start = [np.asarray(v, dtype=float) for v in (
+        x0_m,
+        i0.x_dot_mps if x_dot0_mps is None else x_dot0_mps,
+        i0.theta_rad if theta0_rad is None else theta0_rad,
+        i0.theta_dot_radps if theta_dot0_radps is None else theta_dot0_radps)]
+    shape = np.broadcast_shapes(*(v.shape for v in start))
+    x0 = np.broadcast_to(start[0], shape).copy()
+    y = plant.initial_state(x0, *start[1:])
     supervisor = Supervisor(config.supervisor)
     period = config.loop.period_s
     est_state = EstimatorState()
+    if prime_estimator:
+        earlier = plant.initial_state(x0 - start[1] * period, start[1],
+                                      start[2] - start[3] * period, start[3])
+        x_prev, theta_prev, _ = plant.measurement(earlier)
+        est_state = EstimatorState(x_prev, theta_prev, np.broadcast_to(start[1], shape),
+                                   np.broadcast_to(start[3], shape))
     sup_state = SupervisorState()
     cl_state = CurrentLoopState(np.zeros_like(x0))
     applied = np.zeros_like(x0)
@@ -131,7 +158,8 @@ def simulate_batch(
     faulted = np.zeros(x0.shape, dtype=bool)
     previous_mode = np.full(x0.shape, Mode.SWING_UP.code)
     rng = np.random.default_rng(config.plant.noise.seed) if config.plant.noise.any else None
-    for k in range(int(round(duration_s / period)) + 1):
+    cycles = int(round(duration_s / period)) + 1
+    for k in range(cycles):
         t = k * period
         noise = None if rng is None else rng.standard_normal(x0.shape + (3,))
         x, theta, current = plant.measurement(y, applied, noise)
@@ -160,4 +188,6 @@ def simulate_batch(
         applied = command
         x_min = np.minimum(x_min, y[..., X])
         x_max = np.maximum(x_max, y[..., X])
+        if progress is not None:
+            progress(k + 1, cycles)
     return BatchOutcome(caught_at, x_min, x_max, hold_theta, hold_x, faulted)

@@ -36,3 +36,33 @@ def test_scalar_and_batch_runs_agree():
     first_catch = log["t"][np.argmax(log["mode"] == Mode.CATCH.code)]
     batch = simulate_batch(cfg, np.array([0.05]), 3.0, hold_start_s=3.0)
     assert first_catch == batch.caught_at_s[0]
+
+
+def test_explicit_initial_state_equal_to_the_file_gives_the_same_outcome_bit_for_bit():
+    cfg, _ = load_graph_config("default")
+    i0 = cfg.initial
+    plain = simulate_batch(cfg, STARTS, 2.0, hold_start_s=1.5)
+    explicit = simulate_batch(cfg, STARTS, 2.0, hold_start_s=1.5, x_dot0_mps=i0.x_dot_mps,
+                              theta0_rad=i0.theta_rad, theta_dot0_radps=i0.theta_dot_radps)
+    for a, b in zip(vars(plain).values(), vars(explicit).values(), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_initial_angles_broadcast_and_a_primed_estimator_sees_the_initial_rate():
+    cfg, _ = load_graph_config("default")
+    calls = []
+    # upright at rest, and leaning 0.2 rad while falling back towards upright at 1.5 rad/s
+    outcome = simulate_batch(cfg, 0.0, 1.0, hold_start_s=0.5,
+                             theta0_rad=np.array([0.0, 0.2]),
+                             theta_dot0_radps=np.array([0.0, -1.5]), prime_estimator=True,
+                             progress=lambda k, n: calls.append((k, n)))
+    np.testing.assert_array_equal(outcome.caught_at_s, [0.0, 0.0])
+    assert np.all(outcome.hold_theta_rad < 0.02) and not outcome.faulted.any()
+    assert calls[0] == (1, 201) and calls[-1] == (201, 201) and len(calls) == 201
+    # unprimed, the first difference reads 0 rad/s: the criterion (4.1) at theta = 0.2,
+    # theta_dot = 7 rad/s (0.04 + 0.00332 * 49 = 0.203) is outside delta_s = 0.17: only the
+    # primed run sees the rate
+    primed = simulate_batch(cfg, 0.0, 0.0, theta0_rad=0.2, theta_dot0_radps=7.0,
+                            prime_estimator=True)
+    unprimed = simulate_batch(cfg, 0.0, 0.0, theta0_rad=0.2, theta_dot0_radps=7.0)
+    assert not np.isfinite(primed.caught_at_s) and unprimed.caught_at_s == 0.0
