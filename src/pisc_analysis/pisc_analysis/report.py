@@ -2,7 +2,7 @@
 
     pisc_analysis [--config NAME|FILE] [--set NAME=VALUE ...] [--out DIR]
                   [--grid N] [--roa-duration S] [--roa-x0 X] [--compare NAME ...]
-                  [--workers N] [--no-roa]
+                  [--no-roa]
 
 Prints, for the configuration's rig and controller: the symbolic model checked
 against SPEC section 2, the equilibria, A and B about upright, the open-loop poles,
@@ -312,7 +312,6 @@ def build_report(
     roa_x0_m: Sequence[float] = (0.0,),
     compare: Sequence[str] = (),
     progress: TextIO | None = None,
-    workers: int = 1,
 ) -> Report:
     """The whole report; plots go to ``out_dir`` (none when None); ``grid = 0`` skips the
     region of attraction."""
@@ -372,7 +371,7 @@ def build_report(
                 printer = _progress_printer(progress, what) if progress else None
                 maps.append(roa.region_of_attraction(cfg, theta, rate, x0_m=x0,
                                                      duration_s=roa_duration_s, label=name,
-                                                     progress=printer, workers=workers))
+                                                     progress=printer))
                 report.add("    " + maps[-1].summary())
         report.add("Caught at once: in catch from the first sample and |theta| < 0.05 rad over "
                    "the last 0.5 s without a fault; caught later: by the swing-up and the "
@@ -410,9 +409,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compare", nargs="*", default=None,
                         help="configurations whose region of attraction is drawn beside "
                         "(default: thesis, or default for --config thesis)")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="region of attraction: processes to split the grid over "
-                        "(default 1)")
     parser.add_argument("--no-roa", action="store_true", help="skip the region of attraction")
     args = parser.parse_args(argv)
     overrides: dict[str, Any] = {}
@@ -423,8 +419,6 @@ def main(argv: list[str] | None = None) -> int:
         overrides[name] = yaml.safe_load(value)
     if args.grid < 0:
         parser.error(f"--grid {args.grid}: must be positive")
-    if args.workers < 1:
-        parser.error(f"--workers {args.workers}: must be at least 1")
     compare = args.compare
     if compare is None:
         compare = ["default"] if args.config == "thesis" else ["thesis"]
@@ -432,7 +426,7 @@ def main(argv: list[str] | None = None) -> int:
         report = build_report(args.config, overrides, args.out,
                               grid=0 if args.no_roa else args.grid,
                               roa_duration_s=args.roa_duration, roa_x0_m=args.roa_x0,
-                              compare=compare, progress=sys.stderr, workers=args.workers)
+                              compare=compare, progress=sys.stderr)
     except ConfigError as exc:
         print(f"pisc_analysis: invalid configuration: {exc}", file=sys.stderr)
         return 2

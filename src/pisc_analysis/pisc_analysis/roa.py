@@ -19,7 +19,6 @@ each start is classified:
 
 from __future__ import annotations
 
-import multiprocessing
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -92,14 +91,11 @@ def region_of_attraction(
     hold_tolerance_rad: float = 0.05,
     label: str = "",
     progress: Callable[[int, int], None] | None = None,
-    workers: int = 1,
 ) -> RoaMap:
     """Classify every (theta, theta_dot) start of the grid (see the module docstring).
 
     Angles are from upright (0 = upright); the cart starts at rest at ``x0_m``.
-    ``workers > 1`` splits the rates over that many forked processes (each one batch);
-    numpy may round a rig's arithmetic differently in a batch of another size, so a
-    start on the edge of the region can in principle change class.
+    The whole grid is one batch; the plant's compiled kernel spreads it over the cores.
     """
     theta = np.asarray(theta_rad, dtype=float)
     rate = np.asarray(theta_dot_radps, dtype=float)
@@ -109,29 +105,10 @@ def region_of_attraction(
     if not 0.0 < hold_window_s <= duration_s:
         raise ValueError(f"hold_window_s = {hold_window_s} must be in (0, duration_s = "
                          f"{duration_s}]")
-    if workers < 1:
-        raise ValueError(f"workers = {workers} must be at least 1")
     grid_theta, grid_rate = np.meshgrid(theta, rate)
     started = time.perf_counter()
     job = _Job(config, float(x0_m), duration_s, duration_s - hold_window_s)
-    chunks = [c for c in np.array_split(np.arange(rate.size), min(workers, rate.size))
-              if c.size]
-    if len(chunks) == 1:
-        parts = [job.run(grid_theta, grid_rate, progress)]
-    else:
-        # fork: the children inherit the configuration and the progress callback; the
-        # first chunk reports progress for all (they advance together)
-        global _FORKED_PROGRESS  # noqa: PLW0603 - handed to the forked children only
-        _FORKED_PROGRESS = progress
-        try:
-            with multiprocessing.get_context("fork").Pool(len(chunks)) as pool:
-                parts = pool.starmap(_run_chunk, [
-                    (job, grid_theta[c], grid_rate[c], i == 0) for i, c in enumerate(chunks)])
-        finally:
-            _FORKED_PROGRESS = None
-    caught_at = np.concatenate([p[0] for p in parts])
-    faulted = np.concatenate([p[1] for p in parts])
-    hold_theta = np.concatenate([p[2] for p in parts])
+    caught_at, faulted, hold_theta = job.run(grid_theta, grid_rate, progress)
     elapsed = time.perf_counter() - started
     held = np.isfinite(caught_at) & ~faulted & (hold_theta < hold_tolerance_rad)
     codes = np.where(held & (caught_at == 0.0), CAUGHT_AT_ONCE,
@@ -140,9 +117,6 @@ def region_of_attraction(
     inside = switching_criterion(sw.k_va, grid_theta, grid_rate) < sw.delta_s
     return RoaMap(label, theta, rate, float(x0_m), codes, caught_at, faulted, inside,
                   sw.k_va, sw.delta_s, duration_s, elapsed)
-
-
-_FORKED_PROGRESS: Callable[[int, int], None] | None = None
 
 
 @dataclass(frozen=True)
@@ -160,11 +134,6 @@ class _Job:
             hold_start_s=self.hold_start_s, x_dot0_mps=0.0, theta0_rad=theta,
             theta_dot0_radps=rate, prime_estimator=True, progress=progress)
         return outcome.caught_at_s, np.asarray(outcome.faulted), outcome.hold_theta_rad
-
-
-def _run_chunk(job: _Job, theta: np.ndarray, rate: np.ndarray,
-               report: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return job.run(theta, rate, _FORKED_PROGRESS if report else None)
 
 
 def plot_roa(maps: Sequence[RoaMap], path: Path, columns: int | None = None) -> Path:
