@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parent.parent
 EXECUTABLES = {
     "pisc_plant": ["plant_node"],
     "pisc_control": ["estimator_node", "supervisor_node", "current_loop_node"],
-    "pisc_bringup": ["pisc_graph", "pisc_record"],
+    "pisc_bringup": ["pisc_graph", "pisc_record", "pisc_bag"],
     "pisc_msgs_py": [],
     "pisc_driver": [],
 }

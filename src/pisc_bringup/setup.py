@@ -23,6 +23,7 @@ setup(
         'console_scripts': [
             'pisc_graph = pisc_bringup.graph:main',
             'pisc_record = pisc_bringup.record:main',
+            'pisc_bag = pisc_bringup.bag_cli:main',
         ],
     },
 )
