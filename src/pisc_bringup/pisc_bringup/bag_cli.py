@@ -19,6 +19,7 @@ import sys
 from collections.abc import Callable
 
 from pisc_bringup.bag import BagError
+from pisc_bringup.graph import GraphError
 from pisc_msgs_py.config import ConfigError
 
 __all__ = ["main"]
@@ -26,6 +27,8 @@ __all__ = ["main"]
 # subcommand -> module with add_arguments(parser) and run(args) -> int
 SUBCOMMANDS = {
     "repair": ("pisc_bringup.repair_cmd", "finish a bag whose recorder was killed"),
+    "replay": ("pisc_bringup.replay", "recompute every controller output of a bag and "
+                                      "compare, stamp by stamp"),
 }
 
 
@@ -40,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return runners[args.command](args)
-    except BagError as exc:
+    except (BagError, GraphError) as exc:
         print(f"pisc_bag {args.command}: {exc}", file=sys.stderr)
         return 2
     except ConfigError as exc:
