@@ -29,6 +29,8 @@ SUBCOMMANDS = {
     "repair": ("pisc_bringup.repair_cmd", "finish a bag whose recorder was killed"),
     "replay": ("pisc_bringup.replay", "recompute every controller output of a bag and "
                                       "compare, stamp by stamp"),
+    "analyse": ("pisc_bringup.analysis", "metrics, plots like the thesis's Figs. 6.3-6.8 and "
+                                         "the CSV log of a bag"),
 }
 
 
