@@ -40,8 +40,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from pisc_msgs_py.topics import QosSpec, Topic
 
-__all__ = ["BagError", "BagMessage", "BagWriter", "RepairReport", "bag_files", "read_bag",
-           "repair_bag"]
+__all__ = ["BagError", "BagMessage", "BagWriter", "RawMessage", "RepairReport", "bag_files",
+           "header_stamp_ns", "read_bag", "read_bag_raw", "repair_bag"]
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ROSBAG2_VERSION = 9
@@ -199,6 +199,14 @@ class BagMessage:
     message: Any  # decoded by rosbags; attribute access like an rclpy message
 
 
+def header_stamp_ns(data: bytes) -> int | None:
+    """Stamp of a little-endian CDR message that starts with std_msgs/Header, else None."""
+    if len(data) < 12 or data[1] not in (0x01, 0x03):  # CDR_LE or PL_CDR_LE
+        return None
+    sec, nanosec = struct.unpack_from("<iI", data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
@@ -261,6 +269,30 @@ def read_bag(directory: str | Path, topics: Sequence[str] | None = None) -> Iter
                     yield BagMessage(
                         channel.topic, message.log_time, message.publish_time,
                         TYPESTORE.deserialize_cdr(message.data, schema.name))
+        except BagError:
+            raise
+        except Exception as exc:  # the readers raise several unrelated types for bad files
+            raise BagError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from exc
+
+
+@dataclass(frozen=True)
+class RawMessage:
+    topic: str
+    type: str  # ROS 2 type name, from the channel's schema
+    log_time_ns: int
+    data: bytes  # CDR, as recorded
+
+
+def read_bag_raw(directory: str | Path,
+                 topics: Sequence[str] | None = None) -> Iterator[RawMessage]:
+    """The recorded CDR bytes of a PISC bag in file order, undecoded (for playback)."""
+    for path in bag_files(directory):
+        try:
+            with path.open("rb") as stream:
+                for schema, channel, message in make_reader(stream).iter_messages(topics=topics):
+                    if schema is None:
+                        raise BagError(f"{path}: channel {channel.topic} has no schema")
+                    yield RawMessage(channel.topic, schema.name, message.log_time, message.data)
         except BagError:
             raise
         except Exception as exc:  # the readers raise several unrelated types for bad files

@@ -13,7 +13,6 @@ what it has not taken yet, so a slow recorder loses nothing.
 from __future__ import annotations
 
 import queue
-import struct
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -21,21 +20,13 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
 
-from pisc_bringup.bag import BagWriter
+from pisc_bringup.bag import BagWriter, header_stamp_ns
 from pisc_msgs_py.base_node import message_class, qos_profile
 from pisc_msgs_py.topics import Topic
 
 __all__ = ["RecorderNode", "header_stamp_ns", "recording_qos"]
 
 _STOP = object()
-
-
-def header_stamp_ns(data: bytes) -> int | None:
-    """Stamp of a CDR message that starts with std_msgs/Header (little-endian CDR)."""
-    if len(data) < 12 or data[1] not in (0x01, 0x03):  # CDR_LE or PL_CDR_LE
-        return None
-    sec, nanosec = struct.unpack_from("<iI", data, 4)
-    return sec * 1_000_000_000 + nanosec
 
 
 def recording_qos(topic: Topic) -> Any:
