@@ -63,6 +63,8 @@ def test_play_publishes_every_voltage_in_order_on_simulated_time(ros_context, do
     thread.start()
     try:
         assert spin_until(executor, lambda: "counts" in result and len(voltages) >= 2001, 120.0)
+        # /clock is another reader: its last message may still be queued behind the voltage
+        spin_until(executor, lambda: clocks and clocks[-1] == 10_000_000_000, 5.0)
     finally:
         thread.join(60)
         node.destroy_node()

@@ -76,16 +76,20 @@ def cycle_messages(k: int) -> list:
     ]
 
 
-def test_sigkilled_recorder_loses_at_most_the_last_period_and_repair_recovers_it(
-        tmp_path, ros_context, env_for_domain):
-    bag = tmp_path / "killed"
+def stream_cycles(bag, ros_context, env, stop_signal, after_s):
+    """Start pisc_record on ``bag``, publish one cycle of six topics every 5 ms, and send
+    ``stop_signal`` to the recorder after ``after_s`` plus a random part of a period.
+
+    Returns (the recorder, monotonic send time of each cycle, time of the signal).
+    """
+    from pisc_msgs_py.base_node import message_class
+
     recorder = subprocess.Popen(
         [sys.executable, "-m", "pisc_bringup.record", "--bag", str(bag)],
-        env=env_for_domain, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     node = Node("cycle_source", context=ros_context)
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
-    from pisc_msgs_py.base_node import message_class
     publishers = [node.create_publisher(message_class(t.type), t.name, qos_profile(t.qos))
                   for t in CYCLE]
     try:
@@ -93,26 +97,44 @@ def test_sigkilled_recorder_loses_at_most_the_last_period_and_repair_recovers_it
                                                 for p in publishers), 30.0)
         sent_at = []  # monotonic time each cycle had been handed to DDS
         start = time.monotonic()
-        kill_after = 2.0 + random.uniform(0.0, PERIOD_S)  # any phase of a period
+        stop_after = after_s + random.uniform(0.0, PERIOD_S)  # any phase of a period
         k = 0
         while True:
             due = start + k * PERIOD_S
             while time.monotonic() < due:
                 time.sleep(0.0002)
-            if time.monotonic() - start >= kill_after:
+            if time.monotonic() - start >= stop_after:
                 break
             for publisher, msg in zip(publishers, cycle_messages(k), strict=True):
                 publisher.publish(msg)
             sent_at.append(time.monotonic())
             k += 1
-        killed_at = time.monotonic()
-        recorder.send_signal(signal.SIGKILL)
-        recorder.wait(10)
+        signalled_at = time.monotonic()
+        recorder.send_signal(stop_signal)
+        recorder.wait(30)
     finally:
         if recorder.poll() is None:
             recorder.kill()
         recorder.communicate()
         node.destroy_node()
+    return recorder, sent_at, signalled_at
+
+
+@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM])
+def test_a_recorder_stopped_by_signal_finishes_the_bag_and_loses_nothing(
+        tmp_path, ros_context, env_for_domain, stop_signal):
+    bag = tmp_path / "stopped"
+    recorder, sent_at, _ = stream_cycles(bag, ros_context, env_for_domain, stop_signal, 1.0)
+    assert recorder.returncode == 0
+    counts = bag_counts(bag)  # finished: reads without repair
+    assert all(counts[t.name] == len(sent_at) for t in CYCLE), (counts, len(sent_at))
+
+
+def test_sigkilled_recorder_loses_at_most_the_last_period_and_repair_recovers_it(
+        tmp_path, ros_context, env_for_domain):
+    bag = tmp_path / "killed"
+    recorder, sent_at, killed_at = stream_cycles(bag, ros_context, env_for_domain,
+                                                 signal.SIGKILL, 2.0)
     assert recorder.returncode == -signal.SIGKILL
 
     repaired = subprocess.run([sys.executable, "-m", "pisc_bringup.bag_cli", "repair", str(bag)],

@@ -53,6 +53,7 @@ def play_bag(bag: str | Path, rate: float = 1.0, topics: Sequence[str] | None = 
     """Publish the bag; returns the messages published per topic (``/clock`` included)."""
     import rclpy
     from rclpy.context import Context
+    from rclpy.duration import Duration
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rosgraph_msgs.msg import Clock
@@ -104,7 +105,7 @@ def play_bag(bag: str | Path, rate: float = 1.0, topics: Sequence[str] | None = 
             publishers[item.topic].publish(item.data)
             published[item.topic] += 1
         for publisher in publishers.values():  # reliable subscribers get everything
-            publisher.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0))
+            publisher.wait_for_all_acked(Duration(seconds=5.0))
     finally:
         node.destroy_node()
         context.try_shutdown()
