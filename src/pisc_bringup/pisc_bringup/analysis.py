@@ -281,6 +281,9 @@ PLOTS = (
 )
 _STYLES = {"x": "C0", "x_dot": "C0", "theta": "C0", "theta_dot": "C0", "i_d": "C3", "i": "C0",
            "u": "C0"}
+_LABELS = {"x": "x measured", "x_dot": "x_dot estimated (4.7)", "theta": "theta measured",
+           "theta_dot": "theta_dot estimated (4.9)", "i": "i measured",
+           "i_d": "i_d desired (4.2)", "u": "u commanded (3.47)"}
 
 
 def _shade_modes(axes: Any, trace: RunTrace, period_s: float) -> None:
@@ -310,8 +313,7 @@ def write_plots(traces: Sequence[RunTrace], out_dir: Path, period_s: float = 0.0
             for column in columns:
                 colour = _STYLES[column] if n == 0 else ("C1" if column != "i_d" else "C4")
                 axes.plot(trace.t, trace.column(column), dash, color=colour, linewidth=0.9,
-                          label=f"{column} measured{suffix}" if column != "i_d"
-                          else f"i_d desired{suffix}")
+                          label=_LABELS[column] + suffix)
             if true_column and len(traces) == 1 and trace.column(true_column) is not None:
                 axes.plot(trace.t, trace.column(true_column), ":", color="k", linewidth=0.8,
                           label=f"{columns[0]} true (simulator)")

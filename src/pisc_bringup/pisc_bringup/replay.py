@@ -209,9 +209,10 @@ class ReplayReport:
             if t.largest_at is not None and t.largest > 0:
                 largest += f" at t = {t.largest_at.t_s:.3f} s ({t.largest_at.field})"
             lines.append(f"{t.topic:<31}{t.compared:>9}{t.differ:>8}  {largest}")
-        for t in self.topics:
-            if t.first is not None:
-                lines.append(f"first divergence on {t.topic}: {t.first.format()}")
+        diverged = sorted((t for t in self.topics if t.first is not None),
+                          key=lambda t: t.first.stamp_ns)  # the earliest first
+        for t in diverged:
+            lines.append(f"first divergence on {t.topic}: {t.first.format()}")
         if self.unanswered:
             lines.append(f"{self.unanswered} sample(s) after the last recorded voltage "
                          "(the run ended before their answer) not compared")
