@@ -148,3 +148,25 @@ def test_a_truncated_bag_is_refused_with_its_name_and_no_traceback(tmp_path):
     assert "Traceback" not in completed.stderr
     with pytest.raises(BagError, match="no /pisc/joint_states message"):
         load_recorded(iter(()), "empty")
+
+
+@pytest.mark.integration
+def test_a_run_that_faults_replays_exactly_through_cores_and_nodes(tmp_path, domain_id):
+    """The fault path: the supervisor latches fault, the current loop commands 0 V."""
+    from pisc_bringup.graph import RunOptions, run_graph
+    from pisc_bringup.replay_node import replay_nodes
+
+    result = run_graph(RunOptions(
+        overrides={"initial.x_m": 0.05, "safety.x_min_m": -0.03}, duration_s=2.0,
+        bag_dir=tmp_path / "fault", domain_id=domain_id))
+    assert result.summary.faults
+    cores = replay_bag(result.bag_dir)
+    assert cores.reproduced, cores.format()
+    modes = load_recorded(read_bag(result.bag_dir)).outputs[MODE.name]
+    assert [v[0] for _, v in sorted(modes.items())][-1] is Mode.FAULT
+    nodes = replay_nodes(result.bag_dir, domain_id=domain_id)
+    assert nodes.reproduced, nodes.format()
+    # the replay sees the fault too: a wider safe range changes the outcome from there on
+    wider = replay_bag(result.bag_dir, overrides={"safety.x_min_m": -0.225})
+    first = {t.topic: t for t in wider.topics}[MODE.name].first
+    assert first is not None and first.recorded is Mode.FAULT

@@ -326,6 +326,9 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--tolerance", type=float, default=0.0,
                         help="largest accepted |recorded - recomputed| (default 0: same bits)")
     parser.add_argument("--domain-id", type=int, help="ROS domain id for --nodes")
+    parser.add_argument("--executor", choices=("events", "single", "multi"), default="events",
+                        help="executor of the nodes for --nodes (default: events, as "
+                             "pisc_graph runs them)")
 
 
 def run(args: Any) -> int:
@@ -336,7 +339,8 @@ def run(args: Any) -> int:
     if args.nodes:
         from pisc_bringup.replay_node import replay_nodes
 
-        report = replay_nodes(args.bag, args.config, overrides, args.tolerance, args.domain_id)
+        report = replay_nodes(args.bag, args.config, overrides, args.tolerance, args.domain_id,
+                              executor_name=args.executor)
     else:
         report = replay_bag(args.bag, args.config, overrides, args.tolerance)
     print(report.format())

@@ -18,13 +18,18 @@ from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from pisc_bringup.bag import read_bag
 from pisc_bringup.configuration import load_graph_config
-from pisc_bringup.graph import CONTROLLERS, GraphError, _parameters, expected_subscribers
+from pisc_bringup.graph import (
+    CONTROLLERS,
+    EXECUTORS,
+    GraphError,
+    _parameters,
+    expected_subscribers,
+)
 from pisc_bringup.replay import (
     COMPARED_TOPICS,
     Outputs,
@@ -117,8 +122,15 @@ class ReplayFeeder(Node):
 
 def replay_nodes(bag: str | Path, config: str | None = None,
                  overrides: Mapping[str, Any] | None = None, tolerance: float = 0.0,
-                 domain_id: int | None = None, timeout_s: float | None = None) -> ReplayReport:
-    """Regression replay of a bag through the controller nodes over topics."""
+                 domain_id: int | None = None, timeout_s: float | None = None,
+                 executor_name: str = "events") -> ReplayReport:
+    """Regression replay of a bag through the controller nodes over topics.
+
+    ``executor_name`` is as ``pisc_graph --executor``: 'events' (default, as the graph
+    runs), 'single' or 'multi'.
+    """
+    if executor_name not in EXECUTORS:
+        raise GraphError(f"executor {executor_name!r}: expected one of {', '.join(EXECUTORS)}")
     _, source = bag_config(bag, config, overrides)  # validates, names the source
     _, flat = load_graph_config(source, overrides)
     run = load_recorded(read_bag(bag), str(bag))
@@ -135,7 +147,9 @@ def replay_nodes(bag: str | Path, config: str | None = None,
             cls = getattr(importlib.import_module(spec.module), spec.cls)
             nodes.append(cls(context=context, parameter_overrides=params))
         feeder = ReplayFeeder(run, context=context)
-        executor = SingleThreadedExecutor(context=context)
+        # as pisc_graph runs them: one EventsExecutor, in this (the main) thread, which
+        # handles messages in the order they arrive
+        executor = EXECUTORS[executor_name](context=context)
         for node in [*nodes, feeder]:
             executor.add_node(node)
         _spin_until(executor, lambda: _connected(nodes) and feeder.subscribers_matched(),
@@ -170,13 +184,13 @@ def _connected(nodes: list[Node]) -> bool:
     return True
 
 
-def _spin_for(executor: SingleThreadedExecutor, seconds: float) -> None:
+def _spin_for(executor: Any, seconds: float) -> None:
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         executor.spin_once(timeout_sec=0.01)
 
 
-def _spin_until(executor: SingleThreadedExecutor, predicate: Any, timeout_s: float,
+def _spin_until(executor: Any, predicate: Any, timeout_s: float,
                 what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not predicate():
