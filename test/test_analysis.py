@@ -70,7 +70,8 @@ def test_the_added_metrics_agree_with_the_recorded_states():
     error = tr.i_d - tr.i
     assert a.current_peak_error_a == np.max(np.abs(error))
     assert a.voltage_saturated_s == pytest.approx(0.005 * np.sum(np.abs(tr.u) == 11.47))
-    assert a.voltage_saturated_s > 0 and a.current_saturated_s >= a.voltage_saturated_s / 2
+    assert a.current_saturated_s == pytest.approx(0.005 * np.sum(np.abs(tr.i_d) == 0.9))
+    assert a.voltage_saturated_s == pytest.approx(0.8) and a.current_saturated_s == 1.565
 
 
 def test_plots_are_written_one_per_thesis_figure(analysed):
@@ -107,6 +108,30 @@ def test_two_bags_overlaid(tmp_path):
     assert single.returncode == 0
     for name, *_ in PLOTS:
         assert (tmp_path / name).read_bytes() != (tmp_path / "single" / name).read_bytes()
+
+
+def test_a_message_of_the_wrong_layout_is_named(tmp_path):
+    from pisc_bringup.bag import TYPESTORE, BagWriter
+    from pisc_msgs_py.topics import GRAPH_TOPICS, JOINT_STATES
+
+    JointState = TYPESTORE.types["sensor_msgs/msg/JointState"]
+    Header = TYPESTORE.types["std_msgs/msg/Header"]
+    Time = TYPESTORE.types["builtin_interfaces/msg/Time"]
+    msg = JointState(header=Header(stamp=Time(sec=0, nanosec=0), frame_id=""),
+                     name=["wheel"], position=np.array([0.1]),
+                     velocity=np.array([], dtype=float), effort=np.array([], dtype=float))
+    writer = BagWriter(tmp_path / "odd", GRAPH_TOPICS)
+    writer.write(JOINT_STATES.name,
+                 bytes(TYPESTORE.serialize_cdr(msg, "sensor_msgs/msg/JointState")), 1, 1)
+    writer.close()
+    completed = pisc_bag("analyse", tmp_path / "odd")
+    assert completed.returncode == 2 and "Traceback" not in completed.stderr
+    assert completed.stderr == (f"pisc_bag analyse: {tmp_path / 'odd'}: /pisc/joint_states: "
+                                "joint_states: expected joints ['cart', 'pendulum'], got "
+                                "['wheel']\n")
+    replay = pisc_bag("replay", tmp_path / "odd", "--config", "default")
+    assert replay.returncode == 2 and "Traceback" not in replay.stderr
+    assert "/pisc/joint_states: joint_states: expected joints" in replay.stderr
 
 
 def test_malformed_bags_give_a_clear_error_and_no_traceback(tmp_path):

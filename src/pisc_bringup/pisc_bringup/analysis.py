@@ -99,7 +99,8 @@ class RunTrace:
 
 
 def trace_from_messages(messages: Iterable[BagMessage], label: str) -> RunTrace:
-    """Cycles of a run; :class:`BagError` if the bag has none or a message is malformed."""
+    """Cycles of a run; :class:`BagError` if the bag has none or a message is malformed
+    (the caller names the bag)."""
     tables: dict[str, dict[int, Any]] = {name: {} for name in (
         JOINT_STATES.name, STATE.name, MOTOR_CURRENT.name, CURRENT_SETPOINT.name,
         VOLTAGE.name, SIM_STATE.name)}
@@ -122,12 +123,12 @@ def trace_from_messages(messages: Iterable[BagMessage], label: str) -> RunTrace:
                 r = mode_from_msg(m.message)
                 modes.append((r.stamp_ns, r.mode))
         except MessageError as exc:
-            raise BagError(f"{label}: {m.topic}: {exc}") from None
+            raise BagError(f"{m.topic}: {exc}") from None
     needed = (JOINT_STATES.name, STATE.name, MOTOR_CURRENT.name, CURRENT_SETPOINT.name)
     stamps = sorted(s for s in tables[VOLTAGE.name]
                     if all(s in tables[name] for name in needed))
     if not stamps:
-        raise BagError(f"{label}: no complete control cycle (joint_states, state, current, "
+        raise BagError("no complete control cycle (joint_states, state, current, "
                        "setpoint and voltage of one stamp)")
     modes.sort(key=lambda r: r[0])
     in_force, k = [], 0
@@ -211,8 +212,8 @@ def _limits(bag: Path) -> tuple[float, float, float]:
 def analyse_messages(messages: Sequence[BagMessage], label: str, period_s: float,
                      voltage_limit_v: float, current_limit_a: float,
                      hold: HoldCriteria = HoldCriteria()) -> RunAnalysis:
+    trace = trace_from_messages(messages, label)  # names a malformed message
     summary = summarise(messages, period_s, hold)
-    trace = trace_from_messages(messages, label)
     # the state the summary judged by: the simulator's where recorded, else measured
     x = trace.true_x if summary.state_source == "true" else trace.x
     theta = trace.true_theta if summary.state_source == "true" else trace.theta
