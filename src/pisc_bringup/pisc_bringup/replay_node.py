@@ -10,10 +10,10 @@ are then compared as :func:`pisc_bringup.replay.compare` does for the cores.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from pathlib import Path
 import importlib
 import time
+from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import rclpy
