@@ -76,9 +76,10 @@ def cycle_messages(k: int) -> list:
     ]
 
 
-def stream_cycles(bag, ros_context, env, stop_signal, after_s):
-    """Start pisc_record on ``bag``, publish one cycle of six topics every 5 ms, and send
-    ``stop_signal`` to the recorder after ``after_s`` plus a random part of a period.
+def stream_cycles(bag, ros_context, env, stop_signal, cycles):
+    """Start pisc_record on ``bag``, publish ``cycles`` cycles of six topics, one every
+    5 ms (as fast as this machine allows when it falls behind), and send ``stop_signal``
+    to the recorder at a random moment within the next period.
 
     Returns (the recorder, monotonic send time of each cycle, time of the signal).
     """
@@ -97,18 +98,14 @@ def stream_cycles(bag, ros_context, env, stop_signal, after_s):
                                                 for p in publishers), 30.0)
         sent_at = []  # monotonic time each cycle had been handed to DDS
         start = time.monotonic()
-        stop_after = after_s + random.uniform(0.0, PERIOD_S)  # any phase of a period
-        k = 0
-        while True:
+        for k in range(cycles):
             due = start + k * PERIOD_S
             while time.monotonic() < due:
                 time.sleep(0.0002)
-            if time.monotonic() - start >= stop_after:
-                break
             for publisher, msg in zip(publishers, cycle_messages(k), strict=True):
                 publisher.publish(msg)
             sent_at.append(time.monotonic())
-            k += 1
+        time.sleep(random.uniform(0.0, PERIOD_S))  # any phase of the period
         signalled_at = time.monotonic()
         recorder.send_signal(stop_signal)
         recorder.wait(30)
@@ -124,7 +121,7 @@ def stream_cycles(bag, ros_context, env, stop_signal, after_s):
 def test_a_recorder_stopped_by_signal_finishes_the_bag_and_loses_nothing(
         tmp_path, ros_context, env_for_domain, stop_signal):
     bag = tmp_path / "stopped"
-    recorder, sent_at, _ = stream_cycles(bag, ros_context, env_for_domain, stop_signal, 1.0)
+    recorder, sent_at, _ = stream_cycles(bag, ros_context, env_for_domain, stop_signal, 200)
     assert recorder.returncode == 0
     counts = bag_counts(bag)  # finished: reads without repair
     assert all(counts[t.name] == len(sent_at) for t in CYCLE), (counts, len(sent_at))
@@ -134,7 +131,7 @@ def test_sigkilled_recorder_loses_at_most_the_last_period_and_repair_recovers_it
         tmp_path, ros_context, env_for_domain):
     bag = tmp_path / "killed"
     recorder, sent_at, killed_at = stream_cycles(bag, ros_context, env_for_domain,
-                                                 signal.SIGKILL, 2.0)
+                                                 signal.SIGKILL, 400)
     assert recorder.returncode == -signal.SIGKILL
 
     repaired = subprocess.run([sys.executable, "-m", "pisc_bringup.bag_cli", "repair", str(bag)],
@@ -145,9 +142,10 @@ def test_sigkilled_recorder_loses_at_most_the_last_period_and_repair_recovers_it
     for m in read_bag(bag):
         stamps[m.topic].add(stamp_from_msg(m.message.header.stamp))
     assert recovered == sum(len(s) for s in stamps.values())
-    # every message sent more than one period before the kill is in the bag
+    # every message sent more than one period before the kill is in the bag: what is
+    # lost was sent in the last period
+    assert len(sent_at) == 400
     settled = [k for k, t in enumerate(sent_at) if t < killed_at - PERIOD_S]
-    assert len(settled) >= 390
     for topic, got in stamps.items():
         missing = [k for k in settled if k * 5_000_000 not in got]
         assert not missing, (topic, missing[:5], len(sent_at))
