@@ -16,8 +16,8 @@ ROOT = Path(__file__).resolve().parent.parent
 EXECUTABLES = {
     "pisc_plant": ["plant_node", "pisc_virtual_rig"],
     "pisc_control": ["estimator_node", "supervisor_node", "current_loop_node"],
-    "pisc_bringup": ["pisc_graph", "pisc_record", "pisc_scene", "pisc_integrators",
-                     "pisc_batch_bench"],
+    "pisc_bringup": ["pisc_graph", "pisc_record", "pisc_bag", "pisc_scene",
+                     "pisc_integrators", "pisc_batch_bench"],
     "pisc_msgs_py": [],
     "pisc_driver": ["driver_node", "pisc_parser_bench"],
     "pisc_analysis": ["pisc_analysis"],

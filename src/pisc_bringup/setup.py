@@ -27,6 +27,7 @@ setup(
             'pisc_integrators = pisc_bringup.integrators_cli:main',
             'pisc_scene = pisc_bringup.scene_cli:main',
             'pisc_batch_bench = pisc_bringup.batch_bench:main',
+            'pisc_bag = pisc_bringup.bag_cli:main',
         ],
     },
 )

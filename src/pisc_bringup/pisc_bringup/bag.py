@@ -17,6 +17,8 @@ own time is in each message's header stamp.
 
 from __future__ import annotations
 
+import io
+import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +40,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from pisc_msgs_py.topics import QosSpec, Topic
 
-__all__ = ["BagError", "BagMessage", "BagWriter", "read_bag"]
+__all__ = ["BagError", "BagMessage", "BagWriter", "RawMessage", "RepairReport", "bag_files",
+           "header_stamp_ns", "read_bag", "read_bag_raw", "repair_bag"]
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ROSBAG2_VERSION = 9
@@ -130,45 +133,62 @@ class BagWriter:
         self._closed = True
         self._writer.finish()
         self._file.close()
-        start = self._first_ns or 0
-        duration = max(0, self._last_ns - start)
-        total = sum(c.count for c in self._channels.values())
-        info = {
-            "version": ROSBAG2_VERSION,
-            "storage_identifier": "mcap",
-            "relative_file_paths": [self.path.name],
+        _write_metadata(self.directory, self.path.name, [
+            _TopicRecord(c.topic.name, c.topic.type, _qos(c.topic.qos), c.type_hash, c.count)
+            for c in self._channels.values()
+        ], self._first_ns or 0, self._last_ns)
+
+
+@dataclass(frozen=True)
+class _TopicRecord:
+    name: str
+    type: str
+    qos: Qos
+    type_hash: str
+    count: int
+
+
+def _write_metadata(directory: Path, file_name: str, topics: Sequence[_TopicRecord],
+                    first_ns: int, last_ns: int) -> None:
+    """rosbag2 ``metadata.yaml`` (version 9) for one MCAP file, written atomically."""
+    duration = max(0, last_ns - first_ns)
+    total = sum(t.count for t in topics)
+    info = {
+        "version": ROSBAG2_VERSION,
+        "storage_identifier": "mcap",
+        "relative_file_paths": [file_name],
+        "duration": {"nanoseconds": duration},
+        "starting_time": {"nanoseconds_since_epoch": first_ns},
+        "message_count": total,
+        "topics_with_message_count": [
+            {
+                "topic_metadata": {
+                    "name": t.name,
+                    "type": t.type,
+                    "serialization_format": "cdr",
+                    "offered_qos_profiles": dump_qos_v9([t.qos]),
+                    "type_description_hash": t.type_hash,
+                },
+                "message_count": t.count,
+            }
+            for t in topics
+        ],
+        "compression_format": "",
+        "compression_mode": "",
+        "files": [{
+            "path": file_name,
+            "starting_time": {"nanoseconds_since_epoch": first_ns},
             "duration": {"nanoseconds": duration},
-            "starting_time": {"nanoseconds_since_epoch": start},
             "message_count": total,
-            "topics_with_message_count": [
-                {
-                    "topic_metadata": {
-                        "name": c.topic.name,
-                        "type": c.topic.type,
-                        "serialization_format": "cdr",
-                        "offered_qos_profiles": dump_qos_v9([_qos(c.topic.qos)]),
-                        "type_description_hash": c.type_hash,
-                    },
-                    "message_count": c.count,
-                }
-                for c in self._channels.values()
-            ],
-            "compression_format": "",
-            "compression_mode": "",
-            "files": [{
-                "path": self.path.name,
-                "starting_time": {"nanoseconds_since_epoch": start},
-                "duration": {"nanoseconds": duration},
-                "message_count": total,
-            }],
-            "custom_data": None,
-            "ros_distro": "jazzy",
-        }
-        text = yaml.safe_dump({"rosbag2_bagfile_information": info}, default_flow_style=False,
-                              sort_keys=False)
-        tmp = self.directory / "metadata.yaml.tmp"
-        tmp.write_text(text)
-        tmp.replace(self.directory / "metadata.yaml")
+        }],
+        "custom_data": None,
+        "ros_distro": "jazzy",
+    }
+    text = yaml.safe_dump({"rosbag2_bagfile_information": info}, default_flow_style=False,
+                          sort_keys=False)
+    tmp = directory / "metadata.yaml.tmp"
+    tmp.write_text(text)
+    tmp.replace(directory / "metadata.yaml")
 
 
 @dataclass(frozen=True)
@@ -179,19 +199,67 @@ class BagMessage:
     message: Any  # decoded by rosbags; attribute access like an rclpy message
 
 
+def header_stamp_ns(data: bytes) -> int | None:
+    """Stamp of a little-endian CDR message that starts with std_msgs/Header, else None."""
+    if len(data) < 12 or data[1] not in (0x01, 0x03):  # CDR_LE or PL_CDR_LE
+        return None
+    sec, nanosec = struct.unpack_from("<iI", data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def bag_files(directory: str | Path) -> list[Path]:
+    """The MCAP files of a rosbag2 directory, checked; :class:`BagError` says what is wrong.
+
+    The files are those ``metadata.yaml`` lists. A file that does not end with the MCAP
+    magic was not finished (its recorder was killed): :func:`repair_bag` recovers it.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise BagError(f"{directory}: no such bag directory")
+    meta = directory / "metadata.yaml"
+    if not meta.exists():
+        hint = (f"; if its recorder was killed, `pisc_bag repair {directory}` rebuilds it"
+                if any(directory.glob("*.mcap")) else "")
+        raise BagError(f"{directory}: not a rosbag2 directory (no metadata.yaml){hint}")
+    try:
+        info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+        names = info["relative_file_paths"]
+        storage = info["storage_identifier"]
+    except (yaml.YAMLError, KeyError, TypeError, UnicodeDecodeError) as exc:
+        raise BagError(f"{meta}: malformed rosbag2 metadata ({type(exc).__name__}: {exc})") \
+            from None
+    if storage != "mcap":
+        raise BagError(f"{meta}: storage {storage!r}, only 'mcap' bags are read")
+    if not names:
+        raise BagError(f"{meta}: lists no bag file")
+    files = [directory / n for n in names]
+    for path in files:
+        if not path.is_file():
+            raise BagError(f"{path}: listed in metadata.yaml but missing")
+        size = path.stat().st_size
+        with path.open("rb") as stream:
+            head = stream.read(8)
+            stream.seek(max(0, size - 8))
+            tail = stream.read(8)
+        if head != MCAP_MAGIC:
+            raise BagError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
+        if size < 16 or tail != MCAP_MAGIC:
+            raise BagError(
+                f"{path}: truncated, it ends without the MCAP footer (the recording was not "
+                f"finished); `pisc_bag repair {directory}` recovers its messages")
+    return files
+
+
 def read_bag(directory: str | Path, topics: Sequence[str] | None = None) -> Iterator[BagMessage]:
     """Decoded messages of a PISC bag in file order, or :class:`BagError` saying why not.
 
     Uses the mcap reader (which exposes both log and publish times) and decodes CDR with
     the rosbags type store.
     """
-    directory = Path(directory)
-    if not (directory / "metadata.yaml").exists():
-        raise BagError(f"{directory}: not a rosbag2 directory (no metadata.yaml)")
-    files = sorted(directory.glob("*.mcap"))
-    if not files:
-        raise BagError(f"{directory}: no .mcap file")
-    for path in files:
+    for path in bag_files(directory):
         try:
             with path.open("rb") as stream:
                 reader = make_reader(stream)
@@ -205,3 +273,148 @@ def read_bag(directory: str | Path, topics: Sequence[str] | None = None) -> Iter
             raise
         except Exception as exc:  # the readers raise several unrelated types for bad files
             raise BagError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from exc
+
+
+@dataclass(frozen=True)
+class RawMessage:
+    topic: str
+    type: str  # ROS 2 type name, from the channel's schema
+    log_time_ns: int
+    data: bytes  # CDR, as recorded
+
+
+def read_bag_raw(directory: str | Path,
+                 topics: Sequence[str] | None = None) -> Iterator[RawMessage]:
+    """The recorded CDR bytes of a PISC bag in file order, undecoded (for playback)."""
+    for path in bag_files(directory):
+        try:
+            with path.open("rb") as stream:
+                for schema, channel, message in make_reader(stream).iter_messages(topics=topics):
+                    if schema is None:
+                        raise BagError(f"{path}: channel {channel.topic} has no schema")
+                    yield RawMessage(channel.topic, schema.name, message.log_time, message.data)
+        except BagError:
+            raise
+        except Exception as exc:  # the readers raise several unrelated types for bad files
+            raise BagError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from exc
+
+
+@dataclass(frozen=True)
+class RepairReport:
+    """What :func:`repair_bag` did."""
+
+    path: Path  # the repaired MCAP file
+    backup: Path  # the unfinished file as it was found
+    counts: dict[str, int]  # messages recovered per topic
+    dropped_bytes: int  # the incomplete record at the end, discarded
+
+    @property
+    def recovered(self) -> int:
+        return sum(self.counts.values())
+
+    def format(self) -> str:
+        lines = [f"repaired {self.path}: recovered {self.recovered} messages "
+                 f"({self.dropped_bytes} bytes of an incomplete last record dropped); "
+                 f"the file as found is kept as {self.backup.name}"]
+        lines += [f"  {name} {count}" for name, count in self.counts.items()]
+        return "\n".join(lines)
+
+
+def repair_bag(directory: str | Path) -> RepairReport:
+    """Finish a bag whose recorder died: rebuild its MCAP summary and ``metadata.yaml``.
+
+    Reads the unfinished file record by record up to the first incomplete or corrupt
+    record, writes the schemas, channels and messages found into a finished MCAP file
+    (same ids, times and sequence numbers) and writes ``metadata.yaml``. The file as
+    found is kept beside it with the suffix ``.unfinished``. A bag that is already
+    finished is left alone (:class:`BagError`).
+    """
+    from mcap.records import Channel, DataEnd, Footer, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise BagError(f"{directory}: no such bag directory")
+    candidates = sorted(directory.glob("*.mcap"))
+    if len(candidates) != 1:
+        raise BagError(f"{directory}: expected one .mcap file to repair, found "
+                       f"{len(candidates)}")
+    path = candidates[0]
+    raw = path.read_bytes()
+    if not raw.startswith(MCAP_MAGIC):
+        raise BagError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
+    if len(raw) >= 16 and raw.endswith(MCAP_MAGIC) and (directory / "metadata.yaml").exists():
+        raise BagError(f"{path}: already finished; nothing to repair")
+
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    messages: list[Message] = []
+    complete = _whole_records_end(raw)
+    try:
+        for record in StreamReader(io.BytesIO(raw[:complete]), validate_crcs=True).records:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message):
+                messages.append(record)
+            elif isinstance(record, (DataEnd, Footer)):
+                break
+    except Exception:  # noqa: BLE001, S110 - whole records that do not parse end the data
+        pass
+    if not channels:
+        raise BagError(f"{path}: no channel record survived; nothing to recover")
+
+    backup = path.with_name(path.name + ".unfinished")
+    path.replace(backup)
+    with path.open("wb") as out:
+        writer = Writer(out, compression=CompressionType.NONE, use_chunking=False,
+                        enable_crcs=True)
+        writer.start(profile="ros2", library="pisc repair")
+        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data)
+                      for sid, s in schemas.items()}
+        channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding,
+                                                    schema_ids.get(c.schema_id, 0), c.metadata)
+                       for cid, c in channels.items()}
+        counts = {c.topic: 0 for c in channels.values()}
+        known = [m for m in messages if m.channel_id in channel_ids]
+        for m in known:
+            writer.add_message(channel_ids[m.channel_id], m.log_time, m.data, m.publish_time,
+                               sequence=m.sequence)
+            counts[channels[m.channel_id].topic] += 1
+        writer.finish()
+    records = []
+    for cid, c in channels.items():
+        schema = schemas.get(c.schema_id)
+        qos = _parse_offered_qos(c.metadata.get("offered_qos_profiles", ""))
+        records.append(_TopicRecord(c.topic, schema.name if schema else "", qos,
+                                    c.metadata.get("topic_type_hash", ""), counts[c.topic]))
+    times = [m.log_time for m in known]
+    _write_metadata(directory, path.name, records, min(times, default=0), max(times, default=0))
+    return RepairReport(path, backup, counts, len(raw) - complete)
+
+
+def _whole_records_end(raw: bytes) -> int:
+    """Offset after the last whole record: each is opcode (1 byte), length (8 bytes LE), body.
+
+    The reader does not notice a record cut short (it reads what is left), so the framing
+    is walked here first and the incomplete tail is never handed to it.
+    """
+    offset = len(MCAP_MAGIC)
+    while offset + 9 <= len(raw):
+        (length,) = struct.unpack_from("<Q", raw, offset + 1)
+        end = offset + 9 + length
+        if end > len(raw):
+            break
+        offset = end
+    return offset
+
+
+def _parse_offered_qos(text: str) -> Qos:
+    from rosbags.rosbag2.metadata import parse_qos
+
+    try:
+        parsed = parse_qos(text)
+    except Exception:  # noqa: BLE001 - an unreadable profile is recorded as the default
+        parsed = []
+    return parsed[0] if parsed else _qos(QosSpec(depth=100))

@@ -25,7 +25,8 @@ from pisc_plant.dynamics import wrap_to_upright
 from pisc_plant.plant import THETA, Plant, X
 from pisc_plant.sampled import SampledPlant
 
-__all__ = ["BatchOutcome", "CycleLog", "plant_command", "simulate", "simulate_batch"]
+__all__ = ["BatchOutcome", "Controllers", "CycleLog", "CycleOutputs", "plant_command",
+           "simulate", "simulate_batch"]
 
 COLUMNS = ("t", "x", "theta", "x_dot", "theta_dot", "i", "i_d", "u", "f", "mode",
            "true_x", "true_x_dot", "true_theta", "true_theta_dot", "true_i")
@@ -49,41 +50,78 @@ def plant_command(config: GraphConfig, i_d: Any, voltage: Any) -> Any:
     return voltage
 
 
+@dataclass(frozen=True)
+class CycleOutputs:
+    """What the controllers answer to one sample, as the values their messages carry."""
+
+    x_dot: float  # /pisc/state velocity of cart (4.7)
+    theta_dot: float  # /pisc/state velocity of pendulum (4.9)
+    force: float  # /pisc/cart_force
+    mode: Mode  # /pisc/mode (published when it changes)
+    i_d: float  # /pisc/motor/current_setpoint (4.2)
+    voltage: float  # /pisc/motor/voltage (3.47)
+
+
+class Controllers:
+    """The estimator, supervisor and current-loop cores of one rig, in the graph's order.
+
+    One :meth:`step` is one control cycle of the three controller nodes: backward
+    differences (4.7), (4.9); the supervisor's mode (4.1) and force (3.30) or (3.46);
+    the current setpoint (4.2) and the PI voltage (3.47), or 0 V with the integral
+    cleared in ``fault``. Values leave each stage as Python floats, as they cross a
+    topic, so the pure simulation, the nodes and a regression replay compute the same
+    bits. Raises :class:`pisc_msgs_py.config.ConfigError` for an invalid configuration.
+    """
+
+    def __init__(self, config: GraphConfig) -> None:
+        self.config = config
+        self.supervisor = Supervisor(config.supervisor)
+        self.estimator_state = EstimatorState()
+        self.supervisor_state = SupervisorState()
+        self.current_loop_state = CurrentLoopState()
+
+    def step(self, position_m: float, angle_rad: float, current_a: float) -> CycleOutputs:
+        c = self.config
+        period = c.loop.period_s
+        self.estimator_state, x_dot, theta_dot = estimator_update(
+            c.estimator, period, self.estimator_state, position_m, angle_rad)
+        x_dot, theta_dot = float(x_dot), float(theta_dot)
+        self.supervisor_state, force, code = self.supervisor.update(
+            self.supervisor_state, position_m, x_dot, angle_rad, theta_dot)
+        force = float(force)
+        mode = Mode.from_code(int(code))
+        if mode is Mode.FAULT:
+            self.current_loop_state = CurrentLoopState()
+            i_d, voltage = 0.0, 0.0
+        else:
+            i_d = float(current_setpoint(c.plant.motor, c.current_loop, force))
+            self.current_loop_state, u = current_loop_update(
+                c.current_loop, period, self.current_loop_state, i_d, current_a)
+            voltage = float(u)
+        return CycleOutputs(x_dot, theta_dot, force, mode, i_d, voltage)
+
+    def fault_reason(self, position_m: float) -> str:
+        """Why the supervisor faulted (empty when it has not)."""
+        fault = self.supervisor_state.fault
+        return "" if fault is None else self.supervisor.fault_reason(int(fault), position_m)
+
+
 def simulate(config: GraphConfig, duration_s: float) -> CycleLog:
     """Run the closed loop from ``config.initial`` for ``duration_s`` (inclusive)."""
     plant = Plant(config.plant)
     i0 = config.initial
     sampled = SampledPlant(plant, plant.initial_state(i0.x_m, i0.x_dot_mps, i0.theta_rad,
                                                       i0.theta_dot_radps))
-    supervisor = Supervisor(config.supervisor)
-    period = config.loop.period_s
-    motor = config.plant.motor
-    est_state = EstimatorState()
-    sup_state = SupervisorState()
-    cl_state = CurrentLoopState()
+    controllers = Controllers(config)
     rows = []
-    n = int(round(duration_s / period)) + 1
+    n = int(round(duration_s / config.loop.period_s)) + 1
     for _ in range(n):
         sample = sampled.sample()
-        est_state, x_dot, theta_dot = estimator_update(
-            config.estimator, period, est_state, sample.position_m, sample.angle_rad)
-        x_dot, theta_dot = float(x_dot), float(theta_dot)
-        sup_state, force, code = supervisor.update(
-            sup_state, sample.position_m, x_dot, sample.angle_rad, theta_dot)
-        force = float(force)
-        mode = Mode.from_code(int(code))
-        if mode is Mode.FAULT:
-            cl_state = CurrentLoopState()
-            i_d, voltage = 0.0, 0.0
-        else:
-            i_d = float(current_setpoint(motor, config.current_loop, force))
-            cl_state, u = current_loop_update(config.current_loop, period, cl_state, i_d,
-                                              sample.current_a)
-            voltage = float(u)
-        rows.append((sampled.time_ns * 1e-9, sample.position_m, sample.angle_rad, x_dot,
-                     theta_dot, sample.current_a, i_d, voltage, force, mode.code,
-                     *sample.true_state))
-        sampled.command(plant_command(config, i_d, voltage))
+        out = controllers.step(sample.position_m, sample.angle_rad, sample.current_a)
+        rows.append((sampled.time_ns * 1e-9, sample.position_m, sample.angle_rad, out.x_dot,
+                     out.theta_dot, sample.current_a, out.i_d, out.voltage, out.force,
+                     out.mode.code, *sample.true_state))
+        sampled.command(plant_command(config, out.i_d, out.voltage))
         sampled.advance()
     return CycleLog(np.array(rows))
 

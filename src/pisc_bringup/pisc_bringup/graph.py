@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
+import rclpy.duration
 import yaml
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
@@ -125,6 +126,8 @@ class RunResult:
     recorded: dict[str, int]  # messages per topic, as pisc_record reported on closing
     wall_s: float
     processes: list[str]  # executables started with --processes
+    # messages per topic the nodes of this process published (empty with --processes)
+    published: dict[str, int] = field(default_factory=dict)
 
 
 EXECUTORS = {"events": EventsExecutor, "single": SingleThreadedExecutor,
@@ -185,6 +188,32 @@ class _Progress:
             self.future.set_result(stamp)
 
 
+def _count_publications(nodes: Sequence[Node]) -> dict[str, int]:
+    """Count every message the nodes publish, per topic, from now on (a live dict)."""
+    counts: dict[str, int] = {}
+    for node in nodes:
+        for publisher in node.publishers:
+            name = publisher.topic_name
+            if name == "/rosout" or name == "/parameter_events":
+                continue
+            counts.setdefault(name, 0)
+
+            def counted(msg: Any, _publish: Callable[[Any], None] = publisher.publish,
+                        _name: str = name) -> None:
+                _publish(msg)
+                counts[_name] += 1
+
+            publisher.publish = counted  # type: ignore[method-assign]
+    return counts
+
+
+def _wait_acknowledged(nodes: Sequence[Node], timeout_s: float) -> None:
+    """Wait until every reliable subscriber (the recorder) acknowledged what was sent."""
+    for node in nodes:
+        for publisher in node.publishers:
+            publisher.wait_for_all_acked(rclpy.duration.Duration(seconds=timeout_s))
+
+
 def _wait(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not predicate():
@@ -233,6 +262,7 @@ def run_graph(options: RunOptions) -> RunResult:
                                 lambda data: progress(VOLTAGE.name, data),
                                 qos_profile(VOLTAGE.qos), raw=True)
     nodes: list[Node] = []
+    published: dict[str, int] = {}
     finished = False
     try:
         _wait(lambda: _recorder_ready(watcher, recorder), 30.0, "pisc_record to subscribe")
@@ -255,10 +285,13 @@ def run_graph(options: RunOptions) -> RunResult:
             # The executor spins in the main thread: an EventsExecutor spun from another
             # thread holds the interpreter lock and starves the rest of the process.
             executor = EXECUTORS[options.executor](context=context)
+        published = _count_publications(nodes)
         for node in [*nodes, watcher]:
             executor.add_node(node)
         executor.spin_until_future_complete(progress.future, timeout)
         finished = progress.done.is_set()
+        # the plant stops with the last sample; what is still in flight reaches the recorder
+        _wait_acknowledged(nodes, 5.0)
     finally:
         # the plant first, so the controllers see no sample after their peers stopped
         failures = [_stop(child)[0] for child in reversed(children)]
@@ -283,7 +316,7 @@ def run_graph(options: RunOptions) -> RunResult:
             recorded[topic] = int(count)
     summary = summarise_bag(bag_dir, config.loop.period_s)
     started_as = [Path(c.args[0]).name for c in children]
-    return RunResult(bag_dir, summary, recorded, wall, started_as)
+    return RunResult(bag_dir, summary, recorded, wall, started_as, dict(published))
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec

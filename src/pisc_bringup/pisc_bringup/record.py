@@ -3,18 +3,24 @@
     pisc_record --bag DIR [--topic NAME ...]
 
 A process of its own, so recording competes with the control loop for nothing but a
-CPU core. On SIGINT or SIGTERM it writes what it has queued, finishes the bag
-(summary, footer, metadata.yaml) and prints the message count of every topic.
+CPU core. On SIGINT or SIGTERM it first takes what DDS still holds for it (it spins
+until nothing has arrived for ``--drain`` seconds), writes what it has queued,
+finishes the bag (summary, footer, metadata.yaml) and prints the message count of
+every topic. Killed with SIGKILL, the bag keeps every message written so far (each is
+flushed) and ``pisc_bag repair`` finishes it.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import time
 from pathlib import Path
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 
 from pisc_bringup.bag import BagError, BagWriter
 from pisc_bringup.recorder_node import RecorderNode
@@ -28,6 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bag", type=Path, required=True, help="new bag directory")
     parser.add_argument("--topic", action="append", default=[],
                         help="topic to record (default: every topic of the graph)")
+    parser.add_argument("--drain", type=float, default=0.2,
+                        help="on SIGINT/SIGTERM, keep taking messages until none arrived for "
+                             "this long [s] (default 0.2)")
     args, ros_args = parser.parse_known_args(argv)
     known = {t.name: t for t in GRAPH_TOPICS}
     unknown = [t for t in args.topic if t not in known]
@@ -41,20 +50,25 @@ def main(argv: list[str] | None = None) -> int:
     except BagError as exc:
         print(f"pisc_record: {exc}", file=sys.stderr)
         return 2
-    rclpy.init(args=[sys.argv[0], *ros_args])
+    stop = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: stop.append(signum))
+    # rclpy's own handlers would shut the context down at once, dropping what DDS holds
+    rclpy.init(args=[sys.argv[0], *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     node = RecorderNode(writer, topics)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
-        while rclpy.ok():
-            try:
-                executor.spin_once(timeout_sec=0.1)
-            except Exception:
-                if rclpy.ok():
-                    raise
-                # interrupted by the shutdown itself (e.g. its wait set): not a failure
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        while not stop:
+            executor.spin_once(timeout_sec=0.1)
+        # drain: take what has arrived but not been delivered, until the graph is quiet
+        quiet_since = time.monotonic()
+        seen = node.total_received
+        while time.monotonic() - quiet_since < args.drain:
+            executor.spin_once(timeout_sec=0.01)
+            if node.total_received != seen:
+                seen = node.total_received
+                quiet_since = time.monotonic()
     finally:
         node.close()
         node.destroy_node()

@@ -4,33 +4,36 @@ Subscriptions take the serialized CDR bytes (no decoding) together with the DDS 
 info, and hand them to a writer thread through a queue, so a slow disk never delays a
 callback of the control loop. rclpy's EventsExecutor cannot deliver message info, so
 this node runs on its own SingleThreadedExecutor (see :mod:`pisc_bringup.graph`).
+
+Subscriptions keep all history (``KEEP_ALL``) with the topic's reliability and
+durability: a reliable publisher then waits for the recorder rather than overwrite
+what it has not taken yet, so a slow recorder loses nothing.
 """
 
 from __future__ import annotations
 
 import queue
-import struct
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from rclpy.node import Node
+from rclpy.qos import HistoryPolicy
 
-from pisc_bringup.bag import BagWriter
+from pisc_bringup.bag import BagWriter, header_stamp_ns
 from pisc_msgs_py.base_node import message_class, qos_profile
 from pisc_msgs_py.topics import Topic
 
-__all__ = ["RecorderNode", "header_stamp_ns"]
+__all__ = ["RecorderNode", "header_stamp_ns", "recording_qos"]
 
 _STOP = object()
 
 
-def header_stamp_ns(data: bytes) -> int | None:
-    """Stamp of a CDR message that starts with std_msgs/Header (little-endian CDR)."""
-    if len(data) < 12 or data[1] not in (0x01, 0x03):  # CDR_LE or PL_CDR_LE
-        return None
-    sec, nanosec = struct.unpack_from("<iI", data, 4)
-    return sec * 1_000_000_000 + nanosec
+def recording_qos(topic: Topic) -> Any:
+    """The topic's QoS with all history kept: the recorder never drops a sample it got."""
+    profile = qos_profile(topic.qos)
+    profile.history = HistoryPolicy.KEEP_ALL
+    return profile
 
 
 class RecorderNode(Node):
@@ -50,7 +53,7 @@ class RecorderNode(Node):
         self.received: dict[str, int] = {t.name: 0 for t in topics}
         self._subs = [
             self.create_subscription(
-                message_class(t.type), t.name, self._callback(t.name), qos_profile(t.qos),
+                message_class(t.type), t.name, self._callback(t.name), recording_qos(t),
                 raw=True)
             for t in topics
         ]
@@ -72,6 +75,10 @@ class RecorderNode(Node):
             if item is _STOP:
                 return
             self._writer.write(*item)
+
+    @property
+    def total_received(self) -> int:
+        return sum(self.received.values())
 
     def close(self) -> None:
         """Write what is queued, then finish the bag."""

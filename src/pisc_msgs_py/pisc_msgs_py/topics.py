@@ -114,8 +114,10 @@ DIAGNOSTICS = Topic(
     "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", QosSpec(depth=100),
     "health of every node; faults say why",
 )
+# Reliable, so that a recorder loses no tick (a best-effort /clock lost ticks under load);
+# the best-effort subscriptions of use_sim_time clocks still match a reliable publisher.
 CLOCK = Topic(
-    "/clock", "rosgraph_msgs/msg/Clock", QosSpec(depth=10, reliable=False),
+    "/clock", "rosgraph_msgs/msg/Clock", QosSpec(depth=100, reliable=True),
     "simulated time, published by the plant in lockstep mode",
 )
 

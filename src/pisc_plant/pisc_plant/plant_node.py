@@ -147,6 +147,9 @@ class PlantNode(PiscNode):
                         and self._current_pub.get_subscription_count() >= need
                         and self._true_pub.get_subscription_count()
                         >= self._sim_params.min_true_state_subscribers
+                        # a recorder of the true state records /clock too
+                        and self._clock_pub.get_subscription_count()
+                        >= self._sim_params.min_true_state_subscribers
                         and self._sub.get_publisher_count() > 0):
                     self._started = True
                     self._publish_sample()

@@ -1,0 +1,172 @@
+"""Regression replay of every reference bag, and what a changed gain looks like."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pisc_bringup.bag import BagError, read_bag
+from pisc_bringup.replay import (
+    COMPARED_TOPICS,
+    RecordedRun,
+    compare,
+    load_recorded,
+    replay_bag,
+)
+from pisc_msgs_py.topics import CART_FORCE, CURRENT_SETPOINT, MODE, STATE, VOLTAGE
+from pisc_msgs_py.types import Mode
+
+pytestmark = pytest.mark.bag
+
+BAGS = Path(__file__).resolve().parent.parent / "bags"
+REFERENCE_BAGS = sorted(p for p in BAGS.iterdir() if (p / "metadata.yaml").is_file())
+SWINGUP = BAGS / "default-swingup"
+
+
+def test_the_reference_bags_are_there():
+    assert {p.name for p in REFERENCE_BAGS} >= {"default-swingup", "thesis-gains"}
+
+
+def summary_cycles(bag: Path) -> int:
+    line = next(x for x in (bag / "summary.txt").read_text().splitlines()
+                if x.startswith("cycles"))
+    return int(line.split()[1])
+
+
+@pytest.mark.parametrize("bag", REFERENCE_BAGS, ids=lambda p: p.name)
+def test_every_reference_bag_replays_bit_for_bit_through_the_cores(bag):
+    report = replay_bag(bag)
+    assert report.reproduced, report.format()
+    assert report.cycles == summary_cycles(bag)
+    for t in report.topics:
+        assert t.differ == 0 and t.largest == 0.0 and t.first is None
+        expected = report.cycles if t.topic != MODE.name else t.compared
+        assert t.compared == expected and t.compared >= 2
+    assert "result: REPRODUCED (tolerance 0)" in report.format()
+
+
+def test_a_changed_swing_up_gain_diverges_at_the_first_sample():
+    report = replay_bag(SWINGUP, overrides={"swing_up.k_x": 6.3})
+    assert not report.reproduced
+    by_topic = {t.topic: t for t in report.topics}
+    assert by_topic[STATE.name].differ == 0  # the estimator does not see gains
+    first = by_topic[CART_FORCE.name].first
+    assert first.stamp_ns == 0 and first.field == "force"
+    recorded_force = next(m.message.wrench.force.x for m in read_bag(SWINGUP, [CART_FORCE.name]))
+    assert first.recorded == recorded_force and first.recomputed != recorded_force
+    assert by_topic[CART_FORCE.name].largest > 0
+
+
+def test_a_changed_catch_pole_diverges_exactly_at_the_first_catch():
+    """Catch gains act from the first catch (1.470 s in summary.txt) on, never before."""
+    report = replay_bag(SWINGUP, overrides={"catch.poles": [-15.0, -11.0, -3.0, -2.4]})
+    by_topic = {t.topic: t for t in report.topics}
+    assert by_topic[CART_FORCE.name].first.stamp_ns == 1_470_000_000
+    assert by_topic[MODE.name].differ == 0
+    assert "first divergence on /pisc/cart_force: t = 1.470 s" in report.format()
+
+
+def test_a_changed_switching_threshold_moves_the_mode_change():
+    report = replay_bag(SWINGUP, overrides={"switching.delta_s": 0.1})
+    first = {t.topic: t for t in report.topics}[MODE.name].first
+    assert first is not None and first.field == "mode"
+    assert first.stamp_ns == 1_470_000_000 and first.recorded is Mode.CATCH
+
+
+def test_replay_command_exit_status_and_report():
+    ok = subprocess.run([sys.executable, "-m", "pisc_bringup.bag_cli", "replay", str(SWINGUP)],
+                        capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0, ok.stderr
+    assert "2001 cycles through the estimator, supervisor and current loop cores" in ok.stdout
+    bad = subprocess.run([sys.executable, "-m", "pisc_bringup.bag_cli", "replay", str(SWINGUP),
+                          "--set", "current_loop.k_pi=2.91"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 1, bad.stderr
+    assert "first divergence on /pisc/motor/voltage: t = 0.000 s (stamp 0) voltage" in bad.stdout
+    assert "result: MISMATCH (tolerance 0)" in bad.stdout
+    # a tolerance above the largest difference accepts it
+    loose = subprocess.run([sys.executable, "-m", "pisc_bringup.bag_cli", "replay", str(SWINGUP),
+                            "--set", "current_loop.k_pi=2.91", "--tolerance", "0.1"],
+                           capture_output=True, text=True, timeout=120)
+    assert loose.returncode == 0 and "REPRODUCED (tolerance 0.1)" in loose.stdout
+
+
+@pytest.mark.integration
+def test_replay_through_the_nodes_over_topics(domain_id):
+    from pisc_bringup.replay_node import replay_nodes
+
+    report = replay_nodes(SWINGUP, domain_id=domain_id)
+    assert report.reproduced, report.format()
+    assert report.cycles == 2001 and report.how == "nodes"
+    changed = replay_nodes(SWINGUP, overrides={"catch.poles": [-15.0, -11.0, -3.0, -2.4]},
+                           domain_id=domain_id)
+    first = {t.topic: t for t in changed.topics}[CART_FORCE.name].first
+    assert first.stamp_ns == 1_470_000_000
+
+
+def test_compare_reports_missing_outputs_and_respects_the_tolerance():
+    samples = [(k * 5_000_000, 0.0, 3.0, 0.0) for k in range(4)]
+    outputs = {name: {} for name in COMPARED_TOPICS}
+    for stamp, *_ in samples:
+        outputs[STATE.name][stamp] = (0.0, 0.0)
+        outputs[CART_FORCE.name][stamp] = (1.0,)
+        outputs[CURRENT_SETPOINT.name][stamp] = (0.5,)
+        outputs[VOLTAGE.name][stamp] = (2.0,)
+    outputs[MODE.name][0] = (Mode.SWING_UP,)
+    run = RecordedRun(samples, outputs)
+    same = {k: dict(v) for k, v in outputs.items()}
+    assert compare(run, same).reproduced
+    lost = {k: dict(v) for k, v in outputs.items()}
+    del lost[VOLTAGE.name][10_000_000]
+    report = compare(run, lost)
+    voltage = {t.topic: t for t in report.topics}[VOLTAGE.name]
+    assert voltage.differ == 1 and voltage.compared == 3
+    assert voltage.first.stamp_ns == 10_000_000 and voltage.first.recomputed is None
+    near = {k: dict(v) for k, v in outputs.items()}
+    near[VOLTAGE.name][5_000_000] = (2.0 + 1e-9,)
+    assert not compare(run, near).reproduced
+    assert compare(run, near, tolerance=1e-8).reproduced
+    nan = {k: dict(v) for k, v in outputs.items()}
+    nan[VOLTAGE.name][5_000_000] = (float("nan"),)
+    assert not compare(run, nan, tolerance=1e9).reproduced
+
+
+def test_a_truncated_bag_is_refused_with_its_name_and_no_traceback(tmp_path):
+    bag = tmp_path / "cut"
+    shutil.copytree(SWINGUP, bag)
+    mcap = bag / "default-swingup_0.mcap"
+    mcap.write_bytes(mcap.read_bytes()[:100_000])
+    completed = subprocess.run([sys.executable, "-m", "pisc_bringup.bag_cli", "replay", str(bag)],
+                               capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 2
+    assert completed.stderr.startswith(f"pisc_bag replay: {mcap}: truncated, it ends without "
+                                       "the MCAP footer")
+    assert "Traceback" not in completed.stderr
+    with pytest.raises(BagError, match="no /pisc/joint_states message"):
+        load_recorded(iter(()), "empty")
+
+
+@pytest.mark.integration
+def test_a_run_that_faults_replays_exactly_through_cores_and_nodes(tmp_path, domain_id):
+    """The fault path: the supervisor latches fault, the current loop commands 0 V."""
+    from pisc_bringup.graph import RunOptions, run_graph
+    from pisc_bringup.replay_node import replay_nodes
+
+    result = run_graph(RunOptions(
+        overrides={"initial.x_m": 0.05, "safety.x_min_m": -0.03}, duration_s=2.0,
+        bag_dir=tmp_path / "fault", domain_id=domain_id))
+    assert result.summary.faults
+    cores = replay_bag(result.bag_dir)
+    assert cores.reproduced, cores.format()
+    modes = load_recorded(read_bag(result.bag_dir)).outputs[MODE.name]
+    assert [v[0] for _, v in sorted(modes.items())][-1] is Mode.FAULT
+    nodes = replay_nodes(result.bag_dir, domain_id=domain_id)
+    assert nodes.reproduced, nodes.format()
+    # the replay sees the fault too: a wider safe range changes the outcome from there on
+    wider = replay_bag(result.bag_dir, overrides={"safety.x_min_m": -0.225})
+    first = {t.topic: t for t in wider.topics}[MODE.name].first
+    assert first is not None and first.recorded is Mode.FAULT
