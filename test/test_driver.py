@@ -12,7 +12,6 @@ Unix time the frame was sent (the driver stamps samples with that clock on arriv
 from __future__ import annotations
 
 import math
-import os
 import signal
 import subprocess
 import sys

@@ -10,9 +10,10 @@ plant, estimator, supervisor and current loop run in this process on one
 as its own process through its console entry point, with the merged parameter file,
 as ``ros2 run`` would. ``--driver PORT`` puts the serial driver (``pisc_driver
 driver_node``) in the plant's place, on the rig's port or on the pseudo-terminal of
-``pisc_virtual_rig``, against the wall clock. ``--realtime PRIORITY`` runs this process and the processes it
-starts under SCHED_FIFO, as a control computer runs its loop: a real device does not
-wait for a loaded machine (README, "Serial driver").
+``pisc_virtual_rig``, against the wall clock. ``--realtime PRIORITY`` runs this process
+and the processes it starts under SCHED_FIFO, as a control computer runs its loop: a
+real device does not wait for a loaded machine (README, "Serial driver"). ``--scene``
+takes a scene's configuration, overrides and duration (:mod:`pisc_bringup.scene`).
 
 The plant starts publishing once its subscribers are matched (in one process, once
 every controller's are too); a lockstep sample that is lost anyway is sent again. The

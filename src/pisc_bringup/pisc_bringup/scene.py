@@ -3,14 +3,13 @@
 A scene names a configuration (``default``, ``thesis`` or a parameter file) and
 overrides any of its parameters, including the plant's sub-models (``models``), its
 friction and measurement noise, the integrator and the initial state; it also says how
-long to run, whether the controllers close the loop, and what to record::
+long to run and whether the controllers close the loop::
 
     scene:
       description: the ideal force-driven cart-pole
       configuration: default
       duration_s: 10.0
       controller: graph           # 'graph': estimator, supervisor, current loop; 'none': zero input
-      record: all                 # 'all' or a list of topic names
       parameters:                 # sections as in a ROS 2 parameter file
         models: {armature: ideal_force, current_loop: ideal, sensors: ideal,
                  sensor_filters: false}
@@ -34,14 +33,13 @@ import yaml
 from pisc_bringup.configuration import CONFIG_DIR, GraphConfig, load_graph_config
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import ConfigError
-from pisc_msgs_py.topics import GRAPH_TOPICS
 
 __all__ = ["DEFAULT_SCENE", "SCENE_DIR", "Scene", "load_scene", "scene_names", "scene_path"]
 
 SCENE_DIR = CONFIG_DIR.parent / "scenes"
 DEFAULT_SCENE = "thesis-rig"
 CONTROLLERS = ("graph", "none")
-KEYS = ("description", "configuration", "duration_s", "controller", "record", "parameters")
+KEYS = ("description", "configuration", "duration_s", "controller", "parameters")
 
 
 @dataclass(frozen=True)
@@ -51,7 +49,6 @@ class Scene:
     configuration: str
     duration_s: float
     controller: str
-    record: tuple[str, ...]
     overrides: dict[str, Any]  # flat parameter overrides of the configuration
     config: GraphConfig
     flat: dict[str, Any]  # the configuration's flat parameters with the overrides
@@ -109,18 +106,6 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     if controller not in CONTROLLERS:
         raise ConfigError(f"{path}: scene.controller = {controller!r} must be one of "
                           f"{', '.join(CONTROLLERS)}")
-    record = body.get("record", "all")
-    known_topics = [t.name for t in GRAPH_TOPICS]
-    if record == "all":
-        record = tuple(known_topics)
-    elif isinstance(record, list) and all(isinstance(t, str) for t in record):
-        bad = [t for t in record if t not in known_topics]
-        if bad:
-            raise ConfigError(f"{path}: scene.record: {bad[0]} is not a topic of the graph "
-                              f"(topics: {', '.join(known_topics)})")
-        record = tuple(record)
-    else:
-        raise ConfigError(f"{path}: scene.record must be 'all' or a list of topic names")
     parameters = body.get("parameters") or {}
     if not isinstance(parameters, Mapping):
         raise ConfigError(f"{path}: scene.parameters must be a mapping of sections")
@@ -133,7 +118,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     except ConfigError as exc:
         raise ConfigError(f"scene {path.stem}: {exc}") from exc
     return Scene(path.stem, str(body.get("description", "")), configuration, float(duration),
-                 controller, record, flat_overrides, config, flat)
+                 controller, flat_overrides, config, flat)
 
 
 def write_scene_params(scene: Scene, path: Path) -> None:

@@ -94,7 +94,6 @@ def _write(tmp_path, body):
     ("scene:\n  durationn_s: 3\n", r"scene.durationn_s: unknown key"),
     ("scene:\n  duration_s: -1\n", r"scene.duration_s = -1 must be a positive number"),
     ("scene:\n  controller: pid\n", r"scene.controller = 'pid' must be one of graph, none"),
-    ("scene:\n  record: [/pisc/nothing]\n", r"/pisc/nothing is not a topic of the graph"),
     ("scene:\n  parameters: {rig: {cart_mass_kg: -0.4}}\n", r"rig.cart_mass_kg"),
     ("scene:\n  parameters: {models: {armature: ideal_force}}\n",
      r"models.current_loop = 'sampled_pi' does not go with models.armature"),
