@@ -2,9 +2,9 @@
 
 One kernel serves every scene: the state carries only the components a scene's
 sub-models need (:class:`Layout`), the constants travel in one float array
-(:func:`pack`), and the same compiled step advances one rig in a node or ten thousand
-in a batch (:func:`advance_many` runs :func:`advance_one` on each row, in parallel), so
-a rig gives bit-identical results alone and in a batch.
+(:func:`pisc_plant.plant.pack_constants`), and the same compiled step advances one rig
+in a node or ten thousand in a batch (:func:`advance_many` runs :func:`advance_one` on
+each row, in parallel), so a rig gives bit-identical results alone and in a batch.
 
 State order: ``x, x_dot, theta, theta_dot`` then, when modelled, the armature current
 ``i`` and the filtered sensor voltages ``v_ir, v_cur``. The input held over a step is
@@ -56,9 +56,12 @@ __all__ = [
     "Layout",
     "advance_many",
     "advance_one",
+    "end_stops",
     "exp_coefficients",
+    "phi",
     "rhs_many",
     "rhs_one",
+    "warm_up",
 ]
 
 METHODS = ("rk4", "exprk4")
