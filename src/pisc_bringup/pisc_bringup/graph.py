@@ -208,11 +208,19 @@ def _count_publications(nodes: Sequence[Node]) -> dict[str, int]:
     return counts
 
 
-def _wait_acknowledged(nodes: Sequence[Node], timeout_s: float) -> None:
-    """Wait until every reliable subscriber (the recorder) acknowledged what was sent."""
+def _wait_acknowledged(nodes: Sequence[Node], timeout_s: float) -> bool:
+    """Wait until every reliable subscriber (the recorder) acknowledged what was sent.
+
+    In lockstep the graph runs faster than real time and the recorder may trail it by
+    seconds; the wait lasts until it has caught up or ``timeout_s`` has passed in all.
+    """
+    deadline = time.monotonic() + timeout_s
+    acked = True
     for node in nodes:
         for publisher in node.publishers:
-            publisher.wait_for_all_acked(rclpy.duration.Duration(seconds=timeout_s))
+            left = max(0.0, deadline - time.monotonic())
+            acked &= publisher.wait_for_all_acked(rclpy.duration.Duration(seconds=left))
+    return acked
 
 
 def _wait(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
@@ -292,7 +300,10 @@ def run_graph(options: RunOptions) -> RunResult:
         executor.spin_until_future_complete(progress.future, timeout)
         finished = progress.done.is_set()
         # the plant stops with the last sample; what is still in flight reaches the recorder
-        _wait_acknowledged(nodes, 5.0)
+        if not _wait_acknowledged(nodes, 30.0 + options.duration_s):
+            print("pisc_graph: the recorder did not acknowledge every message within "
+                  f"{30.0 + options.duration_s:.0f} s; the bag may miss the last ones",
+                  file=sys.stderr)
     finally:
         # the plant first, so the controllers see no sample after their peers stopped
         failures = [_stop(child)[0] for child in reversed(children)]
