@@ -66,6 +66,10 @@ class SimulationParams:
     resend_after_s: float = param(0.5, "lockstep: send the current sample again when no voltage "
                                   "answered it for this long (the controllers answer a repeated "
                                   "stamp with their first answer)", "s", in_range(0.01, 60.0))
+    start_settle_s: float = param(0.5, "lockstep: once every subscriber is matched, wait this "
+                                  "long before the first sample (a reader matches its writers "
+                                  "a little after they match it, and a volatile reader drops "
+                                  "what was sent before)", "s", in_range(0.0, 60.0))
 
 
 SECTIONS = {
@@ -88,6 +92,7 @@ class PlantNode(PiscNode):
         self._stamp_ns = 0  # stamp of the current sample
         self._published_ns = 0  # wall time the current sample was published
         self._started = False
+        self._matched_ns: int | None = None  # wall time every subscriber was first matched
         self._resent = 0
         self._stale = 0
         self._missed = 0
@@ -151,8 +156,14 @@ class PlantNode(PiscNode):
                         and self._clock_pub.get_subscription_count()
                         >= self._sim_params.min_true_state_subscribers
                         and self._sub.get_publisher_count() > 0):
-                    self._started = True
-                    self._publish_sample()
+                    now = self._wall_ns()
+                    if self._matched_ns is None:
+                        self._matched_ns = now
+                    if (now - self._matched_ns) * 1e-9 >= self._sim_params.start_settle_s:
+                        self._started = True
+                        self._publish_sample()
+                else:
+                    self._matched_ns = None
             else:
                 waited_s = (self._wall_ns() - self._published_ns) * 1e-9
                 if waited_s > self._sim_params.resend_after_s:
