@@ -28,13 +28,12 @@ from typing import Any, TextIO
 
 import numpy as np
 import sympy as sp
-import yaml
 
 from pisc_analysis import comparisons, linear, roa, stability, symbolic
 from pisc_bringup.configuration import GraphConfig, load_graph_config
 from pisc_control.catch import catch_gain
 from pisc_control.swing_up import SwingUpParams, gain_condition
-from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_plant.dynamics import linearise_upright
 from pisc_plant.params import RigParams
 
@@ -411,12 +410,10 @@ def main(argv: list[str] | None = None) -> int:
                         "(default: thesis, or default for --config thesis)")
     parser.add_argument("--no-roa", action="store_true", help="skip the region of attraction")
     args = parser.parse_args(argv)
-    overrides: dict[str, Any] = {}
-    for item in args.set:
-        name, sep, value = item.partition("=")
-        if not sep:
-            parser.error(f"--set {item!r}: expected NAME=VALUE")
-        overrides[name] = yaml.safe_load(value)
+    try:
+        overrides = parse_overrides(args.set)
+    except ConfigError as exc:
+        parser.error(str(exc))
     if args.grid < 0:
         parser.error(f"--grid {args.grid}: must be positive")
     compare = args.compare

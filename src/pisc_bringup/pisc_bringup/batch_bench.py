@@ -9,6 +9,7 @@ parallel) and prints the rate, with the plant's share measured apart.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 
@@ -16,7 +17,7 @@ import numpy as np
 
 from pisc_bringup.closed_loop import simulate_batch
 from pisc_bringup.scene import DEFAULT_SCENE, load_scene
-from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_plant.plant import Plant
 
 
@@ -28,14 +29,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=2.0, help="simulated seconds")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     args = parser.parse_args(argv)
-    import yaml
-
-    overrides = {}
-    for item in args.set:
-        name, _, value = item.partition("=")
-        overrides[name] = yaml.safe_load(value)
+    if args.rigs < 1:
+        parser.error(f"--rigs {args.rigs}: must be at least 1")
+    if not (math.isfinite(args.duration) and args.duration > 0):
+        parser.error(f"--duration {args.duration}: must be a positive number of seconds")
     try:
-        scene = load_scene(args.scene, overrides)
+        scene = load_scene(args.scene, parse_overrides(args.set))
     except ConfigError as exc:
         print(f"pisc_batch_bench: {exc}", file=sys.stderr)
         return 2

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from pisc_control.catch import CatchParams
 from pisc_control.current_loop import CurrentLoopParams
 from pisc_control.estimator import EstimatorParams
@@ -38,7 +40,8 @@ from pisc_plant.params import (
 )
 from pisc_plant.plant import IntegratorParams, PlantConfig
 
-__all__ = ["CONFIG_DIR", "GraphConfig", "config_path", "load_graph_config"]
+__all__ = ["CONFIG_DIR", "GraphConfig", "config_path", "load_graph_config", "params_file_text",
+           "write_params_file"]
 
 def _config_dir() -> Path:
     """Parameter files: the source tree, else the installed share directory."""
@@ -117,3 +120,19 @@ def load_graph_config(
         current_loop=s["current_loop"],
     )
     return config, flat
+
+
+def params_file_text(flat: Mapping[str, Any]) -> str:
+    """Flat parameters as a ROS 2 parameter file every node reads (``/**``)."""
+    tree: dict[str, Any] = {}
+    for name, value in flat.items():
+        node = tree
+        *parents, leaf = name.split(".")
+        for parent in parents:
+            node = node.setdefault(parent, {})
+        node[leaf] = list(value) if isinstance(value, tuple) else value
+    return yaml.safe_dump({"/**": {"ros__parameters": tree}}, sort_keys=False)
+
+
+def write_params_file(path: Path, flat: Mapping[str, Any]) -> None:
+    path.write_text(params_file_text(flat))

@@ -42,7 +42,6 @@ from typing import Any
 
 import rclpy
 import rclpy.duration
-import yaml
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
@@ -51,11 +50,11 @@ from rclpy.parameter import Parameter
 from rclpy.task import Future
 
 from pisc_bringup.bag import BagError
-from pisc_bringup.configuration import load_graph_config
+from pisc_bringup.configuration import load_graph_config, write_params_file
 from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
 from pisc_msgs_py.base_node import message_class, qos_profile
-from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_msgs_py.topics import (
     CART_FORCE,
     CLOCK,
@@ -144,21 +143,6 @@ def _default_bag_dir(options: RunOptions) -> Path:
     x0 = options.overrides.get("initial.x_m", "file")
     name = Path(options.config).stem
     return Path("bags") / f"run-{name}-{options.clock}-x0_{x0}-{stamp}"
-
-
-def _nested(flat: dict[str, Any]) -> dict[str, Any]:
-    tree: dict[str, Any] = {}
-    for name, value in flat.items():
-        node = tree
-        *parents, leaf = name.split(".")
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = list(value) if isinstance(value, tuple) else value
-    return tree
-
-
-def write_params_file(path: Path, flat: dict[str, Any]) -> None:
-    path.write_text(yaml.safe_dump({"/**": {"ros__parameters": _nested(flat)}}, sort_keys=False))
 
 
 def _parameters(flat: dict[str, Any]) -> list[Parameter]:
@@ -441,10 +425,6 @@ def _start_processes(flat: dict[str, Any], plant_flat: dict[str, Any], bag_dir: 
     return children
 
 
-def _parse_value(text: str) -> Any:
-    return yaml.safe_load(text)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="pisc_graph", description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", default="default",
@@ -472,12 +452,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="override a parameter, e.g. --set swing_up.k_v=0.1")
     args = parser.parse_args(argv)
-    overrides: dict[str, Any] = {}
-    for item in args.set:
-        name, sep, value = item.partition("=")
-        if not sep:
-            parser.error(f"--set {item!r}: expected NAME=VALUE")
-        overrides[name] = _parse_value(value)
+    try:
+        overrides = parse_overrides(args.set)
+    except ConfigError as exc:
+        parser.error(str(exc))
     if args.x0 is not None:
         overrides["initial.x_m"] = args.x0
     config, duration = args.config, args.duration

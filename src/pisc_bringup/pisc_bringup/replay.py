@@ -29,6 +29,7 @@ from typing import Any
 from pisc_bringup.bag import BagError, BagMessage, read_bag
 from pisc_bringup.closed_loop import Controllers
 from pisc_bringup.configuration import GraphConfig, load_graph_config
+from pisc_msgs_py.config import parse_overrides
 from pisc_msgs_py.convert import (
     MessageError,
     cart_force_from_msg,
@@ -301,18 +302,6 @@ def replay_bag(bag: str | Path, config: str | None = None,
     return report
 
 
-def _parse_set(items: list[str]) -> dict[str, Any]:
-    import yaml
-
-    overrides: dict[str, Any] = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep:
-            raise BagError(f"--set {item!r}: expected NAME=VALUE")
-        overrides[name] = yaml.safe_load(value)
-    return overrides
-
-
 def add_arguments(parser: Any) -> None:
     """``pisc_bag replay`` options."""
     parser.add_argument("bag", type=Path, help="bag directory")
@@ -333,7 +322,7 @@ def add_arguments(parser: Any) -> None:
 
 def run(args: Any) -> int:
     """Replay, print the report; 0 reproduced, 1 mismatch."""
-    overrides = _parse_set(args.set)
+    overrides = parse_overrides(args.set)
     if args.tolerance < 0 or not math.isfinite(args.tolerance):
         raise BagError(f"--tolerance {args.tolerance}: expected a finite value >= 0")
     if args.nodes:

@@ -30,9 +30,14 @@ from typing import Any
 
 import yaml
 
-from pisc_bringup.configuration import CONFIG_DIR, GraphConfig, load_graph_config
+from pisc_bringup.configuration import (
+    CONFIG_DIR,
+    GraphConfig,
+    load_graph_config,
+    write_params_file,
+)
 from pisc_control.supervisor import Supervisor
-from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.config import ConfigError, flatten
 
 __all__ = ["DEFAULT_SCENE", "SCENE_DIR", "Scene", "load_scene", "scene_names", "scene_path"]
 
@@ -73,14 +78,6 @@ def scene_path(name_or_path: str) -> Path:
                       "or scene file")
 
 
-def _flatten(prefix: str, value: Any, out: dict[str, Any]) -> None:
-    if isinstance(value, Mapping):
-        for key, item in value.items():
-            _flatten(f"{prefix}.{key}" if prefix else str(key), item, out)
-    else:
-        out[prefix] = value
-
-
 def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) -> Scene:
     """Read and check a scene; ``overrides`` (flat names) go on top of the scene's own.
 
@@ -109,8 +106,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     parameters = body.get("parameters") or {}
     if not isinstance(parameters, Mapping):
         raise ConfigError(f"{path}: scene.parameters must be a mapping of sections")
-    flat_overrides: dict[str, Any] = {}
-    _flatten("", parameters, flat_overrides)
+    flat_overrides = flatten(parameters)
     flat_overrides.update(overrides or {})
     try:
         config, flat = load_graph_config(configuration, flat_overrides)
@@ -123,6 +119,4 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
 
 def write_scene_params(scene: Scene, path: Path) -> None:
     """The scene as a ROS 2 parameter file every node of the graph reads."""
-    from pisc_bringup.graph import write_params_file
-
     write_params_file(path, scene.flat)

@@ -13,26 +13,15 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-import yaml
 
 from pisc_bringup.closed_loop import simulate
+from pisc_bringup.configuration import params_file_text
 from pisc_bringup.scene import load_scene, scene_names, write_scene_params
-from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_plant.dynamics import energy, wrap_to_upright
 from pisc_plant.plant import Plant
-
-
-def _overrides(items: list[str], parser: argparse.ArgumentParser) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep:
-            parser.error(f"--set {item!r}: expected NAME=VALUE")
-        out[name] = yaml.safe_load(value)
-    return out
 
 
 def _models(scene) -> str:
@@ -97,17 +86,14 @@ def main(argv: list[str] | None = None) -> int:
                 scene = load_scene(name)
                 print(f"{name:18s} {scene.description}\n{'':18s} {_models(scene)}")
             return 0
-        overrides = _overrides(args.set, parser)
+        overrides = parse_overrides(args.set)
         if args.command == "run" and args.duration is not None:
             if not args.duration > 0:
                 parser.error(f"--duration {args.duration}: must be positive")
         scene = load_scene(args.scene, overrides)
         if args.command == "params":
             if args.output is None:
-                from pisc_bringup.graph import _nested
-
-                yaml.safe_dump({"/**": {"ros__parameters": _nested(scene.flat)}}, sys.stdout,
-                               sort_keys=False)
+                sys.stdout.write(params_file_text(scene.flat))
             else:
                 write_scene_params(scene, args.output)
             return 0

@@ -245,6 +245,20 @@ def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
+    """``NAME=VALUE`` command-line overrides to flat parameters, values read as YAML.
+
+    Raises :class:`ConfigError` for an item without ``=`` or without a name.
+    """
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise ConfigError(f"--set {item!r}: expected NAME=VALUE")
+        out[name.strip()] = yaml.safe_load(value)
+    return out
+
+
 def load_params_file(path: str | Path, node_names: Sequence[str] = ("/**",)) -> dict[str, Any]:
     """Read a ROS 2 parameter file into dotted names.
 

@@ -54,3 +54,14 @@ def test_every_field_is_described_with_a_unit_where_it_has_one():
     rows = describe(RigParams, "rig")
     assert ("rig.cart_mass_kg", 0.4735, "kg", "M, cart mass") in rows
     assert all(description for *_, description in rows)
+
+
+def test_command_line_overrides_are_parsed_as_yaml_and_bad_ones_refused():
+    from pisc_msgs_py.config import parse_overrides
+
+    assert parse_overrides(["catch.poles=[-1, -2]", "swing_up.k_v=0.1", "models.end_stops=false",
+                            "a.b=x=y"]) == {"catch.poles": [-1, -2], "swing_up.k_v": 0.1,
+                                            "models.end_stops": False, "a.b": "x=y"}
+    for bad in ("swing_up.k_v", "=3"):
+        with pytest.raises(ConfigError, match=r"--set .*expected NAME=VALUE"):
+            parse_overrides([bad])

@@ -40,7 +40,7 @@ from pisc_plant.params import (
     TrackParams,
 )
 
-__all__ = ["IntegratorParams", "Plant", "PlantConfig", "STATE_NAMES"]
+__all__ = ["PLANT_SECTIONS", "IntegratorParams", "Plant", "PlantConfig", "STATE_NAMES"]
 
 STATE_NAMES = ("x", "x_dot", "theta", "theta_dot", "i", "v_ir", "v_cur")
 X, X_DOT, THETA, THETA_DOT = range(4)
@@ -79,6 +79,14 @@ class PlantConfig:
     models: ModelParams = field(default_factory=ModelParams)
     friction: FrictionParams = field(default_factory=FrictionParams)
     noise: NoiseParams = field(default_factory=NoiseParams)
+
+
+#: The parameter sections a plant is built from, as :class:`PlantConfig`'s fields.
+PLANT_SECTIONS: dict[str, type] = {
+    "rig": RigParams, "motor": MotorParams, "sensors": SensorParams, "actuator": ActuatorParams,
+    "track": TrackParams, "loop": LoopParams, "integrator": IntegratorParams,
+    "models": ModelParams, "friction": FrictionParams, "noise": NoiseParams,
+}
 
 
 def pack_constants(c: PlantConfig) -> np.ndarray:

@@ -36,18 +36,9 @@ from pisc_msgs_py.topics import (
 )
 from pisc_msgs_py.types import JointSample, MotorSample, TrueState
 from pisc_plant.params import (
-    ActuatorParams,
-    FrictionParams,
     InitialParams,
-    LoopParams,
-    ModelParams,
-    MotorParams,
-    NoiseParams,
-    RigParams,
-    SensorParams,
-    TrackParams,
 )
-from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
+from pisc_plant.plant import PLANT_SECTIONS, Plant, PlantConfig
 from pisc_plant.sampled import SampledPlant
 
 DIAGNOSTIC_EVERY = 200
@@ -72,12 +63,7 @@ class SimulationParams:
                                   "what was sent before)", "s", in_range(0.0, 60.0))
 
 
-SECTIONS = {
-    "rig": RigParams, "motor": MotorParams, "sensors": SensorParams, "actuator": ActuatorParams,
-    "track": TrackParams, "loop": LoopParams, "integrator": IntegratorParams,
-    "models": ModelParams, "friction": FrictionParams, "noise": NoiseParams,
-    "initial": InitialParams, "simulation": SimulationParams,
-}
+SECTIONS = {**PLANT_SECTIONS, "initial": InitialParams, "simulation": SimulationParams}
 
 
 class PlantNode(PiscNode):
@@ -111,9 +97,7 @@ class PlantNode(PiscNode):
         self._timer = self.create_timer(0.01 if self._lockstep else period, self._on_timer)
 
     def build(self, flat: dict[str, Any]) -> tuple[PlantConfig, InitialParams, SimulationParams]:
-        names = ("rig", "motor", "sensors", "actuator", "track", "loop", "integrator", "models",
-                 "friction", "noise")
-        config = PlantConfig(**{n: self.section(flat, n) for n in names})
+        config = PlantConfig(**{n: self.section(flat, n) for n in PLANT_SECTIONS})
         return config, self.section(flat, "initial"), self.section(flat, "simulation")
 
     def on_config(self, config: Any) -> None:

@@ -46,21 +46,15 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from pisc_msgs_py.config import ConfigError, from_flat, load_params_file
+from pisc_msgs_py.config import ConfigError, from_flat, load_params_file, parse_overrides
 from pisc_plant.params import (
-    ActuatorParams,
     InitialParams,
-    LoopParams,
-    MotorParams,
-    RigParams,
-    SensorParams,
-    TrackParams,
 )
 from pisc_plant.plant import (
+    PLANT_SECTIONS,
     THETA,
     THETA_DOT,
     X_DOT,
-    IntegratorParams,
     Plant,
     PlantConfig,
     X,
@@ -69,9 +63,6 @@ from pisc_plant.plant import (
 __all__ = ["Firmware", "Rig", "RigFaults", "RigProcess", "main"]
 
 HEADER = 0xAA
-PLANT_SECTIONS = {"rig": RigParams, "motor": MotorParams, "sensors": SensorParams,
-                  "actuator": ActuatorParams, "track": TrackParams, "loop": LoopParams,
-                  "integrator": IntegratorParams}
 
 
 @dataclass
@@ -152,7 +143,11 @@ def load_plant(params_file: str | None, overrides: dict[str, Any]
     values = {name: from_flat(cls, {k: flat[k] for k in known}, name)
               for name, cls in sections.items()}
     initial = values.pop("initial")
-    return PlantConfig(**values), initial
+    config = PlantConfig(**values)
+    if config.models.force_input:
+        raise ConfigError("models.armature = 'ideal_force': the rig takes voltage bytes, so "
+                          "its plant needs a motor armature ('full' or 'quasi_static')")
+    return config, initial
 
 
 class Rig:
@@ -370,18 +365,6 @@ class RigProcess:
         return self._final
 
 
-def _parse_set(items: list[str]) -> dict[str, Any]:
-    import yaml
-
-    out = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep:
-            raise ConfigError(f"--set {item!r}: expected NAME=VALUE")
-        out[name] = yaml.safe_load(value)
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="pisc_virtual_rig",
                                      description=__doc__.split("\n\n")[0])
@@ -401,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="do not read JSON requests from standard input")
     args = parser.parse_args(argv)
     try:
-        overrides = _parse_set(args.set)
+        overrides = parse_overrides(args.set)
         if args.x0 is not None:
             overrides["initial.x_m"] = args.x0
         config, initial = load_plant(args.params_file, overrides)

@@ -8,6 +8,7 @@ import struct
 import numpy as np
 import pytest
 
+from pisc_msgs_py.config import ConfigError
 from pisc_plant.plant import Plant, PlantConfig
 from pisc_plant.sampled import SampledPlant
 from pisc_plant.virtual_rig import Firmware, RigFaults, load_plant
@@ -85,3 +86,11 @@ def test_fault_requests_are_checked():
 
 def test_default_config_is_the_thesis_rig():
     assert load_plant(None, {})[0].rig == PlantConfig().rig
+
+
+def test_the_rig_refuses_a_plant_without_an_armature():
+    with pytest.raises(ConfigError, match=r"models.armature = 'ideal_force': the rig takes "
+                                          r"voltage bytes"):
+        load_plant(None, {"models.armature": "ideal_force", "models.current_loop": "ideal"})
+    config, _ = load_plant(None, {"noise.seed": 3, "noise.x_std_m": 1e-3})
+    assert config.noise.x_std_m == 1e-3  # every plant section, noise included
