@@ -22,8 +22,8 @@ Methods (:data:`METHODS`):
     step up to the period. It needs the stiff part of the right-hand side linear, with
     everything the fast armature drives inside that linear part; otherwise the fast
     transient that follows each voltage step reaches the explicitly treated terms and
-    the order collapses (measured: 3e-4 rad/s at one step per period, falling only once
-    the steps resolve R/L). So:
+    the order collapses (seen in an earlier version that made only the current's decay
+    linear; not kept). So:
 
     * the current is replaced by its departure from the quasi-static current,
       ``q = i - (u - k_e x_dot / r) / R``; (2.81) becomes ``q' = -(R/L) q + d x_ddot``

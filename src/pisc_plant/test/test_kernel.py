@@ -125,9 +125,7 @@ def test_exponential_scheme_stays_accurate_through_voltage_steps():
     transient while the pendulum swings at 15 rad/s. Measured: 2.4e-7, 1.6e-8, 3.5e-9,
     1.7e-9, 5.0e-10 rad/s at 1, 2, 4, 8, 16 steps per period: fourth order from 1 to 2
     steps, then slower (what L leaves out, the angle's second-order change during the
-    transient, sets a floor near 1e-9). An exponential integrator that made only the
-    current's decay linear stayed near 3e-4 rad/s from 1 to 4 steps on the README's
-    playback (kernel docstring)."""
+    transient, sets a floor near 1e-9)."""
     config = PlantConfig(models=ModelParams(sensors="ideal", sensor_filters=False,
                                             end_stops=False))
     y0 = Plant(config).initial_state(0.0, 0.3, 2.0, 15.0, 0.0)
