@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -192,6 +193,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true",
                         help="fewer SciPy tolerances (for tests)")
     args = parser.parse_args(argv)
+    for name, value in (("--duration", args.duration),
+                        ("--conservative-duration", args.conservative_duration)):
+        if value is not None and not (math.isfinite(value) and value >= 0.01):
+            parser.error(f"{name} {value}: must be at least one period (0.01 s)")
     start = time.perf_counter()
     try:
         scene = load_scene(args.scene)

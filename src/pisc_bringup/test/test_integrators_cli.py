@@ -2,6 +2,8 @@
 
 import re
 
+import pytest
+
 from pisc_bringup.integrators_cli import main
 
 
@@ -48,3 +50,10 @@ def test_table_plot_and_comparison_on_a_short_playback(tmp_path, capsys):
 def test_refuses_an_unknown_scene(capsys):
     assert main(["--scene", "nope", "--conservative", "none"]) == 2
     assert "no such scene" in capsys.readouterr().err
+
+
+def test_refuses_a_duration_shorter_than_a_period(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--duration", "-1", "--conservative", "none"])
+    assert exit_info.value.code == 2
+    assert "--duration -1.0: must be at least one period" in capsys.readouterr().err
