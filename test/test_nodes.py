@@ -40,7 +40,8 @@ NODES = {"plant": PlantNode, "estimator": EstimatorNode, "supervisor": Superviso
     ("estimator", {"loop.period_s": math.nan}, r"loop.period_s = nan must be finite"),
     ("current_loop", {"current_loop.k_ii": math.inf}, r"current_loop.k_ii = inf must be finite"),
     ("current_loop", {"motor.wheel_radius_m": -0.032}, r"motor.wheel_radius_m .* positive"),
-    ("plant", {"integrator.substeps": 2}, r"integrator.substeps = 2 is too few"),
+    ("plant", {"integrator.method": "rk4", "integrator.substeps": 2},
+     r"integrator.substeps = 2 is too few for rk4"),
     ("estimator", {"estimator.velocity_filter_hz": "fast"}, r"expected a number, got 'fast'"),
     ("supervisor", {"swing_up.k_vv": 0.1}, r"swing_up.k_vv: unknown parameter"),
 ])

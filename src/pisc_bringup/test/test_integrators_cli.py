@@ -32,6 +32,9 @@ def test_table_plot_and_comparison_on_a_short_playback(tmp_path, capsys):
     # smallest stable count
     assert ("rk4", "13 steps/period") in rows and ("rk4", "12 steps/period") not in rows
     # the default setting reaches 1e-6 against the reference; its rhs count is exact
+    _, error, _, evals = rows[("exprk4", "2 steps/period")]
+    assert error < 1e-6 and evals == 100 * 2 * 5
+    # and so does rk4 at 20 steps (4 right-hand sides per step)
     _, error, _, evals = rows[("rk4", "20 steps/period")]
     assert error < 1e-6 and evals == 100 * 20 * 4
     # the reference is checked against an independent integrator

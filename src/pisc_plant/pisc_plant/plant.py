@@ -54,17 +54,17 @@ ARMATURE_CODES = {"full": kernel.ARM_FULL, "quasi_static": kernel.ARM_QUASI_STAT
 class IntegratorParams:
     """Numerical integration of the plant between control samples.
 
-    ``rk4`` (the default, 20 steps per period) is the classical Runge-Kutta method; it is
-    stable only while each step resolves the armature (h R / L < 2.785), which the plant
-    checks. ``exprk4`` is an exponential Runge-Kutta method of stiff order four that
-    treats the armature's transient and the sensor filters in closed form and is stable
-    at any step up to the period (:mod:`pisc_plant.kernel`). README, "Integration",
-    measures both against SciPy.
+    ``exprk4`` (the default, 2 steps per period) is an exponential Runge-Kutta method of
+    stiff order four that treats the armature's transient and the sensor filters in
+    closed form and is stable at any step up to the period (:mod:`pisc_plant.kernel`).
+    ``rk4`` is the classical Runge-Kutta method; it is stable only while each step
+    resolves the armature (h R / L < 2.785), which the plant checks. README, "Scenes and
+    integrators", measures both against SciPy.
     """
 
-    method: str = param("rk4", "'rk4' (classical Runge-Kutta) or 'exprk4' (exponential, "
-                        "stable at any step)", "", one_of(*kernel.METHODS))
-    substeps: int = param(20, "integration steps per control period", "", in_range(1, 100000))
+    method: str = param("exprk4", "'exprk4' (exponential, stable at any step) or 'rk4' "
+                        "(classical Runge-Kutta)", "", one_of(*kernel.METHODS))
+    substeps: int = param(2, "integration steps per control period", "", in_range(1, 100000))
 
 
 @dataclass(frozen=True)
@@ -137,7 +137,8 @@ class Plant:
         models = c.models
         self.layout = kernel.Layout(ARMATURE_CODES[models.armature], models.sensor_filters,
                                     models.end_stops)
-        self._layout = self.layout.array()
+        self._kernels = kernel.for_layout(self.layout)
+        self._stops = bool(models.end_stops)
         self.size = self.layout.size
         self.index = {"x": X, "x_dot": X_DOT, "theta": THETA, "theta_dot": THETA_DOT}
         if models.has_current_state:
@@ -158,7 +159,6 @@ class Plant:
         self._method = kernel.METHODS.index(c.integrator.method)
         self._coefficients: dict[float, np.ndarray] = {}
         self._work = np.empty((kernel.WORK_ROWS, kernel.WORK_WIDTH))
-        self._table = np.empty((15, kernel.OP_WIDTH))
         self.nominal_substep_s = c.loop.period_s / c.integrator.substeps
         stiffest = float(np.max(-self.lam, initial=0.0))
         if c.integrator.method == "rk4" and self.nominal_substep_s * stiffest >= RK4_STABILITY:
@@ -218,13 +218,16 @@ class Plant:
         """Full right-hand side y' for a command (for reference integrators and checks)."""
         ys, us = self._rows(y, command)
         out = np.empty_like(ys)
-        kernel.rhs_many(ys, us, self._p, self._layout, out)
+        arm, filters = self.layout.armature, self.layout.filters
+        for row in range(ys.shape[0]):
+            kernel.rhs_one(ys[row], us[row], self._p, arm, filters, out[row])
         return out.reshape(np.shape(y))
 
     def applied_derivative(self, y: np.ndarray, applied: float) -> np.ndarray:
         """y' of one rig for an input already through the actuator (reference solvers)."""
         out = np.empty(self.size)
-        kernel.rhs_one(y, float(applied), self._p, self._layout, out)
+        kernel.rhs_one(np.asarray(y, dtype=float), float(applied), self._p,
+                       self.layout.armature, self.layout.filters, out)
         return out
 
     # -- integration ---------------------------------------------------------------------
@@ -233,10 +236,12 @@ class Plant:
         coef = self._coefficients.get(step_s)
         if coef is None:
             filters = self.config.models.sensor_filters
+            full = self.config.models.has_current_state
             coef = kernel.exp_coefficients(
                 self._p[kernel.P_WIR] if filters else 0.0,
                 self._p[kernel.P_WCUR] if filters else 0.0,
-                self._p[kernel.P_WCUR] / self._p[kernel.P_CURSCALE], step_s)
+                self._p[kernel.P_WCUR] / self._p[kernel.P_CURSCALE],
+                kernel.armature_rate(self._p) if full else 0.0, step_s)
             if len(self._coefficients) < 64:
                 self._coefficients[step_s] = coef
         return coef
@@ -269,15 +274,16 @@ class Plant:
             out = np.array(y, dtype=float)
             u = (float(command) if self.force_input
                  else self.config.actuator.apply_scalar(command))
-            kernel.advance_one(out, u, self._p, self._layout, self._method, n, h, coef,
-                               self._work, self._table)
+            self._kernels.advance(out, u, self._p, self._stops, self._method, n, h, coef,
+                                  self._work)
             return out
         ys, us = self._rows(y, command)
         if ys.shape[0] == 1:
-            kernel.advance_one(ys[0], us[0], self._p, self._layout, self._method, n, h, coef,
-                               self._work, self._table)
+            self._kernels.advance(ys[0], us[0], self._p, self._stops, self._method, n, h,
+                                  coef, self._work)
         else:
-            kernel.advance_many(ys, us, self._p, self._layout, self._method, n, h, coef)
+            self._kernels.advance_many(ys, us, self._p, self._stops, self._method, n, h,
+                                       coef)
         return ys.reshape(np.shape(y))
 
     def end_stops(self, y: np.ndarray) -> np.ndarray:
@@ -290,7 +296,7 @@ class Plant:
         """
         ys, _ = self._rows(y, 0.0)
         for row in ys:
-            kernel.end_stops(row, self._p, self._layout)
+            kernel.end_stops(row, self._p)
         return ys.reshape(np.shape(y))
 
     # -- measurement ---------------------------------------------------------------------

@@ -24,8 +24,8 @@ DEFAULT = PlantConfig()
 CURRENT = 4  # the armature current's place in the full-fidelity state
 
 
-def test_default_integrator_is_rk4_and_refuses_too_few_substeps():
-    assert DEFAULT.integrator == IntegratorParams(method="rk4", substeps=20)
+def test_default_integrator_is_exprk4_and_rk4_refuses_too_few_substeps():
+    assert DEFAULT.integrator == IntegratorParams(method="exprk4", substeps=2)
     with pytest.raises(ConfigError, match=r"integrator.substeps = 5 is too few for rk4.*at least"):
         Plant(PlantConfig(integrator=IntegratorParams(method="rk4", substeps=5)))
 

@@ -22,7 +22,7 @@ def plant():
 
 def test_the_rig_integrates_with_the_plant_default_unless_told_otherwise():
     config, initial = load_plant(None, {"initial.x_m": 0.05})
-    assert (config.integrator.method, config.integrator.substeps) == ("rk4", 20)
+    assert (config.integrator.method, config.integrator.substeps) == ("exprk4", 2)
     assert initial.x_m == 0.05
     config, _ = load_plant(None, {"integrator.method": "exprk4", "integrator.substeps": 2})
     assert config.integrator.method == "exprk4"
