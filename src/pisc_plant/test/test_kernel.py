@@ -190,10 +190,9 @@ def test_exponential_scheme_is_fourth_order_and_keeps_it_through_voltage_steps()
 def test_a_voltage_step_adds_no_error_of_its_own(theta_dot):
     """One period from a settled current with and without a 10 V step, against rk4 at
     1280 steps: the step's 0.14 ms transient adds nothing measurable at 1 and 2 steps
-    per period. (Measured before the transient's couplings were complete: 4e-9 to
-    1e-8 rad/s with the step against 1e-10 to 2e-9 without; the largest share was
-    L's constant armature rate, 5e-6 off the state's, which the scheme now carries as
-    q + delta r.)"""
+    per period. (Measured while the scheme was built: 4e-9 to 1e-8 rad/s with the step
+    against 1e-10 to 2e-9 without; first without s and the transient's push on the
+    angle, then with L's constant armature rate but without q + delta r.)"""
     config = PlantConfig(models=ModelParams(end_stops=False))
     truth = Plant(dataclasses.replace(config, integrator=IntegratorParams("rk4", 1280)))
     y = truth.advance(truth.initial_state(0.0, 0.1, math.pi + 0.3, theta_dot), 2.0, 0.005)
