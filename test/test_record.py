@@ -17,7 +17,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from conftest import spin_until
-from pisc_bringup.bag import bag_files, read_bag
+from pisc_bringup.bag import bag_files, bag_topics, read_bag
 from pisc_bringup.graph import RunOptions, run_graph
 from pisc_msgs_py.base_node import qos_profile
 from pisc_msgs_py.convert import (
@@ -166,3 +166,36 @@ def test_sigkilled_recorder_loses_at_most_the_last_period_and_repair_recovers_it
             topics=[VOLTAGE.name])]
     assert len(decoded) == len(stamps[VOLTAGE.name])
     assert decoded[0][1].effort == [1.5] and decoded[0][1].name == ["motor"]
+
+
+def test_a_run_records_what_it_is_asked_and_its_own_topics(tmp_path, domain_id):
+    """``record`` (a scene's, or ``--record``) keeps the estimator's state and drops the
+    cart force and diagnostics; the run's own topics are recorded anyway, the summary
+    works, and replay compares what the bag holds and says what it does not."""
+    from pisc_bringup.graph import RUN_TOPICS, main, recorded_topics
+    from pisc_bringup.replay import replay_bag
+    from pisc_msgs_py.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"record: /pisc/forces is not a topic of the graph"):
+        recorded_topics(["/pisc/forces"])
+    assert recorded_topics(None) == tuple(GRAPH_TOPICS)
+    wanted = {STATE.name} | {t.name for t in RUN_TOPICS}
+    assert {t.name for t in recorded_topics([STATE.name])} == wanted
+
+    result = run_graph(RunOptions(duration_s=2.0, bag_dir=tmp_path / "some",
+                                  domain_id=domain_id, record=(STATE.name,)))
+    assert set(bag_topics(result.bag_dir)) == wanted
+    counts = {name: 0 for name in wanted}
+    for m in read_bag(result.bag_dir):
+        counts[m.topic] += 1
+    assert counts[STATE.name] == counts[VOLTAGE.name] == result.published[VOLTAGE.name] == 401
+    assert result.summary.cycles == 401
+    report = replay_bag(result.bag_dir)
+    assert report.reproduced
+    assert [t.topic for t in report.topics] == [
+        STATE.name, "/pisc/mode", CURRENT_SETPOINT.name, VOLTAGE.name]
+    assert f"not recorded, so not compared: {CART_FORCE.name}" in report.format()
+
+    # the command line: an unknown topic is refused before anything starts
+    assert main(["--record", "/pisc/forces", "--bag", str(tmp_path / "none")]) == 2
+    assert not (tmp_path / "none").exists()

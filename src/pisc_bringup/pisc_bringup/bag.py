@@ -253,6 +253,18 @@ def bag_files(directory: str | Path) -> list[Path]:
     return files
 
 
+def bag_topics(directory: str | Path) -> list[str]:
+    """The topics a bag recorded (its ``metadata.yaml``), with or without messages."""
+    bag_files(directory)  # checks the directory and its metadata
+    info = yaml.safe_load((Path(directory) / "metadata.yaml").read_text())
+    try:
+        return [t["topic_metadata"]["name"]
+                for t in info["rosbag2_bagfile_information"]["topics_with_message_count"]]
+    except (KeyError, TypeError) as exc:
+        raise BagError(f"{directory}/metadata.yaml: malformed topic list "
+                       f"({type(exc).__name__}: {exc})") from None
+
+
 def read_bag(directory: str | Path, topics: Sequence[str] | None = None) -> Iterator[BagMessage]:
     """Decoded messages of a PISC bag in file order, or :class:`BagError` saying why not.
 

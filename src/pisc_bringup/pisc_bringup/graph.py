@@ -13,7 +13,9 @@ driver_node``) in the plant's place, on the rig's port or on the pseudo-terminal
 ``pisc_virtual_rig``, against the wall clock. ``--realtime PRIORITY`` runs this process
 and the processes it starts under SCHED_FIFO, as a control computer runs its loop: a
 real device does not wait for a loaded machine (README, "Serial driver"). ``--scene``
-takes a scene's configuration, overrides and duration (:mod:`pisc_bringup.scene`).
+takes a scene's configuration, overrides, duration and the topics it records
+(:mod:`pisc_bringup.scene`; ``--record`` replaces that list, and :data:`RUN_TOPICS` are
+recorded whatever it says).
 
 The plant starts publishing once its subscribers are matched (in one process, once
 every controller's are too); a lockstep sample that is lost anyway is sent again. The
@@ -70,7 +72,8 @@ from pisc_msgs_py.topics import (
     Topic,
 )
 
-__all__ = ["GRAPH", "NodeSpec", "RunOptions", "RunResult", "main", "run_graph"]
+__all__ = ["GRAPH", "RUN_TOPICS", "NodeSpec", "RunOptions", "RunResult", "main",
+           "recorded_topics", "run_graph"]
 
 
 @dataclass(frozen=True)
@@ -100,6 +103,26 @@ DRIVER = NodeSpec("driver", "driver_node", "pisc_driver.driver_node", "DriverNod
                   (VOLTAGE,), (JOINT_STATES, MOTOR_CURRENT, DIAGNOSTICS))
 
 
+# What a run records whatever is asked: the lockstep plant starts once a recorder of
+# joint_states, the motor current, the true state and /clock is there, and the run's
+# summary reads those and the current set-point, voltage and mode.
+RUN_TOPICS = (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, CLOCK, CURRENT_SETPOINT, VOLTAGE, MODE)
+
+
+def recorded_topics(names: Sequence[str] | None) -> tuple[Topic, ...]:
+    """The topics a run records: every graph topic (``names`` None), else ``names`` and
+    :data:`RUN_TOPICS`, in the graph's order; :class:`ConfigError` for an unknown name."""
+    if names is None:
+        return tuple(GRAPH_TOPICS)
+    known = {t.name: t for t in GRAPH_TOPICS}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ConfigError(f"record: {unknown[0]} is not a topic of the graph (topics: "
+                          f"{', '.join(known)})")
+    wanted = set(names) | {t.name for t in RUN_TOPICS}
+    return tuple(t for t in GRAPH_TOPICS if t.name in wanted)
+
+
 def expected_subscribers(topic: Topic, recording: bool, nodes: Sequence[NodeSpec] = GRAPH) -> int:
     """Subscribers ``topic`` has among ``nodes`` (and the recorder)."""
     return sum(topic in n.subscribes for n in nodes) + (1 if recording else 0)
@@ -117,6 +140,7 @@ class RunOptions:
     domain_id: int | None = None
     timeout_s: float | None = None  # wall-clock limit; default scales with duration
     driver_port: str | None = None  # run the serial driver on this port instead of the plant
+    record: tuple[str, ...] | None = None  # topics to record (with RUN_TOPICS); None: all
 
 
 @dataclass(frozen=True)
@@ -228,6 +252,7 @@ def run_graph(options: RunOptions) -> RunResult:
         raise ConfigError("--driver runs against the wall clock (the device paces the "
                           "samples): use --clock wall")
     source = PLANT if options.driver_port is None else DRIVER
+    recorded = recorded_topics(options.record)
     bag_dir = options.bag_dir or _default_bag_dir(options)
     if bag_dir.exists() and any(bag_dir.iterdir()):
         raise BagError(f"{bag_dir}: exists and is not empty; not overwriting a bag")
@@ -244,8 +269,10 @@ def run_graph(options: RunOptions) -> RunResult:
 
     started = time.monotonic()
     # the recorder never runs under --realtime: it must not take the CPU from the loop
-    recorder = _spawn([*_command("pisc_record", "pisc_bringup.record"), "--bag", str(bag_dir)],
-                      env, subprocess.PIPE, normal_scheduling=True)
+    topic_args = [] if options.record is None else [
+        arg for t in recorded for arg in ("--topic", t.name)]
+    recorder = _spawn([*_command("pisc_record", "pisc_bringup.record"), "--bag", str(bag_dir),
+                       *topic_args], env, subprocess.PIPE, normal_scheduling=True)
     children: list[subprocess.Popen] = []
     context = Context()
     rclpy.init(context=context, domain_id=options.domain_id)
@@ -258,11 +285,12 @@ def run_graph(options: RunOptions) -> RunResult:
     published: dict[str, int] = {}
     finished = False
     try:
-        _wait(lambda: _recorder_ready(watcher, recorder), 30.0, "pisc_record to subscribe")
+        _wait(lambda: _recorder_ready(watcher, recorder, recorded), 30.0,
+              "pisc_record to subscribe")
         write_params_file(bag_dir / "pisc_params.yaml", flat)
         if options.processes:
             children = _start_processes(flat, plant_flat, bag_dir, watcher, env, lockstep,
-                                        source)
+                                        source, recorded)
             executor: Any = SingleThreadedExecutor(context=context)
         else:
             params = _parameters(flat)
@@ -271,7 +299,7 @@ def run_graph(options: RunOptions) -> RunResult:
                 cls = getattr(importlib.import_module(spec.module), spec.cls)
                 nodes.append(cls(context=context, parameter_overrides=params + sim))
             # DDS matches in its own threads: no spinning is needed to wait for it.
-            _wait(lambda: _matched(nodes), 30.0, "the graph to connect")
+            _wait(lambda: _matched(nodes, recorded), 30.0, "the graph to connect")
             plant_cls = getattr(importlib.import_module(source.module), source.cls)
             nodes.append(plant_cls(context=context,
                                    parameter_overrides=params + _parameters(plant_flat)))
@@ -356,14 +384,15 @@ def _stop(child: subprocess.Popen) -> tuple[str, str]:
     return "", output
 
 
-def _recorder_ready(watcher: Node, recorder: subprocess.Popen) -> bool:
+def _recorder_ready(watcher: Node, recorder: subprocess.Popen,
+                    recorded: Sequence[Topic]) -> bool:
     if recorder.poll() is not None:
         _, err = recorder.communicate()
         raise GraphError(f"pisc_record exited: {err.decode(errors='replace').strip()}")
-    return all(watcher.count_subscribers(t.name) >= 1 + (t is VOLTAGE) for t in GRAPH_TOPICS)
+    return all(watcher.count_subscribers(t.name) >= 1 + (t is VOLTAGE) for t in recorded)
 
 
-def _matched(nodes: Sequence[Node]) -> bool:
+def _matched(nodes: Sequence[Node], recorded: Sequence[Topic]) -> bool:
     """Every controller publisher sees its subscribers among the controllers and recorder.
 
     The plant comes later and waits for its own edges (``simulation.min_subscribers``).
@@ -373,7 +402,8 @@ def _matched(nodes: Sequence[Node]) -> bool:
             topic = next((t for t in GRAPH_TOPICS if t.name == publisher.topic_name), None)
             if topic is None or topic in (DIAGNOSTICS, CLOCK):
                 continue
-            expected = expected_subscribers(topic, True, CONTROLLERS) + (topic is VOLTAGE)
+            expected = (expected_subscribers(topic, topic in recorded, CONTROLLERS)
+                        + (topic is VOLTAGE))
             if publisher.get_subscription_count() < expected:
                 return False
     return True
@@ -391,7 +421,8 @@ def _command(executable: str, module: str) -> list[str]:
 
 def _start_processes(flat: dict[str, Any], plant_flat: dict[str, Any], bag_dir: Path,
                      watcher: Node, env: dict[str, str], lockstep: bool,
-                     source: NodeSpec = PLANT) -> list[subprocess.Popen]:
+                     source: NodeSpec = PLANT,
+                     recorded: Sequence[Topic] = GRAPH_TOPICS) -> list[subprocess.Popen]:
     params_file = bag_dir / "pisc_params.yaml"
     children = []
 
@@ -413,7 +444,8 @@ def _start_processes(flat: dict[str, Any], plant_flat: dict[str, Any], bag_dir: 
             for topic in spec.publishes:
                 if topic is DIAGNOSTICS:
                     continue
-                expected = expected_subscribers(topic, True, CONTROLLERS) + (topic is VOLTAGE)
+                expected = (expected_subscribers(topic, topic in recorded, CONTROLLERS)
+                            + (topic is VOLTAGE))
                 if watcher.count_subscribers(topic.name) < expected:
                     return False
             if watcher.count_publishers(spec.publishes[0].name) < 1:
@@ -449,6 +481,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bag", type=Path,
                         help="bag directory (default ./bags/run-<config>-<clock>-x0_<x0>-<time>)")
     parser.add_argument("--domain-id", type=int, help="ROS domain id (default: environment)")
+    parser.add_argument("--record", action="append", metavar="TOPIC",
+                        help="record this topic (repeatable; default: the scene's list, else "
+                        "every topic); the run's own topics are always recorded")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="override a parameter, e.g. --set swing_up.k_v=0.1")
     args = parser.parse_args(argv)
@@ -459,6 +494,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.x0 is not None:
         overrides["initial.x_m"] = args.x0
     config, duration = args.config, args.duration
+    record = tuple(args.record) if args.record else None
     if args.scene is not None:
         from pisc_bringup.scene import load_scene
 
@@ -473,6 +509,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         config, overrides = scene.configuration, scene.overrides
         duration = duration if duration is not None else scene.duration_s
+        record = record if record is not None else scene.record
     clock = args.clock or ("wall" if args.driver else "lockstep")
     if args.realtime:
         try:
@@ -486,7 +523,7 @@ def main(argv: list[str] | None = None) -> int:
                          duration_s=duration if duration is not None else 10.0,
                          clock=clock, processes=args.processes,
                          executor=args.executor, bag_dir=args.bag,
-                         domain_id=args.domain_id, driver_port=args.driver)
+                         domain_id=args.domain_id, driver_port=args.driver, record=record)
     try:
         result = run_graph(options)
     except ConfigError as exc:

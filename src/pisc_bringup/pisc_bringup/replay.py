@@ -21,12 +21,12 @@ on the outputs of the real nodes over topics (:mod:`pisc_bringup.replay_node`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pisc_bringup.bag import BagError, BagMessage, read_bag
+from pisc_bringup.bag import BagError, BagMessage, bag_topics, read_bag
 from pisc_bringup.closed_loop import Controllers
 from pisc_bringup.configuration import GraphConfig, load_graph_config
 from pisc_msgs_py.config import parse_overrides
@@ -232,14 +232,22 @@ def _difference(a: Any, b: Any) -> float:
 
 
 def compare(run: RecordedRun, recomputed: Outputs, tolerance: float = 0.0,
-            bag: str = "bag", how: str = "cores") -> ReplayReport:
-    """Compare recomputed outputs with the recorded ones, stamp by stamp."""
+            bag: str = "bag", how: str = "cores",
+            recorded: Collection[str] | None = None) -> ReplayReport:
+    """Compare recomputed outputs with the recorded ones, stamp by stamp.
+
+    ``recorded``: the topics the bag recorded (None: all); the others are not compared,
+    and the report says so.
+    """
     t0 = run.first_stamp_ns
     last_answered = max(run.outputs[VOLTAGE.name])
     stamps = [s for s, *_ in run.samples if s <= last_answered]
     unanswered = len(run.samples) - len(stamps)
     comparisons = []
+    skipped = [t for t in COMPARED_TOPICS if recorded is not None and t not in recorded]
     for topic in COMPARED_TOPICS:
+        if topic in skipped:
+            continue
         rec, new = run.outputs[topic], recomputed.get(topic, {})
         if topic == MODE.name:
             keys = sorted(s for s in set(rec) | set(new) if s <= last_answered)
@@ -268,7 +276,8 @@ def compare(run: RecordedRun, recomputed: Outputs, tolerance: float = 0.0,
                 differ += 1
                 first = first or bad
         comparisons.append(TopicComparison(topic, compared, differ, largest, largest_at, first))
-    return ReplayReport(bag, how, len(stamps), tolerance, comparisons, unanswered)
+    notes = ([f"not recorded, so not compared: {', '.join(skipped)}"] if skipped else [])
+    return ReplayReport(bag, how, len(stamps), tolerance, comparisons, unanswered, notes)
 
 
 def bag_config(bag: str | Path, config: str | None = None,
@@ -296,7 +305,8 @@ def replay_bag(bag: str | Path, config: str | None = None,
     """Regression replay of a bag through the controller cores."""
     cfg, source = bag_config(bag, config, overrides)
     run = load_recorded(read_bag(bag), str(bag))
-    report = compare(run, replay_cores(run, cfg), tolerance, str(bag), "cores")
+    report = compare(run, replay_cores(run, cfg), tolerance, str(bag), "cores",
+                     bag_topics(bag))
     changed = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items())
     report.notes.append(f"configuration: {source}" + (f" with {changed}" if changed else ""))
     return report

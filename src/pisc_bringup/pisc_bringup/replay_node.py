@@ -21,7 +21,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from pisc_bringup.bag import read_bag
+from pisc_bringup.bag import bag_topics, read_bag
 from pisc_bringup.configuration import load_graph_config
 from pisc_bringup.graph import (
     CONTROLLERS,
@@ -164,7 +164,7 @@ def replay_nodes(bag: str | Path, config: str | None = None,
         for node in nodes:
             node.destroy_node()
         context.try_shutdown()
-    report = compare(run, feeder.outputs, tolerance, str(bag), "nodes")
+    report = compare(run, feeder.outputs, tolerance, str(bag), "nodes", bag_topics(bag))
     changed = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items())
     report.notes.append(f"configuration: {source}" + (f" with {changed}" if changed else ""))
     return report

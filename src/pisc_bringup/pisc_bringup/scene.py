@@ -3,7 +3,7 @@
 A scene names a configuration (``default``, ``thesis`` or a parameter file) and
 overrides any of its parameters, including the plant's sub-models (``models``), its
 friction and measurement noise, the integrator and the initial state; it also says how
-long to run and whether the controllers close the loop::
+long to run, whether the controllers close the loop and what ``pisc_graph`` records::
 
     scene:
       description: the ideal force-driven cart-pole
@@ -14,6 +14,7 @@ long to run and whether the controllers close the loop::
         models: {armature: ideal_force, current_loop: ideal, sensors: ideal,
                  sensor_filters: false}
         initial: {x_m: 0.05}
+      record: [/pisc/state]       # optional: besides the run's own topics; default: all
 
 Scenes ship in ``pisc_bringup/scenes``; :func:`load_scene` takes a name or a path. The
 scene's flat parameters are what every node of the graph gets, and
@@ -38,13 +39,14 @@ from pisc_bringup.configuration import (
 )
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import ConfigError, flatten
+from pisc_msgs_py.topics import GRAPH_TOPICS
 
 __all__ = ["DEFAULT_SCENE", "SCENE_DIR", "Scene", "load_scene", "scene_names", "scene_path"]
 
 SCENE_DIR = CONFIG_DIR.parent / "scenes"
 DEFAULT_SCENE = "thesis-rig"
 CONTROLLERS = ("graph", "none")
-KEYS = ("description", "configuration", "duration_s", "controller", "parameters")
+KEYS = ("description", "configuration", "duration_s", "controller", "parameters", "record")
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,9 @@ class Scene:
     overrides: dict[str, Any]  # flat parameter overrides of the configuration
     config: GraphConfig
     flat: dict[str, Any]  # the configuration's flat parameters with the overrides
+    # topics pisc_graph records besides the run's own (pisc_bringup.graph.RUN_TOPICS);
+    # None: every topic
+    record: tuple[str, ...] | None = None
 
     @property
     def closed_loop(self) -> bool:
@@ -103,6 +108,16 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     if controller not in CONTROLLERS:
         raise ConfigError(f"{path}: scene.controller = {controller!r} must be one of "
                           f"{', '.join(CONTROLLERS)}")
+    record = body.get("record")
+    if record is not None:
+        if not isinstance(record, list) or not all(isinstance(t, str) for t in record):
+            raise ConfigError(f"{path}: scene.record must be a list of topic names")
+        known = [t.name for t in GRAPH_TOPICS]
+        unknown = [t for t in record if t not in known]
+        if unknown:
+            raise ConfigError(f"{path}: scene.record: {unknown[0]} is not a topic of the "
+                              f"graph (topics: {', '.join(known)})")
+        record = tuple(record)
     parameters = body.get("parameters") or {}
     if not isinstance(parameters, Mapping):
         raise ConfigError(f"{path}: scene.parameters must be a mapping of sections")
@@ -114,7 +129,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     except ConfigError as exc:
         raise ConfigError(f"scene {path.stem}: {exc}") from exc
     return Scene(path.stem, str(body.get("description", "")), configuration, float(duration),
-                 controller, flat_overrides, config, flat)
+                 controller, flat_overrides, config, flat, record)
 
 
 def write_scene_params(scene: Scene, path: Path) -> None:

@@ -99,10 +99,19 @@ def _write(tmp_path, body):
      r"models.current_loop = 'sampled_pi' does not go with models.armature"),
     ("scene:\n  parameters: {models: {armature: battery}}\n", r"models.armature"),
     ("nothing: here\n", r"one mapping under the key 'scene'"),
+    ("scene:\n  record: /pisc/state\n", r"scene.record must be a list of topic names"),
+    ("scene:\n  record: [/pisc/stat]\n",
+     r"scene.record: /pisc/stat is not a topic of the graph \(topics: /pisc/joint_states"),
 ])
 def test_bad_scenes_are_refused_naming_what_is_wrong(tmp_path, body, match):
     with pytest.raises(ConfigError, match=match):
         load_scene(_write(tmp_path, body))
+
+
+def test_a_scene_says_what_pisc_graph_records(tmp_path):
+    assert load_scene(DEFAULT_SCENE).record is None  # every topic
+    scene = load_scene(_write(tmp_path, "scene:\n  record: [/pisc/state, /diagnostics]\n"))
+    assert scene.record == ("/pisc/state", "/diagnostics")
 
 
 def test_a_scene_whose_linearisation_is_uncontrollable_is_refused(tmp_path):
