@@ -42,8 +42,9 @@ Methods (:data:`METHODS`):
       velocity and angle derivatives of the accelerations (back-EMF, centripetal and
       friction terms, gravity);
     * L's rate of q is a constant, :func:`armature_rate`, so that its phi-functions are
-      computed once per step size; the state's own rate differs from it by delta (a
-      few 1/s at most), carried as the current's departure ``q + delta r``;
+      computed once per step size; the state's own rate differs from it by delta
+      (about 0.005 1/s on the thesis rig), carried as the current's departure
+      ``q + delta r``;
     * the RC filters are linear in their own voltage and in q (with the back-EMF's
       share of the fast mode).
 
@@ -236,9 +237,9 @@ def armature_rate(p):
     at cos^2(theta) = 1/2, the middle of its range.
 
     The rate the state implies, -R/L + d c_x(theta, theta_dot), differs from it by about
-    d k_f a1 / (2 den^2) at most (0.03 1/s on the thesis rig, 5e-6 of R/L); the
-    difference times q is in N. A constant rate makes the operators constants of the
-    step size (:func:`exp_coefficients`).
+    d k_f a1 / (2 den^2) at most (0.0049 1/s on the thesis rig, 7e-7 of R/L), which the
+    scheme carries as delta (:func:`_couplings`). A constant rate makes the operators
+    constants of the step size (:func:`exp_coefficients`).
     """
     d = p[P_KER] / p[P_R]
     return -p[P_R] / p[P_L] + d * p[P_KF] / (p[P_A2] - 0.5 * p[P_A1])
@@ -329,8 +330,9 @@ def _armature_operators(lam, coef, ph):
 # are inlined (``arm``; the indices ``ii`` of the current, ``vir``, ``vcur`` of the
 # filters, -1 when absent; ``n`` the state's size): :func:`for_layout` compiles one set
 # of entry points per layout, and the compiler removes the branches and index
-# arithmetic of the others. Measured on the full-fidelity right-hand side, one core,
-# 10 000 rigs: 41 ns per evaluation, against 164 ns with the layout read from an array.
+# arithmetic of the others. Measured while building it (the generic version is not
+# kept): the full-fidelity right-hand side took 41 ns per evaluation, against 164 ns with
+# the layout read from an array (one core, 10 000 rigs).
 
 
 @_inline
@@ -493,7 +495,7 @@ def _couplings(z, y, u, p, c, arm, ii):
     c[9] = cth_1 * theta_ddot_slow + cth_2 * theta_dot * theta_dot
     c[4] = armature_rate(p)
     c[5] = 1.0 - d * c[0] / c[4]
-    # The state's own rate of q differs from L's by delta (a few 1/s at most). The
+    # The state's own rate of q differs from L's by delta (about 0.005 1/s). The
     # current's departure is q + delta r in the scheme's variables (q e^(delta t) to first
     # order), so the velocities see delta c r besides c q.
     delta = -p[P_R] / p[P_L] + d * c[0] - c[4]
