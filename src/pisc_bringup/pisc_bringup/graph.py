@@ -70,6 +70,7 @@ from pisc_msgs_py.topics import (
     STATE,
     VOLTAGE,
     Topic,
+    graph_topics_named,
 )
 
 __all__ = ["GRAPH", "RUN_TOPICS", "NodeSpec", "RunOptions", "RunResult", "main",
@@ -114,13 +115,11 @@ def recorded_topics(names: Sequence[str] | None) -> tuple[Topic, ...]:
     :data:`RUN_TOPICS`, in the graph's order; :class:`ConfigError` for an unknown name."""
     if names is None:
         return tuple(GRAPH_TOPICS)
-    known = {t.name: t for t in GRAPH_TOPICS}
-    unknown = [n for n in names if n not in known]
-    if unknown:
-        raise ConfigError(f"record: {unknown[0]} is not a topic of the graph (topics: "
-                          f"{', '.join(known)})")
-    wanted = set(names) | {t.name for t in RUN_TOPICS}
-    return tuple(t for t in GRAPH_TOPICS if t.name in wanted)
+    try:
+        graph_topics_named(names)
+    except ConfigError as exc:
+        raise ConfigError(f"record: {exc}") from None
+    return graph_topics_named([*names, *(t.name for t in RUN_TOPICS)])
 
 
 def expected_subscribers(topic: Topic, recording: bool, nodes: Sequence[NodeSpec] = GRAPH) -> int:

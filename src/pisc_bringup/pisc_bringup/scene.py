@@ -39,7 +39,7 @@ from pisc_bringup.configuration import (
 )
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import ConfigError, flatten
-from pisc_msgs_py.topics import GRAPH_TOPICS
+from pisc_msgs_py.topics import graph_topics_named
 
 __all__ = ["DEFAULT_SCENE", "SCENE_DIR", "Scene", "load_scene", "scene_names", "scene_path"]
 
@@ -112,11 +112,10 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     if record is not None:
         if not isinstance(record, list) or not all(isinstance(t, str) for t in record):
             raise ConfigError(f"{path}: scene.record must be a list of topic names")
-        known = [t.name for t in GRAPH_TOPICS]
-        unknown = [t for t in record if t not in known]
-        if unknown:
-            raise ConfigError(f"{path}: scene.record: {unknown[0]} is not a topic of the "
-                              f"graph (topics: {', '.join(known)})")
+        try:
+            graph_topics_named(record)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: scene.record: {exc}") from None
         record = tuple(record)
     parameters = body.get("parameters") or {}
     if not isinstance(parameters, Mapping):

@@ -26,7 +26,10 @@ nodes turn it into rclpy profiles in :mod:`pisc_msgs_py.base_node`.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+
+from pisc_msgs_py.config import ConfigError
 
 __all__ = [
     "CART_FORCE",
@@ -35,6 +38,7 @@ __all__ = [
     "CURRENT_SETPOINT",
     "DIAGNOSTICS",
     "GRAPH_TOPICS",
+    "graph_topics_named",
     "JOINT_NAMES",
     "JOINT_STATES",
     "LATCHED_QOS",
@@ -126,3 +130,15 @@ GRAPH_TOPICS = (
     JOINT_STATES, MOTOR_CURRENT, STATE, CART_FORCE, MODE, CURRENT_SETPOINT, VOLTAGE,
     SIM_STATE, DIAGNOSTICS, CLOCK,
 )
+
+
+def graph_topics_named(names: Iterable[str]) -> tuple[Topic, ...]:
+    """The graph's topics of these names, in the graph's order; :class:`ConfigError` for a
+    name that is not one of them (it names the topics there are)."""
+    known = {t.name: t for t in GRAPH_TOPICS}
+    names = list(names)
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ConfigError(f"{unknown[0]} is not a topic of the graph (topics: "
+                          f"{', '.join(known)})")
+    return tuple(t for t in GRAPH_TOPICS if t.name in names)
