@@ -268,23 +268,16 @@ def bag_topics(directory: str | Path) -> list[str]:
 def read_bag(directory: str | Path, topics: Sequence[str] | None = None) -> Iterator[BagMessage]:
     """Decoded messages of a PISC bag in file order, or :class:`BagError` saying why not.
 
-    Uses the mcap reader (which exposes both log and publish times) and decodes CDR with
-    the rosbags type store.
+    :func:`read_bag_raw`'s messages (the mcap reader exposes both log and publish times),
+    the CDR decoded with the rosbags type store.
     """
-    for path in bag_files(directory):
+    for raw in read_bag_raw(directory, topics):
         try:
-            with path.open("rb") as stream:
-                reader = make_reader(stream)
-                for schema, channel, message in reader.iter_messages(topics=topics):
-                    if schema is None:
-                        raise BagError(f"{path}: channel {channel.topic} has no schema")
-                    yield BagMessage(
-                        channel.topic, message.log_time, message.publish_time,
-                        TYPESTORE.deserialize_cdr(message.data, schema.name))
-        except BagError:
-            raise
-        except Exception as exc:  # the readers raise several unrelated types for bad files
-            raise BagError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from exc
+            message = TYPESTORE.deserialize_cdr(raw.data, raw.type)
+        except Exception as exc:  # rosbags raises several unrelated types for bad data
+            raise BagError(f"{directory}: {raw.topic}: cannot decode a {raw.type} "
+                           f"({type(exc).__name__}: {exc})") from exc
+        yield BagMessage(raw.topic, raw.log_time_ns, raw.publish_time_ns, message)
 
 
 @dataclass(frozen=True)
@@ -293,6 +286,7 @@ class RawMessage:
     type: str  # ROS 2 type name, from the channel's schema
     log_time_ns: int
     data: bytes  # CDR, as recorded
+    publish_time_ns: int | None = None
 
 
 def read_bag_raw(directory: str | Path,
@@ -304,7 +298,8 @@ def read_bag_raw(directory: str | Path,
                 for schema, channel, message in make_reader(stream).iter_messages(topics=topics):
                     if schema is None:
                         raise BagError(f"{path}: channel {channel.topic} has no schema")
-                    yield RawMessage(channel.topic, schema.name, message.log_time, message.data)
+                    yield RawMessage(channel.topic, schema.name, message.log_time, message.data,
+                                     message.publish_time)
         except BagError:
             raise
         except Exception as exc:  # the readers raise several unrelated types for bad files
