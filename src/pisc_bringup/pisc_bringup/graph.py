@@ -116,10 +116,9 @@ def recorded_topics(names: Sequence[str] | None) -> tuple[Topic, ...]:
     if names is None:
         return tuple(GRAPH_TOPICS)
     try:
-        graph_topics_named(names)
+        return graph_topics_named([*names, *(t.name for t in RUN_TOPICS)])
     except ConfigError as exc:
         raise ConfigError(f"record: {exc}") from None
-    return graph_topics_named([*names, *(t.name for t in RUN_TOPICS)])
 
 
 def expected_subscribers(topic: Topic, recording: bool, nodes: Sequence[NodeSpec] = GRAPH) -> int:

@@ -138,7 +138,6 @@ class Plant:
         self.layout = kernel.Layout(ARMATURE_CODES[models.armature], models.sensor_filters,
                                     models.end_stops)
         self._kernels = kernel.for_layout(self.layout)
-        self._stops = bool(models.end_stops)
         self.size = self.layout.size
         self.index = {"x": X, "x_dot": X_DOT, "theta": THETA, "theta_dot": THETA_DOT}
         if models.has_current_state:
@@ -269,21 +268,20 @@ class Plant:
         n = max(1, math.ceil(duration_s / self.nominal_substep_s - 1e-9))
         h = duration_s / n
         coef = self.coefficients(h)
+        stops = self.layout.end_stops
         if np.ndim(y) == 1 and np.ndim(command) == 0 and len(y) == self.size:
             # one rig, one command: the same kernel call without the array bookkeeping
             out = np.array(y, dtype=float)
             u = (float(command) if self.force_input
                  else self.config.actuator.apply_scalar(command))
-            self._kernels.advance(out, u, self._p, self._stops, self._method, n, h, coef,
-                                  self._work)
+            self._kernels.advance(out, u, self._p, stops, self._method, n, h, coef, self._work)
             return out
         ys, us = self._rows(y, command)
         if ys.shape[0] == 1:
-            self._kernels.advance(ys[0], us[0], self._p, self._stops, self._method, n, h,
-                                  coef, self._work)
+            self._kernels.advance(ys[0], us[0], self._p, stops, self._method, n, h, coef,
+                                  self._work)
         else:
-            self._kernels.advance_many(ys, us, self._p, self._stops, self._method, n, h,
-                                       coef)
+            self._kernels.advance_many(ys, us, self._p, stops, self._method, n, h, coef)
         return ys.reshape(np.shape(y))
 
     def end_stops(self, y: np.ndarray) -> np.ndarray:
