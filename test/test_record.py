@@ -85,8 +85,11 @@ def stream_cycles(bag, ros_context, env, stop_signal, cycles):
     """
     from pisc_msgs_py.base_node import message_class
 
+    ready = bag.parent / f"{bag.name}.ready"
+    silent = [arg for t in GRAPH_TOPICS if t not in CYCLE for arg in ("--expect", f"{t.name}=0")]
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bringup.record", "--bag", str(bag)],
+        [sys.executable, "-m", "pisc_bringup.record", "--bag", str(bag),
+         "--ready-file", str(ready), *silent],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     node = Node("cycle_source", context=ros_context)
     executor = SingleThreadedExecutor(context=ros_context)
@@ -94,8 +97,7 @@ def stream_cycles(bag, ros_context, env, stop_signal, cycles):
     publishers = [node.create_publisher(message_class(t.type), t.name, qos_profile(t.qos))
                   for t in CYCLE]
     try:
-        assert spin_until(executor, lambda: all(p.get_subscription_count() >= 1
-                                                for p in publishers), 30.0)
+        assert spin_until(executor, ready.exists, 30.0)
         sent_at = []  # monotonic time each cycle had been handed to DDS
         start = time.monotonic()
         for k in range(cycles):
@@ -115,6 +117,63 @@ def stream_cycles(bag, ros_context, env, stop_signal, cycles):
         recorder.communicate()
         node.destroy_node()
     return recorder, sent_at, signalled_at
+
+
+def test_the_recorder_says_it_is_ready_once_it_has_matched_every_publisher(
+        tmp_path, ros_context, env_for_domain):
+    """A publisher matches the recorder before the recorder matches it, and what is sent
+    in between is kept only in the publisher's last 100 messages: a runner starts its
+    graph once the recorder's ``--ready-file`` exists."""
+    from pisc_msgs_py.base_node import message_class
+
+    ready = tmp_path / "ready"
+    recorder = subprocess.Popen(
+        [sys.executable, "-m", "pisc_bringup.record", "--bag", str(tmp_path / "bag"),
+         "--topic", STATE.name, "--topic", VOLTAGE.name,
+         "--ready-file", str(ready), "--expect", f"{VOLTAGE.name}=2"],
+        env=env_for_domain, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    node = Node("publishers", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+
+    def publisher(topic):
+        return node.create_publisher(message_class(topic.type), topic.name,
+                                     qos_profile(topic.qos))
+
+    try:
+        state, voltage = publisher(STATE), publisher(VOLTAGE)
+        assert spin_until(executor, lambda: state.get_subscription_count() >= 1
+                          and voltage.get_subscription_count() >= 1, 30.0)
+        # matched by both of its subscriptions, the recorder still waits for the second
+        # voltage publisher it was told to expect
+        assert not spin_until(executor, ready.exists, 2.0)
+        publisher(VOLTAGE)
+        assert spin_until(executor, ready.exists, 30.0)
+    finally:
+        recorder.send_signal(signal.SIGTERM)
+        out, err = recorder.communicate(timeout=30)
+        node.destroy_node()
+    assert recorder.returncode == 0, err
+    assert out.decode().split("\n")[:2] == [f"{STATE.name} 0", f"{VOLTAGE.name} 0"]
+
+
+@pytest.mark.parametrize(("args", "error"), [
+    (["--expect", f"{VOLTAGE.name}=1"],
+     "--expect needs --ready-file (the file it announces readiness in)"),
+    (["--ready-file", "R", "--expect", f"{VOLTAGE.name}"],
+     f"--expect '{VOLTAGE.name}': expected NAME=N with N a count (0, 1, ...)"),
+    (["--ready-file", "R", "--expect", f"{VOLTAGE.name}=-1"],
+     f"--expect '{VOLTAGE.name}=-1': expected NAME=N with N a count (0, 1, ...)"),
+    (["--topic", STATE.name, "--ready-file", "R", "--expect", f"{VOLTAGE.name}=1"],
+     f"--expect '{VOLTAGE.name}=1': {VOLTAGE.name} is not recorded (recorded: {STATE.name})"),
+])
+def test_the_recorder_refuses_a_malformed_expectation(tmp_path, args, error):
+    completed = subprocess.run(
+        [sys.executable, "-m", "pisc_bringup.record", "--bag", str(tmp_path / "bag"), *args],
+        capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 2
+    assert completed.stderr.strip() == f"pisc_record: {error}"
+    assert not (tmp_path / "bag").exists()  # refused before creating the bag
 
 
 @pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM])

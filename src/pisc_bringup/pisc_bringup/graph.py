@@ -18,7 +18,10 @@ takes a scene's configuration, overrides, duration and the topics it records
 recorded whatever it says).
 
 The plant starts publishing once its subscribers are matched (in one process, once
-every controller's are too); a lockstep sample that is lost anyway is sent again. The
+every controller's are too) and the recorder has matched every publisher (a recorder
+that matches late gets only the last 100 messages); a lockstep sample that is lost
+anyway is sent again. With ``--processes --clock wall`` the plant does not wait for the
+recorder. The
 run ends when the voltage answering the sample at ``--duration`` has been received;
 the bag is closed, read back and summarised. Exit status: 0 caught and held, 1 not
 caught, 2 bad configuration or the graph did not run.
@@ -34,6 +37,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -124,6 +128,13 @@ def recorded_topics(names: Sequence[str] | None) -> tuple[Topic, ...]:
 def expected_subscribers(topic: Topic, recording: bool, nodes: Sequence[NodeSpec] = GRAPH) -> int:
     """Subscribers ``topic`` has among ``nodes`` (and the recorder)."""
     return sum(topic in n.subscribes for n in nodes) + (1 if recording else 0)
+
+
+def expected_publishers(topic: Topic, nodes: Sequence[NodeSpec], lockstep: bool) -> int:
+    """Publishers ``topic`` has among ``nodes``; /clock has its publisher in lockstep only."""
+    if topic is CLOCK and not lockstep:
+        return 0
+    return sum(topic in n.publishes for n in nodes)
 
 
 @dataclass(frozen=True)
@@ -258,7 +269,9 @@ def run_graph(options: RunOptions) -> RunResult:
     plant_flat: dict[str, Any] = {
         "simulation.clock": options.clock,
         "simulation.min_subscribers": expected_subscribers(JOINT_STATES, True),
-        "simulation.min_true_state_subscribers": 1}
+        "simulation.min_true_state_subscribers": 1,
+        # separate processes: the recorder, and this runner once the recorder is ready
+        "simulation.min_clock_subscribers": 2 if options.processes else 1}
     if source is DRIVER:
         plant_flat = {"driver.port": options.driver_port}
     env = dict(os.environ)
@@ -269,6 +282,13 @@ def run_graph(options: RunOptions) -> RunResult:
     # the recorder never runs under --realtime: it must not take the CPU from the loop
     topic_args = [] if options.record is None else [
         arg for t in recorded for arg in ("--topic", t.name)]
+    # the recorder announces in this file that it has matched every publisher of the run
+    ready_dir = tempfile.TemporaryDirectory(prefix="pisc_graph-")
+    ready = Path(ready_dir.name) / "recorder-ready"
+    publishers = [*CONTROLLERS, source]
+    topic_args += ["--ready-file", str(ready), *(
+        arg for t in recorded
+        for arg in ("--expect", f"{t.name}={expected_publishers(t, publishers, lockstep)}"))]
     recorder = _spawn([*_command("pisc_record", "pisc_bringup.record"), "--bag", str(bag_dir),
                        *topic_args], env, subprocess.PIPE, normal_scheduling=True)
     children: list[subprocess.Popen] = []
@@ -289,6 +309,11 @@ def run_graph(options: RunOptions) -> RunResult:
         if options.processes:
             children = _start_processes(flat, plant_flat, bag_dir, watcher, env, lockstep,
                                         source, recorded)
+            _wait(lambda: _recorder_matched(recorder, ready), 30.0,
+                  "pisc_record to match every publisher")
+            if lockstep:  # the plant's last awaited subscriber: it may start now
+                watcher.create_subscription(message_class(CLOCK.type), CLOCK.name,
+                                            lambda data: None, qos_profile(CLOCK.qos), raw=True)
             executor: Any = SingleThreadedExecutor(context=context)
         else:
             params = _parameters(flat)
@@ -301,6 +326,9 @@ def run_graph(options: RunOptions) -> RunResult:
             plant_cls = getattr(importlib.import_module(source.module), source.cls)
             nodes.append(plant_cls(context=context,
                                    parameter_overrides=params + _parameters(plant_flat)))
+            # nothing is sent before the executor spins: by then the recorder takes it all
+            _wait(lambda: _recorder_matched(recorder, ready), 30.0,
+                  "pisc_record to match every publisher")
             # The executor spins in the main thread: an EventsExecutor spun from another
             # thread holds the interpreter lock and starves the rest of the process.
             executor = EXECUTORS[options.executor](context=context)
@@ -321,6 +349,7 @@ def run_graph(options: RunOptions) -> RunResult:
             node.destroy_node()
         context.try_shutdown()
         recorder_problem, recorder_output = _stop(recorder)
+        ready_dir.cleanup()
     failed = [f for f in failures if f]
     if failed:
         raise GraphError("; ".join(failed))
@@ -388,6 +417,13 @@ def _recorder_ready(watcher: Node, recorder: subprocess.Popen,
         _, err = recorder.communicate()
         raise GraphError(f"pisc_record exited: {err.decode(errors='replace').strip()}")
     return all(watcher.count_subscribers(t.name) >= 1 + (t is VOLTAGE) for t in recorded)
+
+
+def _recorder_matched(recorder: subprocess.Popen, ready: Path) -> bool:
+    if recorder.poll() is not None:
+        _, err = recorder.communicate()
+        raise GraphError(f"pisc_record exited: {err.decode(errors='replace').strip()}")
+    return ready.exists()
 
 
 def _matched(nodes: Sequence[Node], recorded: Sequence[Topic]) -> bool:

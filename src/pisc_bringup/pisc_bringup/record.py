@@ -1,6 +1,6 @@
 """pisc_record: record graph topics to a rosbag2 MCAP bag until SIGINT or SIGTERM.
 
-    pisc_record --bag DIR [--topic NAME ...]
+    pisc_record --bag DIR [--topic NAME ...] [--ready-file PATH [--expect NAME=N ...]]
 
 A process of its own, so recording competes with the control loop for nothing but a
 CPU core. On SIGINT or SIGTERM it first takes what DDS still holds for it (it spins
@@ -8,6 +8,12 @@ until nothing has arrived for ``--drain`` seconds), writes what it has queued,
 finishes the bag (summary, footer, metadata.yaml) and prints the message count of
 every topic. Killed with SIGKILL, the bag keeps every message written so far (each is
 flushed) and ``pisc_bag repair`` finishes it.
+
+``--ready-file PATH`` creates PATH once every subscription has matched its publishers
+(at least one each, or the N of ``--expect NAME=N``). A publisher sees the recorder
+before the recorder sees the publisher; what it sends in between reaches the recorder
+only while it is still in the publisher's history (100 messages), so a runner that
+must lose nothing starts its graph after this file exists.
 """
 
 from __future__ import annotations
@@ -37,6 +43,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--drain", type=float, default=0.2,
                         help="on SIGINT/SIGTERM, keep taking messages until none arrived for "
                              "this long [s] (default 0.2)")
+    parser.add_argument("--ready-file", type=Path,
+                        help="create this file once every subscription has matched its "
+                             "publishers (see --expect)")
+    parser.add_argument("--expect", action="append", default=[], metavar="NAME=N",
+                        help="with --ready-file: publishers topic NAME must have matched "
+                             "(default 1 per topic; 0 for a topic nothing publishes yet)")
     args, ros_args = parser.parse_known_args(argv)
     known = {t.name: t for t in GRAPH_TOPICS}
     unknown = [t for t in args.topic if t not in known]
@@ -45,6 +57,11 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     topics = [known[t] for t in args.topic] or list(GRAPH_TOPICS)
+    try:
+        expected = _expected_publishers(args.expect, [t.name for t in topics], args.ready_file)
+    except ValueError as exc:
+        print(f"pisc_record: {exc}", file=sys.stderr)
+        return 2
     try:
         writer = BagWriter(args.bag, topics)
     except BagError as exc:
@@ -60,7 +77,11 @@ def main(argv: list[str] | None = None) -> int:
     executor.add_node(node)
     try:
         while not stop:
-            executor.spin_once(timeout_sec=0.1)
+            executor.spin_once(timeout_sec=0.1 if expected is None else 0.01)
+            if expected is not None and all(
+                    node.publisher_count(name) >= n for name, n in expected.items()):
+                args.ready_file.touch()
+                expected = None
         # drain: take what has arrived but not been delivered, until the graph is quiet
         quiet_since = time.monotonic()
         seen = node.total_received
@@ -76,6 +97,26 @@ def main(argv: list[str] | None = None) -> int:
     for name, count in writer.counts.items():
         print(f"{name} {count}")
     return 0
+
+
+def _expected_publishers(expect: list[str], recorded: list[str],
+                         ready_file: Path | None) -> dict[str, int] | None:
+    """Publishers per recorded topic to wait for before creating ``ready_file`` (None:
+    nothing to wait for); ValueError naming a malformed or unrecorded ``--expect``."""
+    if ready_file is None:
+        if expect:
+            raise ValueError("--expect needs --ready-file (the file it announces readiness in)")
+        return None
+    counts = dict.fromkeys(recorded, 1)
+    for item in expect:
+        name, sep, value = item.partition("=")
+        if not sep or not value.strip().isdigit():
+            raise ValueError(f"--expect {item!r}: expected NAME=N with N a count (0, 1, ...)")
+        if name not in counts:
+            raise ValueError(f"--expect {item!r}: {name} is not recorded "
+                             f"(recorded: {', '.join(recorded)})")
+        counts[name] = int(value)
+    return counts
 
 
 if __name__ == "__main__":

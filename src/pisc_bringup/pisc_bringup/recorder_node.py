@@ -6,8 +6,11 @@ callback of the control loop. rclpy's EventsExecutor cannot deliver message info
 this node runs on its own SingleThreadedExecutor (see :mod:`pisc_bringup.graph`).
 
 Subscriptions keep all history (``KEEP_ALL``) with the topic's reliability and
-durability: a reliable publisher then waits for the recorder rather than overwrite
-what it has not taken yet, so a slow recorder loses nothing.
+durability, so the recorder never drops what it has taken. A reliable publisher keeps
+its last 100 messages (the topic's depth) until the recorder has acknowledged them: a
+recorder that falls further behind, or has not yet matched a publisher that already
+matched it, loses the older ones. :mod:`pisc_bringup.record` reports when it has matched
+every publisher (``--ready-file``); the runner starts the graph after that.
 """
 
 from __future__ import annotations
@@ -51,12 +54,12 @@ class RecorderNode(Node):
         self._on_message = on_message
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self.received: dict[str, int] = {t.name: 0 for t in topics}
-        self._subs = [
-            self.create_subscription(
+        self._subs = {
+            t.name: self.create_subscription(
                 message_class(t.type), t.name, self._callback(t.name), recording_qos(t),
                 raw=True)
             for t in topics
-        ]
+        }
         self._thread = threading.Thread(target=self._write_loop, name="bag-writer", daemon=True)
         self._thread.start()
 
@@ -75,6 +78,10 @@ class RecorderNode(Node):
             if item is _STOP:
                 return
             self._writer.write(*item)
+
+    def publisher_count(self, topic: str) -> int:
+        """Publishers this recorder's subscription of ``topic`` has matched."""
+        return self._subs[topic].get_publisher_count()
 
     @property
     def total_received(self) -> int:

@@ -53,6 +53,9 @@ class SimulationParams:
                                  in_range(0, 64))
     min_true_state_subscribers: int = param(0, "lockstep: subscribers of the true state to "
                                             "wait for (a recorder)", "", in_range(0, 64))
+    min_clock_subscribers: int = param(0, "lockstep: subscribers of /clock to wait for (a "
+                                       "recorder; a runner that starts the plant by "
+                                       "subscribing)", "", in_range(0, 64))
     publish_true_state: bool = param(True, "publish the true state on /pisc/sim/true_state", "")
     resend_after_s: float = param(0.5, "lockstep: send the current sample again when no voltage "
                                   "answered it for this long (the controllers answer a repeated "
@@ -136,9 +139,8 @@ class PlantNode(PiscNode):
                         and self._current_pub.get_subscription_count() >= need
                         and self._true_pub.get_subscription_count()
                         >= self._sim_params.min_true_state_subscribers
-                        # a recorder of the true state records /clock too
                         and self._clock_pub.get_subscription_count()
-                        >= self._sim_params.min_true_state_subscribers
+                        >= self._sim_params.min_clock_subscribers
                         and self._sub.get_publisher_count() > 0):
                     now = self._wall_ns()
                     if self._matched_ns is None:
