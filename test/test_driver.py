@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -129,28 +130,41 @@ def late_cycles(bag, until_s: float, period_s: float = 0.005) -> list[tuple[floa
     return sorted(x for x in late if 0.05 <= x[0] <= until_s)
 
 
-def test_swing_up_and_catch_through_the_driver_and_the_virtual_rig(tmp_path, env_for_domain):
-    """Up to five runs: a run that misses the acceptance counts only when this machine
-    met every deadline of its swing-up (50 ms to 3 s). The one-swing swing-up tolerates
-    little (README), and the driver sends 0 V once the newest command is 10 ms old: a
-    vCPU stalled by its host for 10-60 ms (vmstat shows up to 16 % steal on these
-    machines under load, which SCHED_FIFO cannot prevent) can cost the first catch."""
+def run_swing_up(tmp_path, env, *rig_args: str, during=None) -> tuple[int, str, Path, dict]:
+    """Swing up from x0 = 0 through the driver and the virtual rig for 10 s; ``during(rig)``
+    acts on the rig while the graph runs. Returns (exit status, output, bag, the rig's
+    final status).
+
+    Up to five runs: a run that fails counts only when this machine met every deadline
+    of its swing-up (50 ms to 3 s). The one-swing swing-up tolerates little (README),
+    and the driver sends 0 V once the newest command is 10 ms old: a vCPU stalled by its
+    host for 10-60 ms (vmstat shows up to 16 % steal on these machines under load, which
+    SCHED_FIFO cannot prevent) can cost the first catch.
+    """
     attempts = 5
     for attempt in range(1, attempts + 1):
         bag = tmp_path / f"bag{attempt}"
-        rig = start_rig(tmp_path, "--x0", "0.0")
+        rig = start_rig(tmp_path, "--x0", "0.0", *rig_args)
         try:
-            rc, output = finish(start_graph(env_for_domain, rig.device, bag, 10.0))
+            graph = start_graph(env, rig.device, bag, 10.0)
+            if during is not None:
+                during(rig)
+            rc, output = finish(graph)
         finally:
             final = rig.stop()
         print(output)
-        summary = summarise_bag(bag, 0.005)
         if rc == 0 or attempt == attempts:
             break
         late = late_cycles(bag, 3.0)
-        assert late, f"missed with every deadline of the swing-up met:\n{output}"
-        print(f"attempt {attempt} missed the acceptance after {len(late)} late cycles "
-              f"before 3 s (first at {late[0][0]:.3f} s: {late[0][1]}); running again")
+        assert late, f"failed with every deadline of the swing-up met:\n{output}"
+        print(f"attempt {attempt} failed after {len(late)} late cycles before 3 s (first "
+              f"at {late[0][0]:.3f} s: {late[0][1]}); running again")
+    return rc, output, bag, final
+
+
+def test_swing_up_and_catch_through_the_driver_and_the_virtual_rig(tmp_path, env_for_domain):
+    rc, output, bag, final = run_swing_up(tmp_path, env_for_domain)
+    summary = summarise_bag(bag, 0.005)
     assert rc == 0, output
     assert_acceptance_measured(summary)
     assert_acceptance_true(true_log(tmp_path), *run_window(bag))
@@ -192,23 +206,20 @@ def test_device_silence_is_a_fault_and_zero_volts_within_20_ms(tmp_path, env_for
 
 
 def test_byte_drops_at_1e_2_during_balance_do_not_drop_the_pendulum(tmp_path, env_for_domain):
-    rig = start_rig(tmp_path, "--x0", "0.0", "--seed", "3")
-    try:
-        graph = start_graph(env_for_domain, rig.device, tmp_path / "bag", 10.0)
+    def drop_bytes(rig: RigProcess) -> None:
         wait_cycles(rig, 700)  # 3.5 s: caught at about 1.5 s
         rig.request(drop_rate=0.01)
-        rc, output = finish(graph)
-        final = rig.stop()
-    finally:
-        rig.stop()
+
+    rc, output, bag, final = run_swing_up(tmp_path, env_for_domain, "--seed", "3",
+                                          during=drop_bytes)
     assert rc == 0, output
     assert final["dropped"] > 100
-    summary = summarise_bag(tmp_path / "bag", 0.005)
+    summary = summarise_bag(bag, 0.005)
     print(summary.format())
     assert summary.cycles < 2000 * 0.97  # frames were lost ...
     assert_acceptance_measured(summary)  # ... and the pendulum was held
-    assert_acceptance_true(true_log(tmp_path), *run_window(tmp_path / "bag"))
-    last = driver_statuses(tmp_path / "bag")[-1]
+    assert_acceptance_true(true_log(tmp_path), *run_window(bag))
+    last = driver_statuses(bag)[-1]
     values = {kv.key: kv.value for kv in last.values}
     assert int(values["rehunts"]) > 50 and int(values["bytes_discarded"]) > 50, values
 
