@@ -133,15 +133,16 @@ def late_cycles(bag, until_s: float, period_s: float = 0.005) -> list[tuple[floa
 def run_swing_up(tmp_path, env, *rig_args: str, during=None) -> tuple[int, str, Path, dict]:
     """Swing up from x0 = 0 through the driver and the virtual rig for 10 s; ``during(rig)``
     acts on the rig while the graph runs. Returns (exit status, output, bag, the rig's
-    final status).
+    final status) of the first run that catches by 3 s, or of the last.
 
-    Up to five runs: a run that fails counts only when this machine met every deadline
-    of its swing-up (50 ms to 3 s). The one-swing swing-up tolerates little (README),
-    and the driver sends 0 V once the newest command is 10 ms old: a vCPU stalled by its
-    host for 10-60 ms (vmstat shows up to 16 % steal on these machines under load, which
-    SCHED_FIFO cannot prevent) can cost the first catch.
+    Up to eight runs: a run that does not catch by 3 s counts only when this machine met
+    every deadline of its swing-up (50 ms to 3 s); then it fails the test at once. The
+    one-swing swing-up tolerates little (README), and the driver sends 0 V once the
+    newest command is 10 ms old: a vCPU stalled by its host for 10-60 ms (vmstat shows
+    up to 16 % steal on these machines under load, which SCHED_FIFO cannot prevent) can
+    cost the first catch. On a noisy day three runs in a row have missed it.
     """
-    attempts = 5
+    attempts = 8
     for attempt in range(1, attempts + 1):
         bag = tmp_path / f"bag{attempt}"
         rig = start_rig(tmp_path, "--x0", "0.0", *rig_args)
@@ -153,12 +154,13 @@ def run_swing_up(tmp_path, env, *rig_args: str, during=None) -> tuple[int, str, 
         finally:
             final = rig.stop()
         print(output)
-        if rc == 0 or attempt == attempts:
+        caught_at = summarise_bag(bag, 0.005).caught_at_s if rc in (0, 1) else None
+        if (rc == 0 and caught_at is not None and caught_at <= 3.0) or attempt == attempts:
             break
         late = late_cycles(bag, 3.0)
-        assert late, f"failed with every deadline of the swing-up met:\n{output}"
-        print(f"attempt {attempt} failed after {len(late)} late cycles before 3 s (first "
-              f"at {late[0][0]:.3f} s: {late[0][1]}); running again")
+        assert late, f"not caught by 3 s with every deadline of the swing-up met:\n{output}"
+        print(f"attempt {attempt}: not caught by 3 s after {len(late)} late cycles before "
+              f"3 s (first at {late[0][0]:.3f} s: {late[0][1]}); running again")
     return rc, output, bag, final
 
 
