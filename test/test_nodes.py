@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+import rclpy.node
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -21,7 +22,7 @@ from pisc_msgs_py.convert import (
     motor_sample_from_msg,
     motor_sample_to_msg,
 )
-from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE
+from pisc_msgs_py.topics import CLOCK, JOINT_STATES, MOTOR_CURRENT, VOLTAGE
 from pisc_msgs_py.types import JointSample, MotorSample
 from pisc_plant.plant_node import PlantNode
 
@@ -59,6 +60,38 @@ def test_entry_point_refuses_and_says_why(env_for_domain, tmp_path):
     assert completed.returncode == 2
     assert "refusing to start: invalid parameter: swing_up.k_v / swing_up.k_e" in completed.stderr
     assert "(3.29)" in completed.stderr
+
+
+def test_the_lockstep_plant_waits_for_every_clock_subscriber_it_was_told_of(ros_context):
+    """A runner holds the plant back by the count of /clock subscribers it asks for."""
+    plant = PlantNode(context=ros_context, parameter_overrides=[
+        Parameter("simulation.clock", value="lockstep"),
+        Parameter("simulation.min_clock_subscribers", value=2),
+        Parameter("simulation.start_settle_s", value=0.05)])
+    probe = rclpy.node.Node("probe", context=ros_context)
+    samples = []
+    probe.create_subscription(message_class(JOINT_STATES.type), JOINT_STATES.name,
+                              samples.append, qos_profile(JOINT_STATES.qos))
+    probe.create_subscription(message_class(MOTOR_CURRENT.type), MOTOR_CURRENT.name,
+                              lambda msg: None, qos_profile(MOTOR_CURRENT.qos))
+    probe.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name, qos_profile(VOLTAGE.qos))
+
+    def clock_subscriber():
+        probe.create_subscription(message_class(CLOCK.type), CLOCK.name, lambda msg: None,
+                                  qos_profile(CLOCK.qos))
+
+    clock_subscriber()
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(plant)
+    executor.add_node(probe)
+    try:
+        # every other edge is there; one /clock subscriber of two: no sample
+        assert not spin_until(executor, lambda: samples, 1.5)
+        clock_subscriber()
+        assert spin_until(executor, lambda: samples, 10.0)
+    finally:
+        plant.destroy_node()
+        probe.destroy_node()
 
 
 def test_a_running_node_refuses_a_bad_change_and_takes_a_good_one(ros_context):

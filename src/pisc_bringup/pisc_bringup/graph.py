@@ -21,9 +21,8 @@ The plant starts publishing once its subscribers are matched (in one process, on
 every controller's are too) and the recorder has matched every publisher (a recorder
 that matches late gets only the last 100 messages); a lockstep sample that is lost
 anyway is sent again. With ``--processes --clock wall`` the plant does not wait for the
-recorder. The
-run ends when the voltage answering the sample at ``--duration`` has been received;
-the bag is closed, read back and summarised. Exit status: 0 caught and held, 1 not
+recorder. The run ends when the voltage answering the sample at ``--duration`` has been
+received; the bag is closed, read back and summarised. Exit status: 0 caught and held, 1 not
 caught, 2 bad configuration or the graph did not run.
 """
 
@@ -128,6 +127,14 @@ def recorded_topics(names: Sequence[str] | None) -> tuple[Topic, ...]:
 def expected_subscribers(topic: Topic, recording: bool, nodes: Sequence[NodeSpec] = GRAPH) -> int:
     """Subscribers ``topic`` has among ``nodes`` (and the recorder)."""
     return sum(topic in n.subscribes for n in nodes) + (1 if recording else 0)
+
+
+def _clock_subscribers(processes: bool) -> int:
+    """Subscribers of /clock the lockstep plant waits for: each controller's clock (rclpy
+    subscribes a node with use_sim_time to /clock), the recorder, and, with separate
+    processes, this runner, which subscribes once the recorder has matched every
+    publisher (in one process nothing runs before the runner spins, after that)."""
+    return len(CONTROLLERS) + 1 + (1 if processes else 0)
 
 
 def expected_publishers(topic: Topic, nodes: Sequence[NodeSpec], lockstep: bool) -> int:
@@ -270,8 +277,7 @@ def run_graph(options: RunOptions) -> RunResult:
         "simulation.clock": options.clock,
         "simulation.min_subscribers": expected_subscribers(JOINT_STATES, True),
         "simulation.min_true_state_subscribers": 1,
-        # separate processes: the recorder, and this runner once the recorder is ready
-        "simulation.min_clock_subscribers": 2 if options.processes else 1}
+        "simulation.min_clock_subscribers": _clock_subscribers(options.processes)}
     if source is DRIVER:
         plant_flat = {"driver.port": options.driver_port}
     env = dict(os.environ)

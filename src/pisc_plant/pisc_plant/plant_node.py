@@ -53,9 +53,10 @@ class SimulationParams:
                                  in_range(0, 64))
     min_true_state_subscribers: int = param(0, "lockstep: subscribers of the true state to "
                                             "wait for (a recorder)", "", in_range(0, 64))
-    min_clock_subscribers: int = param(0, "lockstep: subscribers of /clock to wait for (a "
-                                       "recorder; a runner that starts the plant by "
-                                       "subscribing)", "", in_range(0, 64))
+    min_clock_subscribers: int = param(0, "lockstep: subscribers of /clock to wait for (each "
+                                       "node with use_sim_time, a recorder, a runner that "
+                                       "starts the plant by subscribing)", "",
+                                       in_range(0, 64))
     publish_true_state: bool = param(True, "publish the true state on /pisc/sim/true_state", "")
     resend_after_s: float = param(0.5, "lockstep: send the current sample again when no voltage "
                                   "answered it for this long (the controllers answer a repeated "
