@@ -146,12 +146,16 @@ def run_swing_up(tmp_path, env, *rig_args: str, during=None) -> tuple[int, str, 
     for attempt in range(1, attempts + 1):
         bag = tmp_path / f"bag{attempt}"
         rig = start_rig(tmp_path, "--x0", "0.0", *rig_args)
+        graph = None
         try:
             graph = start_graph(env, rig.device, bag, 10.0)
             if during is not None:
                 during(rig)
             rc, output = finish(graph)
         finally:
+            if graph is not None and graph.poll() is None:  # ``during`` raised
+                graph.kill()
+                graph.communicate()
             final = rig.stop()
         print(output)
         caught_at = summarise_bag(bag, 0.005).caught_at_s if rc in (0, 1) else None
