@@ -166,11 +166,17 @@ def test_the_recorder_says_it_is_ready_once_it_has_matched_every_publisher(
      f"--expect '{VOLTAGE.name}=-1': expected NAME=N with N a count (0, 1, ...)"),
     (["--topic", STATE.name, "--ready-file", "R", "--expect", f"{VOLTAGE.name}=1"],
      f"--expect '{VOLTAGE.name}=1': {VOLTAGE.name} is not recorded (recorded: {STATE.name})"),
+    (["--ready-file", "taken"],
+     "--ready-file taken: exists already (a runner would take the recorder as ready at once)"),
+    (["--ready-file", "missing/R"], "--ready-file missing/R: missing is not a directory"),
+    (["--topic", "/pisc/forces"], "/pisc/forces is not a topic of the graph (topics: "
+     + ", ".join(t.name for t in GRAPH_TOPICS) + ")"),
 ])
-def test_the_recorder_refuses_a_malformed_expectation(tmp_path, args, error):
+def test_the_recorder_refuses_bad_arguments_before_creating_the_bag(tmp_path, args, error):
+    (tmp_path / "taken").touch()
     completed = subprocess.run(
         [sys.executable, "-m", "pisc_bringup.record", "--bag", str(tmp_path / "bag"), *args],
-        capture_output=True, text=True, timeout=60)
+        capture_output=True, text=True, timeout=60, cwd=tmp_path)
     assert completed.returncode == 2
     assert completed.stderr.strip() == f"pisc_record: {error}"
     assert not (tmp_path / "bag").exists()  # refused before creating the bag

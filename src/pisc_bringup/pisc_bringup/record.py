@@ -30,7 +30,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from pisc_bringup.bag import BagError, BagWriter
 from pisc_bringup.recorder_node import RecorderNode
-from pisc_msgs_py.topics import GRAPH_TOPICS
+from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.topics import GRAPH_TOPICS, graph_topics_named
 
 __all__ = ["main"]
 
@@ -50,16 +51,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --ready-file: publishers topic NAME must have matched "
                              "(default 1 per topic; 0 for a topic nothing publishes yet)")
     args, ros_args = parser.parse_known_args(argv)
-    known = {t.name: t for t in GRAPH_TOPICS}
-    unknown = [t for t in args.topic if t not in known]
-    if unknown:
-        print(f"pisc_record: unknown topic {unknown[0]} (graph topics: {', '.join(known)})",
-              file=sys.stderr)
-        return 2
-    topics = [known[t] for t in args.topic] or list(GRAPH_TOPICS)
     try:
+        topics = list(graph_topics_named(args.topic) if args.topic else GRAPH_TOPICS)
         expected = _expected_publishers(args.expect, [t.name for t in topics], args.ready_file)
-    except ValueError as exc:
+    except (ConfigError, ValueError) as exc:
         print(f"pisc_record: {exc}", file=sys.stderr)
         return 2
     try:
@@ -102,11 +97,17 @@ def main(argv: list[str] | None = None) -> int:
 def _expected_publishers(expect: list[str], recorded: list[str],
                          ready_file: Path | None) -> dict[str, int] | None:
     """Publishers per recorded topic to wait for before creating ``ready_file`` (None:
-    nothing to wait for); ValueError naming a malformed or unrecorded ``--expect``."""
+    nothing to wait for); ValueError naming a malformed or unrecorded ``--expect`` or a
+    ready file that exists already or cannot be created."""
     if ready_file is None:
         if expect:
             raise ValueError("--expect needs --ready-file (the file it announces readiness in)")
         return None
+    if ready_file.exists():
+        raise ValueError(f"--ready-file {ready_file}: exists already (a runner would take "
+                         "the recorder as ready at once)")
+    if not ready_file.parent.is_dir():
+        raise ValueError(f"--ready-file {ready_file}: {ready_file.parent} is not a directory")
     counts = dict.fromkeys(recorded, 1)
     for item in expect:
         name, sep, value = item.partition("=")
