@@ -417,18 +417,22 @@ def _stop(child: subprocess.Popen) -> tuple[str, str]:
     return "", output
 
 
-def _recorder_ready(watcher: Node, recorder: subprocess.Popen,
-                    recorded: Sequence[Topic]) -> bool:
+def _check_recorder(recorder: subprocess.Popen) -> None:
     if recorder.poll() is not None:
         _, err = recorder.communicate()
         raise GraphError(f"pisc_record exited: {err.decode(errors='replace').strip()}")
+
+
+def _recorder_ready(watcher: Node, recorder: subprocess.Popen,
+                    recorded: Sequence[Topic]) -> bool:
+    """The recorder runs and its subscriptions are seen (before any node exists)."""
+    _check_recorder(recorder)
     return all(watcher.count_subscribers(t.name) >= 1 + (t is VOLTAGE) for t in recorded)
 
 
 def _recorder_matched(recorder: subprocess.Popen, ready: Path) -> bool:
-    if recorder.poll() is not None:
-        _, err = recorder.communicate()
-        raise GraphError(f"pisc_record exited: {err.decode(errors='replace').strip()}")
+    """The recorder has matched every publisher of the run (its ``--ready-file``)."""
+    _check_recorder(recorder)
     return ready.exists()
 
 
