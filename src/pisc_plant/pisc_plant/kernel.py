@@ -3,8 +3,10 @@
 One kernel serves every scene: the state carries only the components a scene's
 sub-models need (:class:`Layout`), the constants travel in one float array
 (:func:`pisc_plant.plant.pack_constants`), and the same compiled step advances one rig
-in a node or ten thousand in a batch (:func:`for_layout` gives a layout's entry points;
-the batch one runs the single-rig one on each row, in parallel), so a rig gives
+in a node or ten thousand in a batch (:func:`for_layout` gives a layout's entry points:
+one steps rows of a state array, the batch one hands chunks of rows to it in parallel).
+Inside, the loop over rigs is vectorised, four rigs per AVX2 register, with sin, cos,
+pow and tanh from glibc's vector library (:mod:`pisc_plant.vecmath`), and a rig gives
 bit-identical results alone and in a batch.
 
 State order: ``x, x_dot, theta, theta_dot`` then, when modelled, the armature current
@@ -62,6 +64,8 @@ from typing import NamedTuple
 
 import numba
 import numpy as np
+
+from pisc_plant.vecmath import vcos, vpow, vsin, vtanh
 
 __all__ = [
     "METHODS",
@@ -326,19 +330,49 @@ def _armature_operators(lam, coef, ph):
         coef[op, OP_ECUR] = scale * c_v * ecur
 
 
-# The kernel's hot functions take the layout as arguments that are constants where they
-# are inlined (``arm``; the indices ``ii`` of the current, ``vir``, ``vcur`` of the
-# filters, -1 when absent; ``n`` the state's size): :func:`for_layout` compiles one set
-# of entry points per layout, and the compiler removes the branches and index
-# arithmetic of the others. Measured while building it (the generic version is not
-# kept): the full-fidelity right-hand side took 41 ns per evaluation, against 164 ns with
-# the layout read from an array (one core, 10 000 rigs).
+# The hot path works on one rig's state as a tuple of numbers, never on arrays, so that
+# LLVM can keep every intermediate in registers and vectorise the loop over rigs (four
+# rigs per AVX2 register, sin, cos, pow and tanh from the vector library: see
+# :mod:`pisc_plant.vecmath`). A rig's state is ``(x, x_dot, theta, theta_dot, i, v_ir,
+# v_cur)`` whatever the layout (absent components are 0 and stay 0); the exponential
+# scheme's variables are ``(x, x_dot, theta, theta_dot, q, v_ir, v_cur, r, s)``. The
+# layout enters as constants (``arm``, ``filt``) where the functions are inlined, so the
+# compiler removes the branches of the others. The constants ``p`` and the operator
+# table ``ops`` are tuples unpacked once per call, so the loop over rigs reads no memory
+# besides the rigs' states and inputs. Measured while building it: README, "Batch".
+
+_ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 @_inline
-def _current(y, u, p, arm, ii):
+def _constants(a, stops):
+    """The packed constants as a tuple (see ``P_*``); without ``stops`` the track's ends
+    are at -inf and +inf, so that the end stops never act and the loop needs no flag."""
+    return (a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], a[10], a[11],
+            a[12], a[13], a[14], a[15], a[16], a[17], a[18], a[19],
+            a[P_XMIN] if stops else -np.inf, a[P_XMAX] if stops else np.inf, a[22])
+
+
+@_inline
+def _operator(coef, k):
+    return (coef[k, 0], coef[k, 1], coef[k, 2], coef[k, 3], coef[k, 4], coef[k, 5],
+            coef[k, 6], coef[k, 7], coef[k, 8], coef[k, 9], coef[k, 10], coef[k, 11],
+            coef[k, 12], coef[k, 13])
+
+
+@_inline
+def _operators(coef):
+    """Rows 0-12 of :func:`exp_coefficients`' table as a tuple of tuples."""
+    return (_operator(coef, 0), _operator(coef, 1), _operator(coef, 2), _operator(coef, 3),
+            _operator(coef, 4), _operator(coef, 5), _operator(coef, 6), _operator(coef, 7),
+            _operator(coef, 8), _operator(coef, 9), _operator(coef, 10),
+            _operator(coef, 11), _operator(coef, 12))
+
+
+@_inline
+def _current(y, u, p, arm):
     if arm == ARM_FULL:
-        current = y[ii]
+        current = y[4]
     elif arm == ARM_QUASI_STATIC:
         current = (u - p[P_KER] * y[1]) / p[P_R]
     else:
@@ -349,22 +383,21 @@ def _current(y, u, p, arm, ii):
 @_inline
 def _accelerations(y, u, p, arm, current):
     """x_ddot, theta_ddot: (3.3), (3.5) with cart and pivot friction."""
-    return _accelerations_at(y, u, p, arm, current, math.sin(y[2]), math.cos(y[2]))
+    return _accelerations_at(y[1], y[3], u, p, arm, current, vsin(y[2]), vcos(y[2]))
 
 
 @_inline
-def _accelerations_at(y, u, p, arm, current, s, c):
+def _accelerations_at(x_dot, theta_dot, u, p, arm, current, s, c):
     """:func:`_accelerations` with sin and cos of the angle given."""
-    x_dot = y[1]
-    theta_dot = y[3]
     if arm == ARM_FORCE:
         force = u
     else:
         # (4.2) and the rotor's viscous friction reflected to the cart
         force = p[P_KF] * current - p[P_BM] * x_dot
     force -= p[P_BC] * x_dot
-    if p[P_FC] != 0.0:
-        force -= p[P_FC] * math.tanh(x_dot / p[P_VC])
+    # Coulomb friction, regularised; without it F_c = 0 and (v_c > 0) the term is an
+    # exact 0, computed all the same: a branch would keep the loop from vectorising
+    force -= p[P_FC] * vtanh(x_dot / p[P_VC])
     torque = -p[P_BP] * theta_dot
     a1 = p[P_A1]
     a2 = p[P_A2]
@@ -383,7 +416,7 @@ def _accelerations_at(y, u, p, arm, current, s, c):
 @_inline
 def _ir_voltage(p, x):
     distance = max(p[P_IRO] - x, 1e-3)
-    return (distance / p[P_IRS]) ** p[P_IRX]
+    return vpow(distance / p[P_IRS], p[P_IRX])
 
 
 @_inline
@@ -392,26 +425,27 @@ def _current_sensor_voltage(p, current):
 
 
 @_inline
-def _rhs(y, u, p, out, arm, ii, vir, vcur):
-    current = _current(y, u, p, arm, ii)
+def _rhs(y, u, p, arm, filt):
+    """The full right-hand side y' (state order of the tuple, see above)."""
+    current = _current(y, u, p, arm)
     x_ddot, theta_ddot = _accelerations(y, u, p, arm, current)
-    out[0] = y[1]
-    out[1] = x_ddot
-    out[2] = y[3]
-    out[3] = theta_ddot
+    di = 0.0
     if arm == ARM_FULL:
         # (2.81): L di/dt = u - R i - k_e phi_dot
-        out[ii] = (u - p[P_R] * current - p[P_KER] * y[1]) / p[P_L]
-    if vir >= 0:
-        out[vir] = p[P_WIR] * (_ir_voltage(p, y[0]) - y[vir])
-        out[vcur] = p[P_WCUR] * (_current_sensor_voltage(p, current) - y[vcur])
+        di = (u - p[P_R] * current - p[P_KER] * y[1]) / p[P_L]
+    dir_ = 0.0
+    dcur = 0.0
+    if filt:
+        dir_ = p[P_WIR] * (_ir_voltage(p, y[0]) - y[5])
+        dcur = p[P_WCUR] * (_current_sensor_voltage(p, current) - y[6])
+    return (y[1], x_ddot, y[3], theta_ddot, di, dir_, dcur)
 
 
 @_inline
-def _couplings(z, y, u, p, c, arm, ii):
-    """L's couplings at the step's start, into c: c_x, c_theta (0, 1), c_x1, c_theta1 (2,
-    3), the rate of q (4), the current sensor's share of q (5), the accelerations (6, 7),
-    c_x2, c_theta2 (8, 9), delta (10).
+def _couplings(z, y, u, p, arm):
+    """L's couplings at the step's start: c_x, c_theta (0, 1), c_x1, c_theta1 (2, 3), the
+    rate of q (4), the current sensor's share of q (5), the accelerations (6, 7), c_x2,
+    c_theta2 (8, 9), delta (10).
 
     The current's weights in (3.3) and (3.5) with f = k_f i (4.2) are
     c_x = k_f / den and c_theta = -a1 cos(theta) k_f / (m l den), den = a2 - a1 cos^2.
@@ -427,11 +461,9 @@ def _couplings(z, y, u, p, c, arm, ii):
     L's own rate is the constant of :func:`armature_rate`, c[4].
     """
     if arm != ARM_FULL:
-        for j in range(11):
-            c[j] = 0.0
-        return
-    co = math.cos(z[2])
-    si = math.sin(z[2])
+        return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    co = vcos(z[2])
+    si = vsin(z[2])
     theta_dot = z[3]
     a1 = p[P_A1]
     a2 = p[P_A2]
@@ -449,16 +481,13 @@ def _couplings(z, y, u, p, c, arm, ii):
     j12 = (2.0 * ml * theta_dot * si + a1 * co * p[P_BP] / ml) / den
     j21 = a1 * co * damp_x / (ml * den)
     j22 = (-2.0 * a1 * theta_dot * si * co - a1 * a2 * p[P_BP] / (ml * ml)) / den
-    x_ddot, theta_ddot = _accelerations_at(y, u, p, arm, y[ii], si, co)
-    c[6] = x_ddot
-    c[7] = theta_ddot
+    x_ddot, theta_ddot = _accelerations_at(y[1], y[3], u, p, arm, y[4], si, co)
     # the slow motion: without q's own share (q0 = q at the start, mostly the transient)
-    q0 = z[ii]
+    q0 = z[4]
     x_ddot_slow = x_ddot - cx * q0
     theta_ddot_slow = theta_ddot - cth * q0
-    force = kf * (y[ii] - q0) - (p[P_BM] + p[P_BC]) * y[1]
-    if p[P_FC] != 0.0:
-        force -= p[P_FC] * math.tanh(y[1] / p[P_VC])
+    force = kf * (y[4] - q0) - (p[P_BM] + p[P_BC]) * y[1]
+    force -= p[P_FC] * vtanh(y[1] / p[P_VC])
     torque = -p[P_BP] * theta_dot
     # angle derivatives K of the slow accelerations (3.3), (3.5): numerators over den
     dden = 2.0 * a1 * co * si
@@ -486,38 +515,42 @@ def _couplings(z, y, u, p, c, arm, ii):
     # its value at the start and its integral by e^(lam t) + (lam t / 2) e^(lam t), it
     # cancels the first term and halves the second: r's couplings see theta_dot + shift.
     shift = -0.5 * c1 * q0 / lam
-    c[0] = c0
-    c[1] = c1
-    c[2] = cx_1 * (theta_dot + shift)
-    c[3] = cth_1 * (theta_dot + shift)
-    # s = t^2 q / 2: the second-order change of c_x, c_theta during the step
-    c[8] = cx_1 * theta_ddot_slow + cx_2 * theta_dot * theta_dot
-    c[9] = cth_1 * theta_ddot_slow + cth_2 * theta_dot * theta_dot
-    c[4] = armature_rate(p)
-    c[5] = 1.0 - d * c[0] / c[4]
+    rate = armature_rate(p)
     # The state's own rate of q differs from L's by delta (about 0.005 1/s). The
     # current's departure is q + delta r in the scheme's variables (q e^(delta t) to first
     # order), so the velocities see delta c r besides c q.
-    delta = -p[P_R] / p[P_L] + d * c[0] - c[4]
-    c[10] = delta
-    c[2] += delta * c[0]
-    c[3] += delta * c[1]
+    delta = -p[P_R] / p[P_L] + d * c0 - rate
+    return (c0, c1,
+            cx_1 * (theta_dot + shift) + delta * c0,
+            cth_1 * (theta_dot + shift) + delta * c1,
+            rate,
+            1.0 - d * c0 / rate,
+            x_ddot, theta_ddot,
+            # s = t^2 q / 2: the second-order change of c_x, c_theta during the step
+            cx_1 * theta_ddot_slow + cx_2 * theta_dot * theta_dot,
+            cth_1 * theta_ddot_slow + cth_2 * theta_dot * theta_dot,
+            delta)
 
 
 @_inline
-def _apply_add(op, v, c, out, ii, ri, vir, vcur):
-    """out += F(hL) v for one operator's scalars (see ``OP_*``); r at ``ri``, s after it."""
+def _apply_add(op, v, c, out, full, filt):
+    """out + F(hL) v for one operator's scalars (see ``OP_*``)."""
     d0 = op[OP_D0]
     d1 = op[OP_D1]
-    out[0] += d0 * v[0] + d1 * v[1]
-    out[1] += d0 * v[1]
-    out[2] += d0 * v[2] + d1 * v[3]
-    out[3] += d0 * v[3]
+    o0 = out[0] + (d0 * v[0] + d1 * v[1])
+    o1 = out[1] + d0 * v[1]
+    o2 = out[2] + (d0 * v[2] + d1 * v[3])
+    o3 = out[3] + d0 * v[3]
+    o4 = out[4]
+    o5 = out[5]
+    o6 = out[6]
+    o7 = out[7]
+    o8 = out[8]
     q = 0.0
-    if ii >= 0:
-        q = v[ii]
-        r = v[ri]
-        s = v[ri + 1]
+    if full:
+        q = v[4]
+        r = v[7]
+        s = v[8]
         e1 = op[OP_E1]
         e2 = op[OP_E2]
         e3 = op[OP_E3]
@@ -529,276 +562,320 @@ def _apply_add(op, v, c, out, ii, ri, vir, vcur):
         p_q = e2 * q
         p_r = e2 * r + e4 * q
         p_s = e2 * s + e4 * r + op[OP_E6] * q
-        out[0] += c[0] * p_q + c[2] * p_r + c[8] * p_s
-        out[1] += c[0] * v_q + c[2] * v_r + c[8] * v_s
-        out[2] += c[1] * p_q + c[3] * p_r + c[9] * p_s
-        out[3] += c[1] * v_q + c[3] * v_r + c[9] * v_s
+        o0 = o0 + (c[0] * p_q + c[2] * p_r + c[8] * p_s)
+        o1 = o1 + (c[0] * v_q + c[2] * v_r + c[8] * v_s)
+        o2 = o2 + (c[1] * p_q + c[3] * p_r + c[9] * p_s)
+        o3 = o3 + (c[1] * v_q + c[3] * v_r + c[9] * v_s)
         dq = op[OP_DQ]
         er = op[OP_ER]
-        out[ii] += dq * q
-        out[ri] += dq * r + er * q
-        out[ri + 1] += dq * s + er * r + op[OP_ES] * q
-    if vir >= 0:
-        out[vir] += op[OP_DIR] * v[vir]
-        out[vcur] += op[OP_DCUR] * v[vcur] + op[OP_ECUR] * c[5] * q
+        o4 = o4 + dq * q
+        o7 = o7 + (dq * r + er * q)
+        o8 = o8 + (dq * s + er * r + op[OP_ES] * q)
+    if filt:
+        o5 = o5 + op[OP_DIR] * v[5]
+        o6 = o6 + (op[OP_DCUR] * v[6] + op[OP_ECUR] * c[5] * q)
+    return (o0, o1, o2, o3, o4, o5, o6, o7, o8)
 
 
 @_inline
-def _apply_add_n(op, v, c, out, ii, ri, vir, vcur):
+def _apply_add_n(op, v, c, out, full, filt):
     """:func:`_apply_add` for a vector N of the nonlinear part, whose x, theta, r and s
     components are zero (the positions' derivatives and the chain's are all in L)."""
     d1 = op[OP_D1]
-    out[0] += d1 * v[1]
-    out[1] += op[OP_D0] * v[1]
-    out[2] += d1 * v[3]
-    out[3] += op[OP_D0] * v[3]
+    o0 = out[0] + d1 * v[1]
+    o1 = out[1] + op[OP_D0] * v[1]
+    o2 = out[2] + d1 * v[3]
+    o3 = out[3] + op[OP_D0] * v[3]
+    o4 = out[4]
+    o5 = out[5]
+    o6 = out[6]
+    o7 = out[7]
+    o8 = out[8]
     q = 0.0
-    if ii >= 0:
-        q = v[ii]
+    if full:
+        q = v[4]
         v_q = c[0] * op[OP_E1] + c[2] * op[OP_E3] + c[8] * op[OP_E5]
         p_q = c[0] * op[OP_E2] + c[2] * op[OP_E4] + c[8] * op[OP_E6]
         vth_q = c[1] * op[OP_E1] + c[3] * op[OP_E3] + c[9] * op[OP_E5]
         pth_q = c[1] * op[OP_E2] + c[3] * op[OP_E4] + c[9] * op[OP_E6]
-        out[0] += p_q * q
-        out[1] += v_q * q
-        out[2] += pth_q * q
-        out[3] += vth_q * q
-        out[ii] += op[OP_DQ] * q
-        out[ri] += op[OP_ER] * q
-        out[ri + 1] += op[OP_ES] * q
-    if vir >= 0:
-        out[vir] += op[OP_DIR] * v[vir]
-        out[vcur] += op[OP_DCUR] * v[vcur] + op[OP_ECUR] * c[5] * q
-
-
-@_jit
-def apply_add(op, v, c, out, ii, ri, vir, vcur):
-    """:func:`_apply_add` with the layout's indices as arguments (for tests)."""
-    _apply_add(op, v, c, out, ii, ri, vir, vcur)
-
-
-@_jit
-def apply_add_n(op, v, c, out, ii, ri, vir, vcur):
-    """:func:`_apply_add_n` with the layout's indices as arguments (for tests)."""
-    _apply_add_n(op, v, c, out, ii, ri, vir, vcur)
+        o0 = o0 + p_q * q
+        o1 = o1 + v_q * q
+        o2 = o2 + pth_q * q
+        o3 = o3 + vth_q * q
+        o4 = o4 + op[OP_DQ] * q
+        o7 = o7 + op[OP_ER] * q
+        o8 = o8 + op[OP_ES] * q
+    if filt:
+        o5 = o5 + op[OP_DIR] * v[5]
+        o6 = o6 + (op[OP_DCUR] * v[6] + op[OP_ECUR] * c[5] * q)
+    return (o0, o1, o2, o3, o4, o5, o6, o7, o8)
 
 
 @_inline
-def _nonlinear(z, u, p, c, y, out, arm, ii, vir, vcur, n, at_start):
-    """N(z) = f(z) - L z in the exponential scheme's variables (q for i, plus r).
+def _nonlinear(z, u, p, c, arm, filt, at_start):
+    """N(z) = f(z) - L z in the exponential scheme's variables (q for i, plus r, s).
 
-    ``y`` is scratch for the state in the original variables. ``at_start``: z is the
-    step's start, whose accelerations :func:`_couplings` left in c[6], c[7].
+    ``at_start``: z is the step's start, whose accelerations :func:`_couplings` left in
+    c[6], c[7].
     """
-    for j in range(n):
-        y[j] = z[j]
     q = 0.0
     r = 0.0
     s = 0.0
+    i = z[4]
     if arm == ARM_FULL:
-        q = z[ii]
-        r = z[n]
-        s = z[n + 1]
-        y[ii] = q + c[10] * r + (u - p[P_KER] * z[1]) / p[P_R]
-    current = _current(y, u, p, arm, ii)
+        q = z[4]
+        r = z[7]
+        s = z[8]
+        i = q + c[10] * r + (u - p[P_KER] * z[1]) / p[P_R]
+    y = (z[0], z[1], z[2], z[3], i, z[5], z[6])
+    current = _current(y, u, p, arm)
     if at_start and arm == ARM_FULL:
         x_ddot = c[6]
         theta_ddot = c[7]
     else:
         x_ddot, theta_ddot = _accelerations(y, u, p, arm, current)
-    out[0] = 0.0
-    out[1] = x_ddot - c[0] * q - c[2] * r - c[8] * s
-    out[2] = 0.0
-    out[3] = theta_ddot - c[1] * q - c[3] * r - c[9] * s
+    n4 = 0.0
     if arm == ARM_FULL:
         # with Q = q + delta r the current's departure, Q' = -(R/L) Q + d x_ddot; L gives
         # lam Q + delta q, so N's share is d (x_ddot - c_x Q) + delta^2 r
         d = p[P_KER] / p[P_R]
         delta = c[10]
-        out[ii] = d * (x_ddot - c[0] * (q + delta * r)) + delta * delta * r
-        out[n] = 0.0
-        out[n + 1] = 0.0
-    if vir >= 0:
-        out[vir] = p[P_WIR] * _ir_voltage(p, y[0])
+        n4 = d * (x_ddot - c[0] * (q + delta * r)) + delta * delta * r
+    n5 = 0.0
+    n6 = 0.0
+    if filt:
+        n5 = p[P_WIR] * _ir_voltage(p, y[0])
         # v_cur' = w_cur ((i + offset) / scale - v_cur); L holds c_v c[5] q
-        out[vcur] = p[P_WCUR] * _current_sensor_voltage(p, current - c[5] * q)
+        n6 = p[P_WCUR] * _current_sensor_voltage(p, current - c[5] * q)
+    return (0.0, x_ddot - c[0] * q - c[2] * r - c[8] * s, 0.0,
+            theta_ddot - c[1] * q - c[3] * r - c[9] * s, n4, n5, n6, 0.0, 0.0)
 
 
 @_inline
-def end_stops(y, p):
-    """Perfectly inelastic end stops (see :meth:`pisc_plant.plant.Plant.end_stops`)."""
+def _end_stops(y, p):
+    """Perfectly inelastic end stops (see :meth:`pisc_plant.plant.Plant.end_stops`) at
+    p[P_XMIN], p[P_XMAX]; the cosine is taken whether they act or not, so that the loop
+    has no branch."""
+    cos_theta = vcos(y[2])
     x = y[0]
-    if x >= p[P_XMIN] and x <= p[P_XMAX]:
-        return
     x_dot = y[1]
-    if (x < p[P_XMIN] and x_dot < 0.0) or (x > p[P_XMAX] and x_dot > 0.0):
-        y[3] = y[3] + p[P_ML] * math.cos(y[2]) * x_dot / p[P_JROT]
-        y[1] = 0.0
-    y[0] = min(max(x, p[P_XMIN]), p[P_XMAX])
+    lo = p[P_XMIN]
+    hi = p[P_XMAX]
+    out = (x < lo and x_dot < 0.0) or (x > hi and x_dot > 0.0)
+    theta_dot = y[3] + p[P_ML] * cos_theta * x_dot / p[P_JROT] if out else y[3]
+    x_new = lo if x < lo else (hi if x > hi else x)
+    return (x_new, 0.0 if out else x_dot, y[2], theta_dot, y[4], y[5], y[6])
 
 
-# Work rows: 0..4 the N's of the stages, then a stage's state, scratch, the state z at
-# the step's start, the new state, e^(hL/2) z, e^(hL) z, the couplings, N2 + N3.
-TMP_ROW, SCRATCH_ROW, Z_ROW, NEW_ROW, EZ2_ROW, EZ_ROW, C_ROW, SUM_ROW = range(5, 13)
-WORK_ROWS = 13
-WORK_WIDTH = 12
+@_inline
+def _rk4(y, u, p, h, arm, filt):
+    """One classical Runge-Kutta step."""
+    k1 = _rhs(y, u, p, arm, filt)
+    t = 0.5 * h
+    k2 = _rhs((y[0] + t * k1[0], y[1] + t * k1[1], y[2] + t * k1[2], y[3] + t * k1[3],
+               y[4] + t * k1[4], y[5] + t * k1[5], y[6] + t * k1[6]), u, p, arm, filt)
+    k3 = _rhs((y[0] + t * k2[0], y[1] + t * k2[1], y[2] + t * k2[2], y[3] + t * k2[3],
+               y[4] + t * k2[4], y[5] + t * k2[5], y[6] + t * k2[6]), u, p, arm, filt)
+    k4 = _rhs((y[0] + h * k3[0], y[1] + h * k3[1], y[2] + h * k3[2], y[3] + h * k3[3],
+               y[4] + h * k3[4], y[5] + h * k3[5], y[6] + h * k3[6]), u, p, arm, filt)
+    w = h / 6.0
+    return (y[0] + w * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0]),
+            y[1] + w * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1]),
+            y[2] + w * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2]),
+            y[3] + w * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3]),
+            y[4] + w * (k1[4] + 2.0 * k2[4] + 2.0 * k3[4] + k4[4]),
+            y[5] + w * (k1[5] + 2.0 * k2[5] + 2.0 * k3[5] + k4[5]),
+            y[6] + w * (k1[6] + 2.0 * k2[6] + 2.0 * k3[6] + k4[6]))
+
+
+@_inline
+def _sum9(a, b):
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3], a[4] + b[4], a[5] + b[5],
+            a[6] + b[6], a[7] + b[7], a[8] + b[8])
+
+
 # Rows of the operator table (see OP_WEIGHTS)
 (T_E, T_E2, T_A21, T_A31, T_A32, T_A41, T_A42, T_A51, T_A52, T_A54, T_B1, T_B4,
  T_B5) = range(N_OPERATORS)
 
 
 @_inline
-def _advance(y, u, p, stops, method, substeps, h, coef, work, arm, ii, vir, vcur, n):
-    k1 = work[0]
-    k2 = work[1]
-    k3 = work[2]
-    k4 = work[3]
-    tmp = work[TMP_ROW]
+def _exprk4(y, u, p, ops, arm, filt):
+    """One step of the exponential scheme (5.19) (see the module's docstring)."""
+    full = arm == ARM_FULL
+    slow = 0.0
+    if full:
+        slow = (u - p[P_KER] * y[1]) / p[P_R]
+    z = (y[0], y[1], y[2], y[3], y[4] - slow, y[5], y[6], 0.0, 0.0)
+    c = _couplings(z, y, u, p, arm)
+    n1 = _nonlinear(z, u, p, c, arm, filt, True)
+    if full:
+        # r starts at its slow value N_q / lam^2, so that r carries t q only for the
+        # transient: from r = 0 the slow part of q would start a fast transient in r
+        # that the explicit terms (c_x1 r in N) cannot follow
+        lam = c[4]
+        r0 = n1[4] / (lam * lam)
+        s0 = -r0 / lam
+        # the current's departure q + delta r stays
+        z = (z[0], z[1], z[2], z[3], z[4] - c[10] * r0, z[5], z[6], r0, s0)
+        n1 = (n1[0], n1[1] - (c[2] * r0 + c[8] * s0), n1[2], n1[3] - (c[3] * r0 + c[9] * s0),
+              n1[4], n1[5], n1[6], n1[7], n1[8])
+    # the scheme (5.19): U2 = e^(hL/2) z + a21 N1; U3 = e^(hL/2) z + a31 N1 + a32 N2;
+    # U4 = e^(hL) z + a41 N1 + a42 (N2 + N3);
+    # U5 = e^(hL/2) z + a51 N1 + a52 (N2 + N3) + a54 N4;
+    # z_new = e^(hL) z + b1 N1 + b4 N4 + b5 N5
+    ez2 = _apply_add(ops[T_E2], z, c, _ZERO9, full, filt)
+    ez = _apply_add(ops[T_E], z, c, _ZERO9, full, filt)
+    n2 = _nonlinear(_apply_add_n(ops[T_A21], n1, c, ez2, full, filt), u, p, c, arm, filt,
+                    False)
+    u3 = _apply_add_n(ops[T_A31], n1, c, ez2, full, filt)
+    n3 = _nonlinear(_apply_add_n(ops[T_A32], n2, c, u3, full, filt), u, p, c, arm, filt,
+                    False)
+    sum23 = _sum9(n2, n3)
+    u4 = _apply_add_n(ops[T_A41], n1, c, ez, full, filt)
+    n4 = _nonlinear(_apply_add_n(ops[T_A42], sum23, c, u4, full, filt), u, p, c, arm, filt,
+                    False)
+    u5 = _apply_add_n(ops[T_A51], n1, c, ez2, full, filt)
+    u5 = _apply_add_n(ops[T_A52], sum23, c, u5, full, filt)
+    n5 = _nonlinear(_apply_add_n(ops[T_A54], n4, c, u5, full, filt), u, p, c, arm, filt,
+                    False)
+    new = _apply_add_n(ops[T_B1], n1, c, ez, full, filt)
+    new = _apply_add_n(ops[T_B4], n4, c, new, full, filt)
+    new = _apply_add_n(ops[T_B5], n5, c, new, full, filt)
+    i = new[4]
+    if full:
+        i = new[4] + (c[10] * new[7] + (u - p[P_KER] * new[1]) / p[P_R])
+    return (new[0], new[1], new[2], new[3], i, new[5], new[6])
+
+
+@_inline
+def _put(y, k, b0, b1, b2, b3, b4, b5, b6):
+    b0[k] = y[0]
+    b1[k] = y[1]
+    b2[k] = y[2]
+    b3[k] = y[3]
+    b4[k] = y[4]
+    b5[k] = y[5]
+    b6[k] = y[6]
+
+
+@_jit
+def _lanes(b0, b1, b2, b3, b4, b5, b6, us, p, ops, method, substeps, h, arm, filt):
+    """Advance the rigs whose states are the columns of the rows b0..b6 (one row per
+    state component, one column per rig): the loop over rigs is the vectorised one.
+
+    Compiled once per layout: ``literally`` makes ``arm`` and ``filt`` constants of each
+    compilation. (Inlined into the entry points instead, as the helpers below it are,
+    numba copied the whole step's intermediate code at every level of inlining: the
+    kernel took 14 minutes to compile.)
+    """
+    numba.literally(arm)
+    numba.literally(filt)
+    rigs = us.shape[0]
     if method == RK4:
         for _ in range(substeps):
-            _rhs(y, u, p, k1, arm, ii, vir, vcur)
-            for j in range(n):
-                tmp[j] = y[j] + 0.5 * h * k1[j]
-            _rhs(tmp, u, p, k2, arm, ii, vir, vcur)
-            for j in range(n):
-                tmp[j] = y[j] + 0.5 * h * k2[j]
-            _rhs(tmp, u, p, k3, arm, ii, vir, vcur)
-            for j in range(n):
-                tmp[j] = y[j] + h * k3[j]
-            _rhs(tmp, u, p, k4, arm, ii, vir, vcur)
-            for j in range(n):
-                y[j] = y[j] + (h / 6.0) * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
-            if stops:
-                end_stops(y, p)
-        return
-    full = arm == ARM_FULL
-    ri = n if full else -1
-    m = n + 2 if full else n  # r and s join the state
-    z = work[Z_ROW]
-    c = work[C_ROW]
-    scratch = work[SCRATCH_ROW]
-    n1 = work[0]
-    n2 = work[1]
-    n3 = work[2]
-    n4 = work[3]
-    n5 = work[4]
-    ez2 = work[EZ2_ROW]
-    ez = work[EZ_ROW]
-    sum23 = work[SUM_ROW]
-    new = work[NEW_ROW]
-    for _ in range(substeps):
-        for j in range(n):
-            z[j] = y[j]
-        if full:
-            z[ii] -= (u - p[P_KER] * y[1]) / p[P_R]
-            z[n] = 0.0
-            z[n + 1] = 0.0
-        _couplings(z, y, u, p, c, arm, ii)
-        _nonlinear(z, u, p, c, scratch, n1, arm, ii, vir, vcur, n, True)
-        if full:
-            # r starts at its slow value N_q / lam^2, so that r carries t q only for the
-            # transient: from r = 0 the slow part of q would start a fast transient in r
-            # that the explicit terms (c_x1 r in N) cannot follow
-            lam = c[4]
-            r0 = n1[ii] / (lam * lam)
-            s0 = -r0 / lam
-            z[n] = r0
-            z[n + 1] = s0
-            z[ii] -= c[10] * r0  # the current's departure q + delta r stays
-            n1[1] -= c[2] * r0 + c[8] * s0
-            n1[3] -= c[3] * r0 + c[9] * s0
-        # the scheme (5.19): U2 = e^(hL/2) z + a21 N1; U3 = e^(hL/2) z + a31 N1 + a32 N2;
-        # U4 = e^(hL) z + a41 N1 + a42 (N2 + N3);
-        # U5 = e^(hL/2) z + a51 N1 + a52 (N2 + N3) + a54 N4;
-        # z_new = e^(hL) z + b1 N1 + b4 N4 + b5 N5
-        for j in range(m):
-            ez2[j] = 0.0
-            ez[j] = 0.0
-        _apply_add(coef[T_E2], z, c, ez2, ii, ri, vir, vcur)
-        _apply_add(coef[T_E], z, c, ez, ii, ri, vir, vcur)
-        for j in range(m):
-            tmp[j] = ez2[j]
-        _apply_add_n(coef[T_A21], n1, c, tmp, ii, ri, vir, vcur)
-        _nonlinear(tmp, u, p, c, scratch, n2, arm, ii, vir, vcur, n, False)
-        for j in range(m):
-            tmp[j] = ez2[j]
-        _apply_add_n(coef[T_A31], n1, c, tmp, ii, ri, vir, vcur)
-        _apply_add_n(coef[T_A32], n2, c, tmp, ii, ri, vir, vcur)
-        _nonlinear(tmp, u, p, c, scratch, n3, arm, ii, vir, vcur, n, False)
-        for j in range(m):
-            sum23[j] = n2[j] + n3[j]
-            tmp[j] = ez[j]
-        _apply_add_n(coef[T_A41], n1, c, tmp, ii, ri, vir, vcur)
-        _apply_add_n(coef[T_A42], sum23, c, tmp, ii, ri, vir, vcur)
-        _nonlinear(tmp, u, p, c, scratch, n4, arm, ii, vir, vcur, n, False)
-        for j in range(m):
-            tmp[j] = ez2[j]
-        _apply_add_n(coef[T_A51], n1, c, tmp, ii, ri, vir, vcur)
-        _apply_add_n(coef[T_A52], sum23, c, tmp, ii, ri, vir, vcur)
-        _apply_add_n(coef[T_A54], n4, c, tmp, ii, ri, vir, vcur)
-        _nonlinear(tmp, u, p, c, scratch, n5, arm, ii, vir, vcur, n, False)
-        for j in range(m):
-            new[j] = ez[j]
-        _apply_add_n(coef[T_B1], n1, c, new, ii, ri, vir, vcur)
-        _apply_add_n(coef[T_B4], n4, c, new, ii, ri, vir, vcur)
-        _apply_add_n(coef[T_B5], n5, c, new, ii, ri, vir, vcur)
-        for j in range(n):
-            y[j] = new[j]
-        if full:
-            y[ii] += c[10] * new[n] + (u - p[P_KER] * y[1]) / p[P_R]
-        if stops:
-            end_stops(y, p)
+            for k in range(rigs):
+                y = _rk4((b0[k], b1[k], b2[k], b3[k], b4[k], b5[k], b6[k]), us[k], p, h,
+                         arm, filt)
+                y = _end_stops(y, p)
+                _put(y, k, b0, b1, b2, b3, b4, b5, b6)
+    else:
+        for _ in range(substeps):
+            for k in range(rigs):
+                y = _exprk4((b0[k], b1[k], b2[k], b3[k], b4[k], b5[k], b6[k]), us[k], p,
+                            ops, arm, filt)
+                y = _end_stops(y, p)
+                _put(y, k, b0, b1, b2, b3, b4, b5, b6)
+
+
+@_inline
+def _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, arm, filt, ii, vir,
+                  vcur):
+    """Advance rows lo..hi of ys (one rig per row, the layout's order) in place."""
+    rigs = hi - lo
+    cols = np.zeros((7, rigs))
+    for k in range(rigs):
+        cols[0, k] = ys[lo + k, 0]
+        cols[1, k] = ys[lo + k, 1]
+        cols[2, k] = ys[lo + k, 2]
+        cols[3, k] = ys[lo + k, 3]
+        if ii >= 0:
+            cols[4, k] = ys[lo + k, ii]
+        if vir >= 0:
+            cols[5, k] = ys[lo + k, vir]
+            cols[6, k] = ys[lo + k, vcur]
+    _lanes(cols[0], cols[1], cols[2], cols[3], cols[4], cols[5], cols[6], us[lo:hi],
+           _constants(p, stops), _operators(coef), method, substeps, h, arm, filt)
+    for k in range(rigs):
+        ys[lo + k, 0] = cols[0, k]
+        ys[lo + k, 1] = cols[1, k]
+        ys[lo + k, 2] = cols[2, k]
+        ys[lo + k, 3] = cols[3, k]
+        if ii >= 0:
+            ys[lo + k, ii] = cols[4, k]
+        if vir >= 0:
+            ys[lo + k, vir] = cols[5, k]
+            ys[lo + k, vcur] = cols[6, k]
 
 
 class Kernels(NamedTuple):
     """The compiled functions of one layout (:func:`for_layout`)."""
 
-    advance: Callable  # (y, u, p, stops, method, substeps, h, coef, work)
-    advance_many: Callable  # (ys, us, p, stops, method, substeps, h, coef)
+    advance: Callable  # (ys, us, lo, hi, p, stops, method, substeps, h, coef): rows lo..hi
+    advance_many: Callable  # (ys, us, p, stops, method, substeps, h, coef): all, in parallel
 
 
 # One set of entry points per layout, written out: the layout's numbers must be
-# constants where _advance and _rhs are inlined. (Closures over the numbers would say
-# this in fewer lines, but numba's cache gives closures of one function the same symbol
-# names, and two of them loaded into one process corrupted each other: a segfault.)
+# constants where _advance_rows is inlined. (Closures over the numbers would say this in
+# fewer lines, but numba's cache gives closures of one function the same symbol names,
+# and two of them loaded into one process corrupted each other: a segfault.)
 @_jit
-def _advance_full_filters(y, u, p, stops, method, substeps, h, coef, work):
-    _advance(y, u, p, stops, method, substeps, h, coef, work, ARM_FULL, 4, 5, 6, 7)
-
-
-@_jit
-def _advance_full(y, u, p, stops, method, substeps, h, coef, work):
-    _advance(y, u, p, stops, method, substeps, h, coef, work, ARM_FULL, 4, -1, -1, 5)
+def _advance_full_filters(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_FULL, True,
+                  4, 5, 6)
 
 
 @_jit
-def _advance_quasi_static_filters(y, u, p, stops, method, substeps, h, coef, work):
-    _advance(y, u, p, stops, method, substeps, h, coef, work, ARM_QUASI_STATIC, -1, 4, 5, 6)
+def _advance_full(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_FULL, False,
+                  4, -1, -1)
 
 
 @_jit
-def _advance_quasi_static(y, u, p, stops, method, substeps, h, coef, work):
-    _advance(y, u, p, stops, method, substeps, h, coef, work, ARM_QUASI_STATIC, -1, -1, -1, 4)
+def _advance_quasi_static_filters(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_QUASI_STATIC,
+                  True, -1, 4, 5)
 
 
 @_jit
-def _advance_force_filters(y, u, p, stops, method, substeps, h, coef, work):
-    _advance(y, u, p, stops, method, substeps, h, coef, work, ARM_FORCE, -1, 4, 5, 6)
+def _advance_quasi_static(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_QUASI_STATIC,
+                  False, -1, -1, -1)
 
 
 @_jit
-def _advance_force(y, u, p, stops, method, substeps, h, coef, work):
-    _advance(y, u, p, stops, method, substeps, h, coef, work, ARM_FORCE, -1, -1, -1, 4)
+def _advance_force_filters(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_FORCE, True,
+                  -1, 4, 5)
+
+
+@_jit
+def _advance_force(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_FORCE, False,
+                  -1, -1, -1)
+
+
+# Rigs per task of the parallel loop: the columns of a task (7 x 256 doubles, 14 KiB)
+# stay in the core's first-level cache through the substeps.
+CHUNK = 256
 
 
 @_inline
-def _rows(advance, ys, us, p, stops, method, substeps, h, coef):
+def _chunks(advance, ys, us, p, stops, method, substeps, h, coef):
     rows = ys.shape[0]
-    chunk = 64
-    for c in numba.prange((rows + chunk - 1) // chunk):
-        work = np.empty((WORK_ROWS, WORK_WIDTH))
-        for row in range(c * chunk, min(rows, (c + 1) * chunk)):
-            advance(ys[row], us[row], p, stops, method, substeps, h, coef, work)
+    for c in numba.prange((rows + CHUNK - 1) // CHUNK):
+        advance(ys, us, c * CHUNK, min(rows, (c + 1) * CHUNK), p, stops, method, substeps,
+                h, coef)
 
 
 _parallel = numba.njit(cache=True, parallel=True, error_model="numpy")
@@ -806,32 +883,48 @@ _parallel = numba.njit(cache=True, parallel=True, error_model="numpy")
 
 @_parallel
 def _many_full_filters(ys, us, p, stops, method, substeps, h, coef):
-    _rows(_advance_full_filters, ys, us, p, stops, method, substeps, h, coef)
+    _chunks(_advance_full_filters, ys, us, p, stops, method, substeps, h, coef)
 
 
 @_parallel
 def _many_full(ys, us, p, stops, method, substeps, h, coef):
-    _rows(_advance_full, ys, us, p, stops, method, substeps, h, coef)
+    _chunks(_advance_full, ys, us, p, stops, method, substeps, h, coef)
 
 
 @_parallel
 def _many_quasi_static_filters(ys, us, p, stops, method, substeps, h, coef):
-    _rows(_advance_quasi_static_filters, ys, us, p, stops, method, substeps, h, coef)
+    _chunks(_advance_quasi_static_filters, ys, us, p, stops, method, substeps, h, coef)
 
 
 @_parallel
 def _many_quasi_static(ys, us, p, stops, method, substeps, h, coef):
-    _rows(_advance_quasi_static, ys, us, p, stops, method, substeps, h, coef)
+    _chunks(_advance_quasi_static, ys, us, p, stops, method, substeps, h, coef)
 
 
 @_parallel
 def _many_force_filters(ys, us, p, stops, method, substeps, h, coef):
-    _rows(_advance_force_filters, ys, us, p, stops, method, substeps, h, coef)
+    _chunks(_advance_force_filters, ys, us, p, stops, method, substeps, h, coef)
 
 
 @_parallel
 def _many_force(ys, us, p, stops, method, substeps, h, coef):
-    _rows(_advance_force, ys, us, p, stops, method, substeps, h, coef)
+    _chunks(_advance_force, ys, us, p, stops, method, substeps, h, coef)
+
+
+@_inline
+def _rhs_into(y, u, p, out, arm, filt, ii, vir, vcur):
+    s = (y[0], y[1], y[2], y[3], y[ii] if ii >= 0 else 0.0, y[vir] if vir >= 0 else 0.0,
+         y[vcur] if vir >= 0 else 0.0)
+    f = _rhs(s, u, _constants(p, True), arm, filt)
+    out[0] = f[0]
+    out[1] = f[1]
+    out[2] = f[2]
+    out[3] = f[3]
+    if ii >= 0:
+        out[ii] = f[4]
+    if vir >= 0:
+        out[vir] = f[5]
+        out[vcur] = f[6]
 
 
 @_jit
@@ -839,17 +932,54 @@ def rhs_one(y, u, p, arm, filters, out):
     """Full right-hand side y' into ``out`` for the layout (arm, filters)."""
     if filters:
         if arm == ARM_FULL:
-            _rhs(y, u, p, out, ARM_FULL, 4, 5, 6)
+            _rhs_into(y, u, p, out, ARM_FULL, True, 4, 5, 6)
         elif arm == ARM_QUASI_STATIC:
-            _rhs(y, u, p, out, ARM_QUASI_STATIC, -1, 4, 5)
+            _rhs_into(y, u, p, out, ARM_QUASI_STATIC, True, -1, 4, 5)
         else:
-            _rhs(y, u, p, out, ARM_FORCE, -1, 4, 5)
+            _rhs_into(y, u, p, out, ARM_FORCE, True, -1, 4, 5)
     elif arm == ARM_FULL:
-        _rhs(y, u, p, out, ARM_FULL, 4, -1, -1)
+        _rhs_into(y, u, p, out, ARM_FULL, False, 4, -1, -1)
     elif arm == ARM_QUASI_STATIC:
-        _rhs(y, u, p, out, ARM_QUASI_STATIC, -1, -1, -1)
+        _rhs_into(y, u, p, out, ARM_QUASI_STATIC, False, -1, -1, -1)
     else:
-        _rhs(y, u, p, out, ARM_FORCE, -1, -1, -1)
+        _rhs_into(y, u, p, out, ARM_FORCE, False, -1, -1, -1)
+
+
+@_jit
+def end_stops(y, p):
+    """The end stops on one rig's state array, in place (any layout: they touch x,
+    x_dot and theta_dot only)."""
+    s = _end_stops((y[0], y[1], y[2], y[3], 0.0, 0.0, 0.0), _constants(p, True))
+    y[0] = s[0]
+    y[1] = s[1]
+    y[3] = s[3]
+
+
+@_jit
+def apply_add(op, v, c, out):
+    """:func:`_apply_add` on arrays, full armature and filters (for tests)."""
+    o = _apply_add((op[0], op[1], op[2], op[3], op[4], op[5], op[6], op[7], op[8], op[9],
+                    op[10], op[11], op[12], op[13]),
+                   (v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8]),
+                   (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9], c[10]),
+                   (out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7], out[8]),
+                   True, True)
+    for j in range(9):
+        out[j] = o[j]
+
+
+@_jit
+def apply_add_n(op, v, c, out):
+    """:func:`_apply_add_n` on arrays, full armature and filters (for tests)."""
+    o = _apply_add_n((op[0], op[1], op[2], op[3], op[4], op[5], op[6], op[7], op[8], op[9],
+                      op[10], op[11], op[12], op[13]),
+                     (v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8]),
+                     (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9], c[10]),
+                     (out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7],
+                      out[8]),
+                     True, True)
+    for j in range(9):
+        out[j] = o[j]
 
 
 _ENTRY_POINTS = {
@@ -890,6 +1020,8 @@ def warm_up() -> float:
             one = plant.initial_state(0.0)
             plant.advance(one, 1.0, 0.005)
             plant.advance(plant.initial_state(np.zeros(2)), np.zeros(2), 0.005)
+            many = CHUNK + 1  # the parallel entry point
+            plant.advance(plant.initial_state(np.zeros(many)), np.zeros(many), 0.005)
             plant.derivative(one, 0.0)
             plant.end_stops(one)
     return time.perf_counter() - start

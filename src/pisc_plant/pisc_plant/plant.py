@@ -157,7 +157,7 @@ class Plant:
             self.lam[self.layout.current_sensor_index] = -self._p[kernel.P_WCUR]
         self._method = kernel.METHODS.index(c.integrator.method)
         self._coefficients: dict[float, np.ndarray] = {}
-        self._work = np.empty((kernel.WORK_ROWS, kernel.WORK_WIDTH))
+        self._u1 = np.zeros(1)  # the one rig's input, for the kernel's rows
         self.nominal_substep_s = c.loop.period_s / c.integrator.substeps
         stiffest = float(np.max(-self.lam, initial=0.0))
         if c.integrator.method == "rk4" and self.nominal_substep_s * stiffest >= RK4_STABILITY:
@@ -272,14 +272,15 @@ class Plant:
         if np.ndim(y) == 1 and np.ndim(command) == 0 and len(y) == self.size:
             # one rig, one command: the same kernel call without the array bookkeeping
             out = np.array(y, dtype=float)
-            u = (float(command) if self.force_input
-                 else self.config.actuator.apply_scalar(command))
-            self._kernels.advance(out, u, self._p, stops, self._method, n, h, coef, self._work)
+            self._u1[0] = (float(command) if self.force_input
+                           else self.config.actuator.apply_scalar(command))
+            self._kernels.advance(out.reshape(1, -1), self._u1, 0, 1, self._p, stops,
+                                  self._method, n, h, coef)
             return out
         ys, us = self._rows(y, command)
-        if ys.shape[0] == 1:
-            self._kernels.advance(ys[0], us[0], self._p, stops, self._method, n, h, coef,
-                                  self._work)
+        if ys.shape[0] <= kernel.CHUNK:
+            self._kernels.advance(ys, us, 0, ys.shape[0], self._p, stops, self._method, n, h,
+                                  coef)
         else:
             self._kernels.advance_many(ys, us, self._p, stops, self._method, n, h, coef)
         return ys.reshape(np.shape(y))

@@ -72,7 +72,7 @@ def test_structured_operators_equal_the_matrix_phi_functions():
             v = np.zeros(9)
             v[j] = 1.0
             out = np.zeros(9)
-            kernel.apply_add(table[op], v, c, out, 4, 7, 5, 6)
+            kernel.apply_add(table[op], v, c, out)
             got[:, j] = out
         np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-13 * np.abs(expected).max())
         # the form for the nonlinear part's vectors (zero x, theta, r, s) agrees
@@ -80,7 +80,7 @@ def test_structured_operators_equal_the_matrix_phi_functions():
             v = np.zeros(9)
             v[j] = 1.0
             out = np.zeros(9)
-            kernel.apply_add_n(table[op], v, c, out, 4, 7, 5, 6)
+            kernel.apply_add_n(table[op], v, c, out)
             np.testing.assert_allclose(out, got[:, j], rtol=1e-12, atol=1e-300)
 
 
@@ -218,11 +218,17 @@ def test_a_voltage_step_adds_no_error_of_its_own(theta_dot):
 
 
 def test_batch_and_single_rig_are_bit_identical():
+    """A rig gets the same bits alone, in a vectorised loop body (four rigs a register)
+    and in a loop's remainder, in the parallel path (more than two chunks) and the
+    serial one."""
     plant = Plant(PlantConfig(integrator=IntegratorParams("exprk4", 2)))
-    starts = np.linspace(-0.1, 0.1, 130)  # more than two of the kernel's chunks
+    rigs = 2 * kernel.CHUNK + 87
+    starts = np.linspace(-0.1, 0.1, rigs)
+    commands = np.linspace(-11, 11, rigs)
     batch = plant.initial_state(starts, 0.1, 3.0, 1.0)
-    commands = np.linspace(-11, 11, 130)
     out = plant.advance(batch, commands, 0.005)
-    for k in (0, 63, 64, 129):
+    few = plant.advance(batch[:7], commands[:7], 0.005)  # serial: one body, 3 remainder
+    np.testing.assert_array_equal(few, out[:7])
+    for k in (0, 3, 4, 6, kernel.CHUNK - 1, kernel.CHUNK, rigs - 2, rigs - 1):
         single = plant.advance(plant.initial_state(starts[k], 0.1, 3.0, 1.0), commands[k], 0.005)
         np.testing.assert_array_equal(out[k], single)
