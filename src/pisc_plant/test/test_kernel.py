@@ -227,7 +227,7 @@ def test_batch_and_single_rig_are_bit_identical():
     commands = np.linspace(-11, 11, rigs)
     batch = plant.initial_state(starts, 0.1, 3.0, 1.0)
     out = plant.advance(batch, commands, 0.005)
-    few = plant.advance(batch[:7], commands[:7], 0.005)  # serial: one body, 3 remainder
+    few = plant.advance(batch[:7], commands[:7], 0.005)  # the serial path
     np.testing.assert_array_equal(few, out[:7])
     for k in (0, 3, 4, 6, kernel.CHUNK - 1, kernel.CHUNK, rigs - 2, rigs - 1):
         single = plant.advance(plant.initial_state(starts[k], 0.1, 3.0, 1.0), commands[k], 0.005)

@@ -44,7 +44,7 @@ def test_each_value_is_the_same_alone_and_in_a_loop_and_within_4_ulp_of_libm():
     for k in (0, 1, 2, 3, 4, 1234, a.size - 3, a.size - 2, a.size - 1):
         np.testing.assert_array_equal(out[:, k], _one(a[k], b[k], e[k]))
     reference = np.array([[math.sin(x) for x in a], [math.cos(x) for x in a],
-                          [math.tanh(x) for x in a], [y ** x for x, y in zip(e, b)]])
+                          [math.tanh(x) for x in a], [y ** x for x, y in zip(e, b, strict=True)]])
     ulps = np.abs(out - reference) / np.spacing(np.abs(reference))
     assert np.max(ulps) <= 4.0, np.max(ulps, axis=1)
 
