@@ -22,7 +22,7 @@ from pisc_control.estimator import EstimatorState, estimator_update
 from pisc_control.supervisor import Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_plant.dynamics import wrap_to_upright
-from pisc_plant.plant import THETA, Plant, X
+from pisc_plant.plant import THETA, Plant, PlantConfig, X
 from pisc_plant.sampled import SampledPlant
 
 __all__ = ["BatchOutcome", "Controllers", "CycleLog", "CycleOutputs", "plant_command",
@@ -42,11 +42,12 @@ class CycleLog:
         return self.data[:, COLUMNS.index(name)]
 
 
-def plant_command(config: GraphConfig, i_d: Any, voltage: Any) -> Any:
+def plant_command(plant: PlantConfig, i_d: Any, voltage: Any) -> Any:
     """What the plant is driven by: the voltage, or with an ideal current loop
-    (``models.current_loop = ideal``) the force k_m i_d / r of the set-point (4.2)."""
-    if config.plant.models.force_input:
-        return config.plant.motor.force_per_amp * i_d
+    (``models.current_loop = ideal``) the force k_m i_d / r of the set-point (4.2), with
+    the plant's own k_m / r, as the plant node does."""
+    if plant.models.force_input:
+        return plant.motor.force_per_amp * i_d
     return voltage
 
 
@@ -107,8 +108,12 @@ class Controllers:
 
 
 def simulate(config: GraphConfig, duration_s: float) -> CycleLog:
-    """Run the closed loop from ``config.initial`` for ``duration_s`` (inclusive)."""
-    plant = Plant(config.plant)
+    """Run the closed loop from ``config.initial`` for ``duration_s`` (inclusive).
+
+    The plant is ``config.simulated_plant`` (with model error, not the controllers'
+    model), its command latency ``actuator.command_delay_s``.
+    """
+    plant = Plant(config.simulated_plant)
     i0 = config.initial
     sampled = SampledPlant(plant, plant.initial_state(i0.x_m, i0.x_dot_mps, i0.theta_rad,
                                                       i0.theta_dot_radps))
@@ -121,7 +126,7 @@ def simulate(config: GraphConfig, duration_s: float) -> CycleLog:
         rows.append((sampled.time_ns * 1e-9, sample.position_m, sample.angle_rad, out.x_dot,
                      out.theta_dot, sample.current_a, out.i_d, out.voltage, out.force,
                      out.mode.code, *sample.true_state))
-        sampled.command(plant_command(config, out.i_d, out.voltage))
+        sampled.command(plant_command(plant.config, out.i_d, out.voltage))
         sampled.advance()
     return CycleLog(np.array(rows))
 
@@ -136,28 +141,39 @@ class BatchOutcome:
     hold_theta_rad: np.ndarray  # largest |theta| from hold_start_s on
     hold_x_m: np.ndarray
     faulted: np.ndarray
+    first_catch_s: np.ndarray | None = None  # first time in catch; inf if never
+    # RMS of the current set-point i_d from hold_start_s on (the hold's chatter)
+    hold_setpoint_rms_a: np.ndarray | None = None
 
 
 def simulate_batch(
     config: GraphConfig,
-    x0_m: np.ndarray,
+    x0_m: ArrayLike,
     duration_s: float,
     hold_start_s: float = 6.0,
-    command_delay_s: float = 0.0,
+    command_delay_s: ArrayLike = 0.0,
     *,
     x_dot0_mps: ArrayLike | None = None,
     theta0_rad: ArrayLike | None = None,
     theta_dot0_radps: ArrayLike | None = None,
     prime_estimator: bool = False,
+    plant: PlantConfig | None = None,
+    noise_seed: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> BatchOutcome:
     """The cycle of :func:`simulate` for many starting states at once.
 
-    The same cores over arrays (one rig per element). ``command_delay_s`` applies each
-    voltage that long after its sample, as a real-time graph's latency does. Results
+    The same cores over arrays (one rig per element). ``command_delay_s`` (one value, or
+    one per rig) applies each voltage that long after its sample, as a real-time
+    graph's latency does, on top of the plant's ``actuator.command_delay_s``. Results
     agree with :func:`simulate` to rounding; they are not guaranteed bit for bit,
     because numpy may evaluate array and scalar expressions with different
     instructions.
+
+    ``plant`` is the simulated plant (default ``config.simulated_plant``); a plant set
+    (:func:`pisc_plant.plant.plant_set`) gives every rig its own physical parameters,
+    while the controllers keep ``config``'s model. ``noise_seed`` replaces the plant's
+    ``noise.seed`` (a batch draws one generator for all its rigs).
 
     The initial velocity, angle and rate default to ``config.initial``; given, they
     broadcast with ``x0_m`` (e.g. a grid over angle and rate for a region of
@@ -166,7 +182,8 @@ def simulate_batch(
     the first difference (4.7), (4.9) sees the initial rates instead of zero: a rig
     that was already moving. ``progress(k, n)`` is called after each of the n cycles.
     """
-    plant = Plant(config.plant)
+    plant_config = config.simulated_plant if plant is None else plant
+    sim = Plant(plant_config)
     i0 = config.initial
     start = [np.asarray(v, dtype=float) for v in (
         x0_m,
@@ -175,32 +192,42 @@ def simulate_batch(
         i0.theta_dot_radps if theta_dot0_radps is None else theta_dot0_radps)]
     shape = np.broadcast_shapes(*(v.shape for v in start))
     x0 = np.broadcast_to(start[0], shape).copy()
-    y = plant.initial_state(x0, *start[1:])
+    y = sim.initial_state(x0, *start[1:])
     supervisor = Supervisor(config.supervisor)
     period = config.loop.period_s
+    delay = np.asarray(command_delay_s, dtype=float) + plant_config.actuator.command_delay_s
+    if np.any(~np.isfinite(delay)) or np.any(delay < 0.0) or np.any(delay >= period):
+        raise ValueError(f"command delay must lie in [0, {period}) s (one period)")
+    if delay.ndim:
+        delay = np.broadcast_to(delay, shape).reshape(-1).copy()
     est_state = EstimatorState()
     if prime_estimator:
-        earlier = plant.initial_state(x0 - start[1] * period, start[1],
-                                      start[2] - start[3] * period, start[3])
-        x_prev, theta_prev, _ = plant.measurement(earlier)
+        earlier = sim.initial_state(x0 - start[1] * period, start[1],
+                                    start[2] - start[3] * period, start[3])
+        x_prev, theta_prev, _ = sim.measurement(earlier)
         est_state = EstimatorState(x_prev, theta_prev, np.broadcast_to(start[1], shape),
                                    np.broadcast_to(start[3], shape))
     sup_state = SupervisorState()
     cl_state = CurrentLoopState(np.zeros_like(x0))
     applied = np.zeros_like(x0)
     caught_at = np.full(x0.shape, np.inf)
+    first_catch = np.full(x0.shape, np.inf)
     x_min = x0.copy()
     x_max = x0.copy()
     hold_theta = np.zeros_like(x0)
     hold_x = np.zeros_like(x0)
+    hold_i2 = np.zeros_like(x0)
+    hold_cycles = 0
     faulted = np.zeros(x0.shape, dtype=bool)
     previous_mode = np.full(x0.shape, Mode.SWING_UP.code)
-    rng = np.random.default_rng(config.plant.noise.seed) if config.plant.noise.any else None
+    noise = plant_config.noise
+    seed = noise.seed if noise_seed is None else noise_seed
+    rng = np.random.default_rng(seed) if noise.any else None
     cycles = int(round(duration_s / period)) + 1
     for k in range(cycles):
         t = k * period
-        noise = None if rng is None else rng.standard_normal(x0.shape + (3,))
-        x, theta, current = plant.measurement(y, applied, noise)
+        draws = None if rng is None else rng.standard_normal(x0.shape + (3,))
+        x, theta, current = sim.measurement(y, applied, draws)
         est_state, x_dot, theta_dot = estimator_update(
             config.estimator, period, est_state, x, theta)
         sup_state, force, mode = supervisor.update(sup_state, x, x_dot, theta, theta_dot)
@@ -211,21 +238,30 @@ def simulate_batch(
         cl_state, voltage = current_loop_update(config.current_loop, period, cl_state, i_d,
                                                 current)
         voltage = np.where(fault, 0.0, voltage)
-        command = np.where(fault, 0.0, plant_command(config, i_d, voltage))
-        entered = (mode == Mode.CATCH.code) & (previous_mode != Mode.CATCH.code)
-        caught_at = np.where(entered, t, np.where(mode == Mode.CATCH.code, caught_at, np.inf))
+        command = np.where(fault, 0.0, plant_command(plant_config, i_d, voltage))
+        catching = mode == Mode.CATCH.code
+        entered = catching & (previous_mode != Mode.CATCH.code)
+        caught_at = np.where(entered, t, np.where(catching, caught_at, np.inf))
+        first_catch = np.where(catching & ~np.isfinite(first_catch), t, first_catch)
         previous_mode = mode
         if t >= hold_start_s:
             hold_theta = np.maximum(hold_theta, np.abs(wrap_to_upright(y[..., THETA])))
             hold_x = np.maximum(hold_x, np.abs(y[..., X]))
-        if command_delay_s > 0.0:
-            y = plant.advance(y, applied, command_delay_s)
-            y = plant.advance(y, command, period - command_delay_s)
+            hold_i2 += np.where(fault, 0.0, i_d) ** 2
+            hold_cycles += 1
+        if delay.ndim:
+            flat = y.reshape(-1, y.shape[-1])
+            flat = sim.advance(flat, applied.reshape(-1), delay)
+            y = sim.advance(flat, command.reshape(-1), period - delay).reshape(y.shape)
+        elif delay > 0.0:
+            y = sim.advance(y, applied, float(delay))
+            y = sim.advance(y, command, period - float(delay))
         else:
-            y = plant.advance(y, command, period)
+            y = sim.advance(y, command, period)
         applied = command
         x_min = np.minimum(x_min, y[..., X])
         x_max = np.maximum(x_max, y[..., X])
         if progress is not None:
             progress(k + 1, cycles)
-    return BatchOutcome(caught_at, x_min, x_max, hold_theta, hold_x, faulted)
+    rms = np.sqrt(hold_i2 / hold_cycles) if hold_cycles else np.full(x0.shape, np.nan)
+    return BatchOutcome(caught_at, x_min, x_max, hold_theta, hold_x, faulted, first_catch, rms)

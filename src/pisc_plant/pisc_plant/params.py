@@ -148,6 +148,11 @@ class ActuatorParams:
                                 "(12.27 V supply less 0.8 V bridge drop)", "V", positive)
     command_levels: int = param(127, "magnitude steps of the command byte (0 = ideal, "
                                 "unquantised voltage)", "", in_range(0, 1 << 16))
+    command_delay_s: float = param(
+        0.0, "simulated command latency: the command answering a sample takes effect this "
+        "long after it (the simulated plant and the pure simulations; on the wall clock the "
+        "graph's own latency comes on top; the virtual rig and the driver ignore it: their "
+        "latency is real)", "s", in_range(0.0, 1.0))
 
     @property
     def step_v(self) -> float:

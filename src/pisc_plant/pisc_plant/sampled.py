@@ -3,7 +3,8 @@
 :class:`SampledPlant` turns the continuous plant into the rig's sampled interface:
 ``sample()`` gives the measurement of the current sample (and the true state, for
 analysis); ``command(voltage, delay_s)`` gives the voltage answering it, applied
-``delay_s`` into the period as the PIC applies a command byte on arrival; ``advance()``
+``delay_s`` (plus the plant's simulated latency, ``actuator.command_delay_s``) into the
+period as the PIC applies a command byte on arrival; ``advance()``
 integrates to the next sample, holding the previous voltage until the new one applies.
 It reads no clock: the node passes the delay it measured (wall clock) or zero
 (lockstep), so the same object serves real-time runs, lockstep runs and batch tests.
@@ -42,6 +43,7 @@ class SampledPlant:
         self.period_ns = plant.config.loop.period_ns
         self.applied_v = 0.0  # voltage held since the last command took effect
         self._next: tuple[float, float] | None = None  # (voltage, delay) for this period
+        self._latency_s = plant.config.actuator.command_delay_s
         noise = plant.config.noise
         # same scene and seed, same draws: one generator per simulated rig
         self._rng = np.random.default_rng(noise.seed) if noise.any else None
@@ -68,14 +70,15 @@ class SampledPlant:
         return self._next is not None
 
     def command(self, voltage_v: float, delay_s: float = 0.0) -> None:
-        """The voltage answering the current sample, taking effect ``delay_s`` after it.
+        """The voltage answering the current sample, taking effect ``delay_s`` after it,
+        plus the plant's simulated latency ``actuator.command_delay_s``.
 
         A delay of a period or more means the command missed this period; it then
         takes effect at the start of the next one.
         """
         if not np.isfinite(voltage_v):
             raise ValueError(f"voltage command {voltage_v} is not finite")
-        self._next = (float(voltage_v), max(0.0, float(delay_s)))
+        self._next = (float(voltage_v), max(0.0, float(delay_s)) + self._latency_s)
 
     def advance(self) -> None:
         """Integrate to the next sample."""
