@@ -31,7 +31,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_control.catch import CatchParams, catch_force, catch_gain
-from pisc_control.swing_up import SwingUpParams, check_gain_condition, swing_up_force
+from pisc_control.swing_up import (
+    SwingUpParams,
+    check_gain_condition,
+    energy_pump_force,
+    swing_up_force,
+)
 from pisc_msgs_py.config import ConfigError, nonnegative, param, positive
 from pisc_msgs_py.types import Mode
 from pisc_plant.dynamics import wrap_to_upright
@@ -176,7 +181,8 @@ class Supervisor:
         caught = caught | (new_mode == Mode.CATCH.code)
         target = np.where(caught, c.swing_up.target_m, startup_target)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            f_swing = swing_up_force(c.rig, c.swing_up, x, x_dot, theta, theta_dot, target)
+            law = energy_pump_force if c.swing_up.law == "energy_pump" else swing_up_force
+            f_swing = law(c.rig, c.swing_up, x, x_dot, theta, theta_dot, target)
             f_catch = catch_force(self.gain, x, x_dot, theta, theta_dot, c.catch.target_m)
         force = np.where(new_mode == Mode.CATCH.code, f_catch,
                          np.where(new_mode == Mode.SWING_UP.code, f_swing, 0.0))

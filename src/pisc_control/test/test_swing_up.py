@@ -1,4 +1,4 @@
-"""Swing-up law (3.30) and its gain condition (3.29)."""
+"""Swing-up laws: (3.30) and its gain condition (3.29), and the energy pump."""
 
 import math
 
@@ -8,7 +8,9 @@ import pytest
 from pisc_control.swing_up import (
     SwingUpParams,
     check_gain_condition,
+    energy_pump_force,
     gain_condition,
+    pendulum_energy,
     swing_up_force,
 )
 from pisc_msgs_py.config import ConfigError
@@ -75,3 +77,53 @@ def test_denominator_stays_positive_at_the_boundary_of_3_29():
     forces = swing_up_force(RIG, gains, *states.T)
     assert np.all(np.isfinite(forces))
     assert np.isfinite(swing_up_force(RIG, gains, 0.01, 0.0, math.pi, 0.0))
+
+
+PUMP = SwingUpParams(law="energy_pump", pump_gain=3.0, pump_accel_mps2=2.5, track_k_x=6.0,
+                     track_k_v=2.5, energy_target_j=0.0005, target_m=0.02)
+
+
+def test_energy_pump_at_a_worked_state():
+    """The law written out by hand from its docstring, with the thesis rig's numbers."""
+    x, x_d, th, th_d = 0.03, -0.2, 2.5, 4.0
+    m, l, i, g = RIG.pendulum_mass_kg, RIG.pendulum_com_m, RIG.pendulum_inertia_kgm2, 9.81
+    j = i + m * l * l
+    e_p = 0.5 * j * th_d**2 + m * g * l * (math.cos(th) - 1)
+    error = (0.0005 - e_p) / (2 * m * g * l)
+    u = 3.0 * error * th_d * math.cos(th) / math.sqrt(m * g * l / j)
+    a = -2.5 * max(-1.0, min(1.0, u)) - 6.0 * (x - 0.02) - 2.5 * x_d
+    a1 = m * m * l * l / j
+    a2 = RIG.cart_mass_kg + m
+    expected = ((a2 - a1 * math.cos(th) ** 2) * a + a1 * g * math.sin(th) * math.cos(th)
+                - m * l * th_d**2 * math.sin(th))
+    assert energy_pump_force(RIG, PUMP, x, x_d, th, th_d) == pytest.approx(expected, rel=1e-13)
+
+
+def test_energy_pump_gives_the_cart_the_acceleration_it_asks_for_and_pumps_towards_e_ref():
+    """Through (3.3) the cart's acceleration is the law's a; without the track terms the
+    pendulum's energy rises below E_ref and falls above it, at most at m l a_max |theta_dot|."""
+    gains = SwingUpParams(law="energy_pump", pump_gain=50.0, pump_accel_mps2=2.0,
+                          track_k_x=0.0, track_k_v=0.0, energy_target_j=0.0)
+    rng = np.random.default_rng(5)
+    states = rng.uniform([-0.2, -1, -7, -12], [0.1, 1, 7, 12], size=(2000, 4))
+    x, x_d, th, th_d = states.T
+    f = energy_pump_force(RIG, gains, x, x_d, th, th_d)
+    x_dd, th_dd = accelerations(RIG, th, th_d, f)
+    j = RIG.pendulum_inertia_kgm2 + RIG.ml * RIG.pendulum_com_m
+    e_dot = j * th_d * th_dd - RIG.mgl * np.sin(th) * th_d  # d/dt of pendulum_energy
+    e_p = pendulum_energy(RIG, th, th_d)
+    assert np.all(np.abs(x_dd) <= 2.0 + 1e-9)
+    assert np.all(np.sign(e_dot[np.abs(e_dot) > 1e-12]) == -np.sign(e_p)[np.abs(e_dot) > 1e-12])
+    assert np.all(np.abs(e_dot) <= RIG.ml * 2.0 * np.abs(th_d) + 1e-12)
+
+
+def test_energy_pump_leaves_a_rig_hanging_at_rest_at_its_target_alone():
+    assert energy_pump_force(RIG, PUMP, 0.02, 0.0, math.pi, 0.0) == pytest.approx(0.0, abs=1e-15)
+
+
+def test_energy_pump_has_no_gain_condition():
+    check_gain_condition(RIG, SwingUpParams(law="energy_pump", k_v=1e-6, k_e=10.0))
+    with pytest.raises(ConfigError, match="swing_up.law"):
+        from pisc_msgs_py.config import from_flat
+
+        from_flat(SwingUpParams, {"swing_up.law": "bang_bang"}, "swing_up")
