@@ -14,18 +14,24 @@ long to run, whether the controllers close the loop and what ``pisc_graph`` reco
         models: {armature: ideal_force, current_loop: ideal, sensors: ideal,
                  sensor_filters: false}
         initial: {x_m: 0.05}
+      plant:                      # optional, model error: the plant only (sections it reads)
+        motor: {resistance_ohm: 18.2}
       record: [/pisc/state]       # optional: besides the run's own topics; default: all
 
 Scenes ship in ``pisc_bringup/scenes``; :func:`load_scene` takes a name or a path. The
-scene's flat parameters are what every node of the graph gets, and
-:func:`write_scene_params` writes them as a ROS 2 parameter file for ``ros2 run``.
+scene's flat parameters are what the controllers get, and :func:`write_scene_params`
+writes them as a ROS 2 parameter file for ``ros2 run``. The ``plant:`` block goes on top
+of them for the plant (simulator or virtual rig) alone, after ``parameters``
+(:func:`pisc_bringup.configuration.load_run_config`): ``scene.config.true_plant`` is then
+the plant that is simulated, ``scene.plant_flat`` its parameters
+(``write_scene_params(scene, path, plant=True)``).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +39,9 @@ import yaml
 
 from pisc_bringup.configuration import (
     CONFIG_DIR,
+    PLANT_READS,
     GraphConfig,
-    load_graph_config,
+    load_run_config,
     write_params_file,
 )
 from pisc_control.supervisor import Supervisor
@@ -46,7 +53,8 @@ __all__ = ["DEFAULT_SCENE", "SCENE_DIR", "Scene", "load_scene", "scene_names", "
 SCENE_DIR = CONFIG_DIR.parent / "scenes"
 DEFAULT_SCENE = "thesis-rig"
 CONTROLLERS = ("graph", "none")
-KEYS = ("description", "configuration", "duration_s", "controller", "parameters", "record")
+KEYS = ("description", "configuration", "duration_s", "controller", "parameters", "plant",
+        "record")
 
 
 @dataclass(frozen=True)
@@ -62,6 +70,10 @@ class Scene:
     # topics pisc_graph records besides the run's own (pisc_bringup.graph.RUN_TOPICS);
     # None: every topic
     record: tuple[str, ...] | None = None
+    # model error: flat overrides of the plant only (the plant: block), applied after
+    # ``overrides``; and the plant's flat parameters (``flat`` without model error)
+    plant_overrides: dict[str, Any] = field(default_factory=dict)
+    plant_flat: dict[str, Any] = field(default_factory=dict)
 
     @property
     def closed_loop(self) -> bool:
@@ -83,8 +95,10 @@ def scene_path(name_or_path: str) -> Path:
                       "or scene file")
 
 
-def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) -> Scene:
-    """Read and check a scene; ``overrides`` (flat names) go on top of the scene's own.
+def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None,
+               plant_overrides: Mapping[str, Any] | None = None) -> Scene:
+    """Read and check a scene; ``overrides`` (flat names) go on top of the scene's own
+    parameters, ``plant_overrides`` on top of its ``plant:`` block.
 
     Raises :class:`ConfigError` naming the file and the offending key or parameter.
     """
@@ -122,15 +136,31 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
         raise ConfigError(f"{path}: scene.parameters must be a mapping of sections")
     flat_overrides = flatten(parameters)
     flat_overrides.update(overrides or {})
+    plant = body.get("plant") or {}
+    if not isinstance(plant, Mapping):
+        raise ConfigError(f"{path}: scene.plant must be a mapping of sections (the plant's "
+                          "parameters, as in a parameter file)")
+    plant_flat_overrides = flatten(plant)
+    for name in plant_flat_overrides:
+        section = name.split(".", 1)[0]
+        if section not in PLANT_READS:
+            raise ConfigError(
+                f"{path}: scene.plant.{name}: the plant does not read section '{section}' "
+                f"(it reads {', '.join(PLANT_READS)}); the controllers' parameters go "
+                "under scene.parameters")
+    plant_flat_overrides.update(plant_overrides or {})
     try:
-        config, flat = load_graph_config(configuration, flat_overrides)
+        config, flat, plant_flat = load_run_config(configuration, flat_overrides,
+                                                   plant_overrides=plant_flat_overrides)
         Supervisor(config.supervisor)  # refuses (3.29) and an uncontrollable linearisation
     except ConfigError as exc:
         raise ConfigError(f"scene {path.stem}: {exc}") from exc
     return Scene(path.stem, str(body.get("description", "")), configuration, float(duration),
-                 controller, flat_overrides, config, flat, record)
+                 controller, flat_overrides, config, flat, record, plant_flat_overrides,
+                 plant_flat)
 
 
-def write_scene_params(scene: Scene, path: Path) -> None:
-    """The scene as a ROS 2 parameter file every node of the graph reads."""
-    write_params_file(path, scene.flat)
+def write_scene_params(scene: Scene, path: Path, plant: bool = False) -> None:
+    """The scene as a ROS 2 parameter file: the one the controllers read, or with
+    ``plant`` the plant's (its ``plant:`` block on top)."""
+    write_params_file(path, scene.plant_flat if plant else scene.flat)

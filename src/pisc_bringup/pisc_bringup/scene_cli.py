@@ -2,6 +2,8 @@
 
     pisc_scene list                         the shipped scenes and what they model
     pisc_scene params NAME [-o FILE]        the scene's parameters for ros2 run --params-file
+                      [--plant]             (the controllers'; --plant: the plant's, with
+                                            the scene's plant: block)
     pisc_scene run NAME [--set N=V] [--duration S]
                                             simulate the scene in this process (the pure
                                             closed loop, or open loop for controller: none)
@@ -25,7 +27,7 @@ from pisc_plant.plant import Plant
 
 
 def _models(scene) -> str:
-    m = scene.config.plant.models
+    m = scene.config.simulated_plant.models
     return (f"armature {m.armature}, current loop {m.current_loop}, sensors {m.sensors}"
             f"{' + filters' if m.sensor_filters else ''}, friction {m.friction}, "
             f"end stops {'on' if m.end_stops else 'off'}")
@@ -33,10 +35,15 @@ def _models(scene) -> str:
 
 def run(scene, out) -> int:
     cfg = scene.config
-    plant = Plant(cfg.plant)
+    simulated = cfg.simulated_plant  # the scene's plant: block, if any (model error)
+    plant = Plant(simulated)
     print(f"scene {scene.name}: {scene.description}", file=out)
+    if scene.plant_overrides:
+        print("plant (model error): " + ", ".join(
+            f"{k}={v}" for k, v in scene.plant_overrides.items()), file=out)
     print(f"models: {_models(scene)}; state {', '.join(plant.state_names)}; integrator "
-          f"{cfg.plant.integrator.method}, {cfg.plant.integrator.substeps} steps/period", file=out)
+          f"{simulated.integrator.method}, {simulated.integrator.substeps} steps/period",
+          file=out)
     start = time.perf_counter()
     if scene.closed_loop:
         log = simulate(cfg, scene.duration_s)
@@ -53,7 +60,7 @@ def run(scene, out) -> int:
     y = plant.initial_state(i0.x_m, i0.x_dot_mps, i0.theta_rad, i0.theta_dot_radps)
     period = cfg.loop.period_s
     n = int(round(scene.duration_s / period))
-    rig = cfg.plant.rig
+    rig = simulated.rig
     e0 = float(energy(rig, y[1], y[2], y[3]))
     drift = 0.0
     for _ in range(n):
@@ -75,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     params.add_argument("scene")
     params.add_argument("-o", "--output", type=Path, help="file (default: standard output)")
     params.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    params.add_argument("--plant", action="store_true",
+                        help="the plant's parameters (with the scene's plant: block) instead "
+                        "of the controllers'")
     run_p = sub.add_parser("run", help="simulate a scene in this process")
     run_p.add_argument("scene")
     run_p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
@@ -93,9 +103,10 @@ def main(argv: list[str] | None = None) -> int:
         scene = load_scene(args.scene, overrides)
         if args.command == "params":
             if args.output is None:
-                sys.stdout.write(params_file_text(scene.flat))
+                sys.stdout.write(params_file_text(scene.plant_flat if args.plant
+                                                  else scene.flat))
             else:
-                write_scene_params(scene, args.output)
+                write_scene_params(scene, args.output, plant=args.plant)
             return 0
         if args.duration is not None:
             import dataclasses

@@ -114,6 +114,46 @@ def test_a_scene_says_what_pisc_graph_records(tmp_path):
     assert scene.record == ("/pisc/state", "/diagnostics")
 
 
+def test_a_scenes_plant_block_sets_the_plant_only(tmp_path, capsys):
+    """Model error in a scene: the plant: block is the simulated plant's, the controllers
+    keep the configuration's model; pisc_scene params writes either file."""
+    path = _write(tmp_path, """\
+        scene:
+          parameters: {initial: {x_m: 0.05}}
+          plant: {motor: {resistance_ohm: 18.2}}
+        """)
+    scene = load_scene(path)
+    assert scene.plant_overrides == {"motor.resistance_ohm": 18.2}
+    assert scene.config.true_plant.motor.resistance_ohm == 18.2
+    assert scene.config.simulated_plant is scene.config.true_plant
+    assert scene.config.plant.motor.resistance_ohm == 14.0
+    assert scene.config.initial.x_m == 0.05
+    assert (scene.flat["motor.resistance_ohm"], scene.plant_flat["motor.resistance_ohm"]) == (
+        14.0, 18.2)
+    # overrides given to load_scene go after the block
+    assert load_scene(path, plant_overrides={"motor.resistance_ohm": 20.0}).config.true_plant \
+        .motor.resistance_ohm == 20.0
+    assert load_scene(DEFAULT_SCENE).config.true_plant is None
+    for plant, value in (([], "14.0"), (["--plant"], "18.2")):
+        out = tmp_path / "p.yaml"
+        assert scene_main(["params", path, "-o", str(out), *plant]) == 0
+        assert f"resistance_ohm: {value}" in out.read_text()
+    assert scene_main(["run", path, "--duration", "0.5"]) == 0
+    assert "plant (model error): motor.resistance_ohm=18.2" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("plant,match", [
+    ("{motor: {nosuch: 1}}", r"motor.nosuch: unknown parameter"),
+    ("{swing_up: {k_v: 1}}",
+     r"scene.plant.swing_up.k_v: the plant does not read section 'swing_up'"),
+    ("{motor: {resistance_ohm: -1}}", r"motor.resistance_ohm = -1.0 must be positive"),
+    ("3", r"scene.plant must be a mapping of sections"),
+])
+def test_bad_plant_blocks_are_refused_naming_what_is_wrong(tmp_path, plant, match):
+    with pytest.raises(ConfigError, match=match):
+        load_scene(_write(tmp_path, f"scene:\n  plant: {plant}\n"))
+
+
 def test_a_scene_whose_linearisation_is_uncontrollable_is_refused(tmp_path):
     path = _write(tmp_path, """\
         scene:
