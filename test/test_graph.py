@@ -11,8 +11,9 @@ import pytest
 from conftest import DomainClaim
 from pisc_bringup.bag import read_bag
 from pisc_bringup.closed_loop import simulate
-from pisc_bringup.configuration import load_graph_config
-from pisc_bringup.graph import RunOptions, run_graph
+from pisc_bringup.configuration import load_graph_config, load_run_config
+from pisc_bringup.graph import RunOptions, main, run_graph
+from pisc_msgs_py.config import ConfigError, load_params_file
 from pisc_msgs_py.convert import mode_from_msg, motor_sample_from_msg
 from pisc_msgs_py.topics import DIAGNOSTICS, GRAPH_TOPICS, MODE, VOLTAGE
 from pisc_msgs_py.types import Mode
@@ -62,18 +63,96 @@ def test_every_topic_is_recorded_once_per_cycle(lockstep_runs):
     assert set(result.recorded) == {t.name for t in GRAPH_TOPICS}
 
 
+def recorded_voltages(bag_dir):
+    """The bag's voltages in the order of their stamps."""
+    voltages = {}
+    for m in read_bag(bag_dir, [VOLTAGE.name]):
+        sample = motor_sample_from_msg(m.message)
+        voltages[sample.stamp_ns] = sample.value
+    return np.array([voltages[s] for s in sorted(voltages)])
+
+
 def test_lockstep_graph_reproduces_the_pure_closed_loop_bit_for_bit(lockstep_runs):
     """Same cores, same order: every voltage of the ROS run equals the pure simulation's."""
     result = lockstep_runs[0.05]
     cfg, _ = load_graph_config("default", {"initial.x_m": 0.05})
     log = simulate(cfg, 10.0)
-    voltages = {}
-    for m in read_bag(result.bag_dir, [VOLTAGE.name]):
-        sample = motor_sample_from_msg(m.message)
-        voltages[sample.stamp_ns] = sample.value
-    recorded = np.array([voltages[s] for s in sorted(voltages)])
+    recorded = recorded_voltages(result.bag_dir)
     assert len(recorded) == len(log["u"])
     assert np.array_equal(recorded, log["u"])
+
+
+def test_a_plant_with_model_error_runs_its_own_parameters_bit_for_bit(tmp_path, domain_id,
+                                                                      capfd):
+    """pisc_graph --plant-set: the plant node runs R = 18.2 ohm, the controllers keep the
+    14 ohm they were designed on; the bag keeps both files, the header says so, and the
+    voltages are the pure simulation's of the same load_run_config, bit for bit."""
+    bag = tmp_path / "model-error"
+    status = main(["--x0", "0.05", "--duration", "3", "--bag", str(bag), "--domain-id",
+                   str(domain_id), "--plant-set", "motor.resistance_ohm=18.2"])
+    out = capfd.readouterr().out  # capfd: the EventsExecutor needs a real stderr
+    assert status in (0, 1), out
+    assert "; plant: default with motor.resistance_ohm=18.2" in out.splitlines()[0]
+    assert load_params_file(bag / "plant_params.yaml")["motor.resistance_ohm"] == 18.2
+    assert load_params_file(bag / "pisc_params.yaml")["motor.resistance_ohm"] == 14.0
+    cfg, _, _ = load_run_config("default", {"initial.x_m": 0.05},
+                                plant_overrides={"motor.resistance_ohm": 18.2})
+    log = simulate(cfg, 3.0)
+    recorded = recorded_voltages(bag)
+    assert len(recorded) == len(log["u"])
+    assert np.array_equal(recorded, log["u"])
+    # the model error shows: the plant without it gives other voltages
+    assert not np.array_equal(recorded, simulate(load_graph_config(
+        "default", {"initial.x_m": 0.05})[0], 3.0)["u"])
+
+
+@pytest.mark.parametrize("plant_set,named", [
+    ("swing_up.k_v=1", ["swing_up.k_v", "the plant does not read section 'swing_up'"]),
+    ("motor.nosuch=1", ["motor.nosuch", "unknown parameter"]),
+    ("motor.resistance_ohm=-1", ["motor.resistance_ohm", "positive"]),
+])
+def test_a_bad_plant_override_exits_2_naming_it_and_leaves_no_bag(tmp_path, domain_id, capsys,
+                                                                  plant_set, named):
+    bag = tmp_path / "refused"
+    status = main(["--duration", "1", "--bag", str(bag), "--domain-id", str(domain_id),
+                   "--plant-set", plant_set])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert all(text in err for text in named), err
+    assert "Traceback" not in err
+    assert not bag.exists()
+
+
+def test_plant_options_are_refused_with_the_driver(tmp_path, capsys):
+    """Through the serial driver the plant is the device (the rig, or pisc_virtual_rig
+    with a parameter file of its own): nothing here could set its parameters."""
+    bag = tmp_path / "driver"
+    assert main(["--driver", "/dev/null", "--bag", str(bag), "--plant-set",
+                 "motor.resistance_ohm=18.2"]) == 2
+    assert "the plant is the device: start pisc_virtual_rig" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="the plant is the device"):
+        run_graph(RunOptions(clock="wall", driver_port="/dev/null", plant_config="thesis",
+                             bag_dir=bag))
+    assert not bag.exists()
+
+
+def test_a_scenes_plant_block_and_plant_set_reach_the_run(tmp_path, monkeypatch):
+    """pisc_graph --scene: the scene's plant: block goes to the plant, --plant-set after it."""
+    import pisc_bringup.graph as graph
+
+    scene = tmp_path / "scene.yaml"
+    scene.write_text("scene:\n  plant: {motor: {resistance_ohm: 18.2, inductance_h: 0.02}}\n")
+    seen = []
+
+    def refuse(options):
+        seen.append(options)
+        raise ConfigError("stop here")
+
+    monkeypatch.setattr(graph, "run_graph", refuse)
+    assert main(["--scene", str(scene), "--plant-set", "motor.inductance_h=0.03",
+                 "--plant-config", "thesis"]) == 2
+    assert seen[0].plant_overrides == {"motor.resistance_ohm": 18.2, "motor.inductance_h": 0.03}
+    assert seen[0].plant_config == "thesis" and seen[0].config == "default"
 
 
 def test_wall_clock_graph_in_one_process_catches(tmp_path, domain_id):

@@ -3,6 +3,7 @@
     pisc_graph [--config default|thesis|FILE] [--x0 M] [--duration S]
                [--clock lockstep|wall] [--processes] [--executor events|single|multi]
                [--driver PORT] [--realtime PRIORITY] [--bag DIR] [--set NAME=VALUE ...]
+               [--plant-config default|thesis|FILE] [--plant-set NAME=VALUE ...]
 
 The recorder (``pisc_record``) always runs as a process of its own. By default the
 plant, estimator, supervisor and current loop run in this process on one
@@ -16,6 +17,14 @@ real device does not wait for a loaded machine (README, "Serial driver"). ``--sc
 takes a scene's configuration, overrides, duration and the topics it records
 (:mod:`pisc_bringup.scene`; ``--record`` replaces that list, and :data:`RUN_TOPICS` are
 recorded whatever it says).
+
+**Model error.** ``--plant-config`` and ``--plant-set`` (and a scene's ``plant:`` block)
+give the simulated plant other physical parameters than the controllers assume
+(:func:`pisc_bringup.configuration.load_run_config`): the plant node gets the plant's
+flat parameters, the controllers keep theirs. The bag holds both: ``pisc_params.yaml``
+(the controllers', which replay and analysis read) and ``plant_params.yaml`` (what the
+plant node got; written for every simulated run). With ``--driver`` the plant is the
+device and the plant options are refused.
 
 The plant starts publishing once its subscribers are matched (in one process, once
 every controller's are too) and the recorder has matched every publisher (a recorder
@@ -55,9 +64,10 @@ from rclpy.parameter import Parameter
 from rclpy.task import Future
 
 from pisc_bringup.bag import BagError
-from pisc_bringup.configuration import load_graph_config, write_params_file
+from pisc_bringup.configuration import load_run_config, write_params_file
 from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
+from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.base_node import message_class, qos_profile
 from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_msgs_py.topics import (
@@ -76,8 +86,9 @@ from pisc_msgs_py.topics import (
     graph_topics_named,
 )
 
-__all__ = ["GRAPH", "RUN_TOPICS", "NodeSpec", "RunOptions", "RunResult", "main",
-           "recorded_topics", "run_graph"]
+__all__ = ["CONTROLLERS_PARAMS", "GRAPH", "PLANT_PARAMS", "RUN_TOPICS", "NodeSpec",
+           "RunOptions", "RunResult", "main", "plant_description", "recorded_topics",
+           "run_graph"]
 
 
 @dataclass(frozen=True)
@@ -105,6 +116,11 @@ PLANT = GRAPH[-1]
 CONTROLLERS = GRAPH[:-1]
 DRIVER = NodeSpec("driver", "driver_node", "pisc_driver.driver_node", "DriverNode",
                   (VOLTAGE,), (JOINT_STATES, MOTOR_CURRENT, DIAGNOSTICS))
+
+
+# The bag's parameter files: the controllers' (replay and analysis read it) and the plant's.
+CONTROLLERS_PARAMS = "pisc_params.yaml"
+PLANT_PARAMS = "plant_params.yaml"
 
 
 # What a run records whatever is asked: the lockstep plant starts once a recorder of
@@ -157,6 +173,15 @@ class RunOptions:
     timeout_s: float | None = None  # wall-clock limit; default scales with duration
     driver_port: str | None = None  # run the serial driver on this port instead of the plant
     record: tuple[str, ...] | None = None  # topics to record (with RUN_TOPICS); None: all
+    # model error: the plant's own configuration (None: the controllers') and overrides
+    # applied to the plant only, after ``overrides`` (sections the plant reads)
+    plant_config: str | None = None
+    plant_overrides: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def initial_x_m(self) -> Any:
+        """The plant's initial cart position as set on the command line, else 'file'."""
+        return self.plant_overrides.get("initial.x_m", self.overrides.get("initial.x_m", "file"))
 
 
 @dataclass(frozen=True)
@@ -180,9 +205,22 @@ class GraphError(RuntimeError):
 
 def _default_bag_dir(options: RunOptions) -> Path:
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S-%f")
-    x0 = options.overrides.get("initial.x_m", "file")
+    x0 = options.initial_x_m
     name = Path(options.config).stem
     return Path("bags") / f"run-{name}-{options.clock}-x0_{x0}-{stamp}"
+
+
+def plant_description(options: RunOptions) -> str | None:
+    """What the plant runs when it differs from the controllers' model, else None.
+
+    E.g. ``default with motor.resistance_ohm=18.2`` or ``thesis``.
+    """
+    if options.plant_config is None and not options.plant_overrides:
+        return None
+    name = options.plant_config if options.plant_config is not None else options.config
+    if not options.plant_overrides:
+        return name
+    return f"{name} with " + ", ".join(f"{k}={v}" for k, v in options.plant_overrides.items())
 
 
 def _parameters(flat: dict[str, Any]) -> list[Parameter]:
@@ -256,8 +294,20 @@ def _wait(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
 
 
 def run_graph(options: RunOptions) -> RunResult:
-    """Run, record and summarise; raises ConfigError, BagError or GraphError."""
-    config, flat = load_graph_config(options.config, options.overrides)
+    """Run, record and summarise; raises ConfigError, BagError or GraphError.
+
+    Every configuration error is raised before the recorder starts, so a refused run
+    leaves no bag directory behind.
+    """
+    if options.driver_port is not None and (
+            options.plant_config is not None or options.plant_overrides):
+        raise ConfigError(
+            f"--driver {options.driver_port} with --plant-config/--plant-set "
+            f"({plant_description(options)}): the plant is the device: start "
+            "pisc_virtual_rig with its own parameter file")
+    config, flat, plant_params = load_run_config(
+        options.config, options.overrides, options.plant_config, options.plant_overrides)
+    Supervisor(config.supervisor)  # refuses (3.29) and an uncontrollable linearisation
     if options.clock not in ("lockstep", "wall"):
         raise ConfigError(f"--clock {options.clock!r}: expected 'lockstep' or 'wall'")
     if options.executor not in EXECUTORS:
@@ -273,13 +323,14 @@ def run_graph(options: RunOptions) -> RunResult:
     if bag_dir.exists() and any(bag_dir.iterdir()):
         raise BagError(f"{bag_dir}: exists and is not empty; not overwriting a bag")
     timeout = options.timeout_s or (60.0 + 20.0 * options.duration_s)
-    plant_flat: dict[str, Any] = {
+    # what the plant node gets besides its parameter file: how this run drives it
+    plant_run: dict[str, Any] = {
         "simulation.clock": options.clock,
         "simulation.min_subscribers": expected_subscribers(JOINT_STATES, True),
         "simulation.min_true_state_subscribers": 1,
         "simulation.min_clock_subscribers": _clock_subscribers(options.processes)}
     if source is DRIVER:
-        plant_flat = {"driver.port": options.driver_port}
+        plant_run = {"driver.port": options.driver_port}
     env = dict(os.environ)
     if options.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(options.domain_id)
@@ -311,9 +362,11 @@ def run_graph(options: RunOptions) -> RunResult:
     try:
         _wait(lambda: _recorder_ready(watcher, recorder, recorded), 30.0,
               "pisc_record to subscribe")
-        write_params_file(bag_dir / "pisc_params.yaml", flat)
+        write_params_file(bag_dir / CONTROLLERS_PARAMS, flat)
+        if source is PLANT:  # a bag says what was simulated, model error or not
+            write_params_file(bag_dir / PLANT_PARAMS, plant_params)
         if options.processes:
-            children = _start_processes(flat, plant_flat, bag_dir, watcher, env, lockstep,
+            children = _start_processes(bag_dir, plant_run, watcher, env, lockstep,
                                         source, recorded)
             _wait(lambda: _recorder_matched(recorder, ready), 30.0,
                   "pisc_record to match every publisher")
@@ -330,8 +383,10 @@ def run_graph(options: RunOptions) -> RunResult:
             # DDS matches in its own threads: no spinning is needed to wait for it.
             _wait(lambda: _matched(nodes, recorded), 30.0, "the graph to connect")
             plant_cls = getattr(importlib.import_module(source.module), source.cls)
+            # the driver reads the controllers' file (calibrations); the plant its own
+            source_params = params if source is DRIVER else _parameters(plant_params)
             nodes.append(plant_cls(context=context,
-                                   parameter_overrides=params + _parameters(plant_flat)))
+                                   parameter_overrides=source_params + _parameters(plant_run)))
             # nothing is sent before the executor spins: by then the recorder takes it all
             _wait(lambda: _recorder_matched(recorder, ready), 30.0,
                   "pisc_record to match every publisher")
@@ -463,14 +518,16 @@ def _command(executable: str, module: str) -> list[str]:
     return [path] if path else [sys.executable, "-m", module]
 
 
-def _start_processes(flat: dict[str, Any], plant_flat: dict[str, Any], bag_dir: Path,
+def _start_processes(bag_dir: Path, plant_run: dict[str, Any],
                      watcher: Node, env: dict[str, str], lockstep: bool,
                      source: NodeSpec = PLANT,
                      recorded: Sequence[Topic] = GRAPH_TOPICS) -> list[subprocess.Popen]:
-    params_file = bag_dir / "pisc_params.yaml"
+    """Start the nodes from the bag's parameter files: the controllers (and the driver)
+    from :data:`CONTROLLERS_PARAMS`, the plant from :data:`PLANT_PARAMS`."""
     children = []
 
     def start(spec: NodeSpec, extra: dict[str, Any]) -> None:
+        params_file = bag_dir / (PLANT_PARAMS if spec is PLANT else CONTROLLERS_PARAMS)
         args = [*_command(spec.executable, spec.module), "--ros-args",
                 "--params-file", str(params_file)]
         for name, value in extra.items():
@@ -497,7 +554,7 @@ def _start_processes(flat: dict[str, Any], plant_flat: dict[str, Any], bag_dir: 
         return True
 
     _wait(connected, 60.0, "the node processes to connect")
-    start(source, plant_flat)
+    start(source, plant_run)
     return children
 
 
@@ -530,11 +587,23 @@ def main(argv: list[str] | None = None) -> int:
                         "every topic); the run's own topics are always recorded")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="override a parameter, e.g. --set swing_up.k_v=0.1")
+    parser.add_argument("--plant-config", metavar="CONFIG",
+                        help="model error: the plant's own configuration (a name or a "
+                        "parameter file; default: the controllers')")
+    parser.add_argument("--plant-set", action="append", default=[], metavar="NAME=VALUE",
+                        help="model error: override a parameter of the plant only (after "
+                        "--set), e.g. --plant-set motor.resistance_ohm=18.2")
     args = parser.parse_args(argv)
     try:
         overrides = parse_overrides(args.set)
     except ConfigError as exc:
         parser.error(str(exc))
+    plant_overrides: dict[str, Any] = {}
+    for item in args.plant_set:
+        try:
+            plant_overrides.update(parse_overrides([item]))
+        except ConfigError:
+            parser.error(f"--plant-set {item!r}: expected NAME=VALUE")
     if args.x0 is not None:
         overrides["initial.x_m"] = args.x0
     config, duration = args.config, args.duration
@@ -543,7 +612,7 @@ def main(argv: list[str] | None = None) -> int:
         from pisc_bringup.scene import load_scene
 
         try:
-            scene = load_scene(args.scene, overrides)
+            scene = load_scene(args.scene, overrides, plant_overrides)
         except ConfigError as exc:
             print(f"pisc_graph: invalid scene: {exc}", file=sys.stderr)
             return 2
@@ -551,7 +620,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"pisc_graph: scene {scene.name} has no controller (controller: "
                   f"{scene.controller}); run it with pisc_scene run", file=sys.stderr)
             return 2
+        # the scene's plant: block, then --plant-set
         config, overrides = scene.configuration, scene.overrides
+        plant_overrides = scene.plant_overrides
         duration = duration if duration is not None else scene.duration_s
         record = record if record is not None else scene.record
     clock = args.clock or ("wall" if args.driver else "lockstep")
@@ -567,7 +638,8 @@ def main(argv: list[str] | None = None) -> int:
                          duration_s=duration if duration is not None else 10.0,
                          clock=clock, processes=args.processes,
                          executor=args.executor, bag_dir=args.bag,
-                         domain_id=args.domain_id, driver_port=args.driver, record=record)
+                         domain_id=args.domain_id, driver_port=args.driver, record=record,
+                         plant_config=args.plant_config, plant_overrides=plant_overrides)
     try:
         result = run_graph(options)
     except ConfigError as exc:
@@ -581,8 +653,11 @@ def main(argv: list[str] | None = None) -> int:
     mode = ("separate processes" if options.processes
             else f"one process, {names[options.executor]}")
     against = "" if options.driver_port is None else f", serial driver on {options.driver_port}"
+    x0 = options.initial_x_m
+    plant = plant_description(options)
     print(f"PISC run: config {options.config}, {options.clock} clock, {mode}{against}, "
-          f"x0 = {overrides.get('initial.x_m', 'from file')}")
+          f"x0 = {'from file' if x0 == 'file' else x0}"
+          f"{'' if plant is None else f'; plant: {plant}'}")
     if result.processes:
         print(f"entry points: {', '.join(result.processes)}")
     print(f"bag: {result.bag_dir} ({sum(result.recorded.values())} messages, "
