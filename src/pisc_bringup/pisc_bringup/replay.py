@@ -4,7 +4,10 @@ The recorded samples (``/pisc/joint_states`` and ``/pisc/motor/current``, keyed 
 header stamp) go through the estimator, supervisor and current-loop cores
 (:class:`pisc_bringup.closed_loop.Controllers`, what the nodes and the simulation
 run), with the configuration the run used (the bag's ``pisc_params.yaml``) or another.
-Each recomputed output is compared with the recorded one of the same stamp:
+A bag of a simulated run also holds ``plant_params.yaml``, what the plant ran (with model
+error it differs from the controllers' file); replay does not read it: the recorded
+samples carry the plant. Each recomputed output is compared with the recorded one of the
+same stamp:
 
 * ``/pisc/state``: the velocities (4.7), (4.9) (the positions pass through);
 * ``/pisc/cart_force``: the force (3.30) or (3.46);
