@@ -181,8 +181,11 @@ class Supervisor:
         caught = caught | (new_mode == Mode.CATCH.code)
         target = np.where(caught, c.swing_up.target_m, startup_target)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            law = energy_pump_force if c.swing_up.law == "energy_pump" else swing_up_force
-            f_swing = law(c.rig, c.swing_up, x, x_dot, theta, theta_dot, target)
+            if c.swing_up.law == "energy_pump":
+                f_swing = energy_pump_force(c.rig, c.swing_up, x, x_dot, theta, theta_dot,
+                                            target, (c.safety.x_min_m, c.safety.x_max_m))
+            else:
+                f_swing = swing_up_force(c.rig, c.swing_up, x, x_dot, theta, theta_dot, target)
             f_catch = catch_force(self.gain, x, x_dot, theta, theta_dot, c.catch.target_m)
         force = np.where(new_mode == Mode.CATCH.code, f_catch,
                          np.where(new_mode == Mode.SWING_UP.code, f_swing, 0.0))

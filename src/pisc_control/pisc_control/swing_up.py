@@ -53,6 +53,13 @@ class SwingUpParams:
                              "per metre", "1/s^2", nonnegative)
     track_k_v: float = param(3.0, "energy_pump: damping of the cart's velocity, an "
                              "acceleration per m/s", "1/s", nonnegative)
+    guard_accel_mps2: float = param(
+        0.0, "energy_pump: braking acceleration of the track guard: when the cart, braked at "
+        "this rate, would stop beyond the guard's limits, it is braked at this rate (0 = no "
+        "guard)", "m/s^2", nonnegative)
+    guard_margin_m: float = param(0.02, "energy_pump: the guard's limits lie this far inside "
+                                  "the safe range (safety.x_min_m, safety.x_max_m)", "m",
+                                  nonnegative)
 
 
 def gain_condition(rig: RigParams, gains: SwingUpParams) -> tuple[float, float]:
@@ -141,6 +148,7 @@ def energy_pump_force(
     theta: ArrayLike,
     theta_dot: ArrayLike,
     target_m: ArrayLike | None = None,
+    limits_m: tuple[float, float] = (-np.inf, np.inf),
 ) -> np.ndarray:
     """Cart force of the ``energy_pump`` law.
 
@@ -156,7 +164,10 @@ def energy_pump_force(
 
     ``sat`` clipping to [-1, 1] and ``omega_0 = sqrt(m g l / J)``: the first term
     makes dE_p/dt >= 0 below E_ref and <= 0 above it (Astrom and Furuta 2000), bounded
-    by the acceleration the motor can give; the others hold the cart near x*. The force
+    by the acceleration the motor can give; the others hold the cart near x*. The track
+    guard (``guard_accel_mps2`` = a_b > 0) keeps the cart inside ``limits_m`` narrowed
+    by ``guard_margin_m``: where the cart, braked at a_b, would stop beyond them
+    (``x + x_dot |x_dot| / (2 a_b)``), a becomes the braking -a_b sign(x_dot). The force
     that gives a follows from (3.3): ``f = (a2 - a1 cos^2) a + a1 g sin cos - m l
     theta_dot^2 sin``.
     """
@@ -175,6 +186,12 @@ def energy_pump_force(
     pump = -gains.pump_accel_mps2 * np.clip(
         gains.pump_gain * error * theta_dot * c / omega_0, -1.0, 1.0)
     a = pump - gains.track_k_x * (x - target_m) - gains.track_k_v * x_dot
+    if gains.guard_accel_mps2 > 0.0:
+        brake = gains.guard_accel_mps2
+        stop = x + x_dot * np.abs(x_dot) / (2.0 * brake)
+        low, high = limits_m[0] + gains.guard_margin_m, limits_m[1] - gains.guard_margin_m
+        a = np.where((stop > high) & (x_dot > 0.0), -brake,
+                     np.where((stop < low) & (x_dot < 0.0), brake, a))
     a1 = rig.a1
     return ((rig.a2 - a1 * c * c) * a + a1 * rig.gravity_mps2 * s * c
             - rig.ml * theta_dot * theta_dot * s)

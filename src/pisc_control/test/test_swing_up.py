@@ -127,3 +127,27 @@ def test_energy_pump_has_no_gain_condition():
         from pisc_msgs_py.config import from_flat
 
         from_flat(SwingUpParams, {"swing_up.law": "bang_bang"}, "swing_up")
+
+
+def test_the_track_guard_brakes_a_cart_that_would_stop_beyond_its_limits():
+    """Guard limits (-0.225 + 0.02, 0.125 - 0.02): at x = 0.05 m a cart at +0.6 m/s
+    braked at 3 m/s^2 stops at 0.05 + 0.36 / 6 = 0.11 m > 0.105 m: braked, whatever the
+    pump asks; at +0.5 m/s it stops at 0.0917 m: the law's own acceleration."""
+    gains = SwingUpParams(law="energy_pump", pump_gain=3.0, pump_accel_mps2=2.5,
+                          track_k_x=6.0, track_k_v=2.5, guard_accel_mps2=3.0,
+                          guard_margin_m=0.02)
+    limits = (-0.225, 0.125)
+    th, th_d = 2.0, 5.0
+    for x_d, braked in ((0.6, True), (0.5, False), (-0.6, False)):
+        f = energy_pump_force(RIG, gains, 0.05, x_d, th, th_d, 0.0, limits)
+        x_dd, _ = accelerations(RIG, th, th_d, f)
+        free = accelerations(RIG, th, th_d, energy_pump_force(
+            RIG, SwingUpParams(**{**gains.__dict__, "guard_accel_mps2": 0.0}), 0.05, x_d, th,
+            th_d, 0.0, limits))[0]
+        if braked:
+            assert x_dd == pytest.approx(-3.0, rel=1e-12)
+        else:
+            assert x_dd == pytest.approx(free, rel=1e-12)
+    # at the far end, moving outwards: braked the other way
+    f = energy_pump_force(RIG, gains, -0.15, -0.5, th, th_d, 0.0, limits)
+    assert accelerations(RIG, th, th_d, f)[0] == pytest.approx(3.0, rel=1e-12)
