@@ -149,5 +149,5 @@ def test_the_track_guard_brakes_a_cart_that_would_stop_beyond_its_limits():
         else:
             assert x_dd == pytest.approx(free, rel=1e-12)
     # at the far end, moving outwards: braked the other way
-    f = energy_pump_force(RIG, gains, -0.15, -0.5, th, th_d, 0.0, limits)
+    f = energy_pump_force(RIG, gains, -0.15, -0.6, th, th_d, 0.0, limits)  # stops at -0.21
     assert accelerations(RIG, th, th_d, f)[0] == pytest.approx(3.0, rel=1e-12)
