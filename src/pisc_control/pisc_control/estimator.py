@@ -2,9 +2,12 @@
 
 The thesis computes ``v(k) = (p(k) - p(k-1)) / Ts`` for the cart (4.9) and the
 pendulum (4.7). Differentiation amplifies quantisation: one IR code (about 0.4 mm near
-x = 0) becomes 0.09 m/s and one encoder count (1.57 mrad) 0.31 rad/s. An optional
-first-order low-pass on the differences trades that noise for lag; at 0 Hz (the
-default) the estimator is exactly the thesis's.
+x = 0) becomes 0.09 m/s and one encoder count (1.57 mrad) 0.31 rad/s, which the catch
+gain turns into a chattering current. Two options trade that noise for lag: a
+difference over N periods, ``(p(k) - p(k-N)) / (N Ts)``, which divides the quantisation
+step's effect by N for a lag of (N - 1) Ts / 2, and a first-order low-pass on the
+differences. With N = 1 and no low-pass (the defaults) the estimator is exactly the
+thesis's.
 
 Pure functions over arrays of any shape; the state is an immutable value.
 """
@@ -17,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from pisc_msgs_py.config import nonnegative, param
+from pisc_msgs_py.config import in_range, nonnegative, param
 
 __all__ = ["EstimatorParams", "EstimatorState", "estimator_update"]
 
@@ -31,6 +34,9 @@ class EstimatorParams:
         "Hz",
         nonnegative,
     )
+    difference_periods: int = param(
+        1, "N: velocity as the difference over N periods, (p(k) - p(k-N)) / (N Ts); 1 = the "
+        "thesis's backward difference (4.7), (4.9)", "", in_range(1, 100))
 
 
 @dataclass(frozen=True)
@@ -41,6 +47,9 @@ class EstimatorState:
     theta_rad: np.ndarray | None = None
     x_dot_mps: np.ndarray | None = None
     theta_dot_radps: np.ndarray | None = None
+    # the samples before the previous one, oldest first (N - 1 of them at most)
+    x_past: tuple[np.ndarray, ...] = ()
+    theta_past: tuple[np.ndarray, ...] = ()
 
 
 def estimator_update(
@@ -58,19 +67,29 @@ def estimator_update(
 
     Notes
     -----
-    Implements (4.7) and (4.9); with ``velocity_filter_hz = fc > 0`` the difference
-    ``d`` is filtered as ``v(k) = a v(k-1) + (1 - a) d(k)``, ``a = exp(-2 pi fc Ts)``.
+    Implements (4.7) and (4.9), over N = ``difference_periods`` periods:
+    ``d(k) = (p(k) - p(k-N)) / (N Ts)`` (over the k periods there are during the first N
+    samples); with ``velocity_filter_hz = fc > 0`` the difference ``d`` is filtered as
+    ``v(k) = a v(k-1) + (1 - a) d(k)``, ``a = exp(-2 pi fc Ts)``.
     """
     x = np.asarray(x_m, dtype=float)
     theta = np.asarray(theta_rad, dtype=float)
     if state.x_m is None or state.theta_rad is None:
         x_dot = np.zeros_like(x)
         theta_dot = np.zeros_like(theta)
-    else:
-        x_dot = (x - state.x_m) / period_s
-        theta_dot = (theta - state.theta_rad) / period_s
-        if params.velocity_filter_hz > 0.0:
-            a = math.exp(-2.0 * math.pi * params.velocity_filter_hz * period_s)
-            x_dot = a * state.x_dot_mps + (1.0 - a) * x_dot
-            theta_dot = a * state.theta_dot_radps + (1.0 - a) * theta_dot
-    return EstimatorState(x, theta, x_dot, theta_dot), x_dot, theta_dot
+        return EstimatorState(x, theta, x_dot, theta_dot), x_dot, theta_dot
+    x_window = (*state.x_past, state.x_m)  # the previous samples, oldest first
+    theta_window = (*state.theta_past, state.theta_rad)
+    n = len(x_window)  # N, or fewer during the first N samples
+    span = period_s if n == 1 else n * period_s
+    x_dot = (x - x_window[0]) / span
+    theta_dot = (theta - theta_window[0]) / span
+    if params.velocity_filter_hz > 0.0:
+        a = math.exp(-2.0 * math.pi * params.velocity_filter_hz * period_s)
+        x_dot = a * state.x_dot_mps + (1.0 - a) * x_dot
+        theta_dot = a * state.theta_dot_radps + (1.0 - a) * theta_dot
+    keep = params.difference_periods - 1  # samples kept besides the newest
+    x_past = (*x_window, x)[-1 - keep:-1] if keep else ()
+    theta_past = (*theta_window, theta)[-1 - keep:-1] if keep else ()
+    return (EstimatorState(x, theta, x_dot, theta_dot, x_past, theta_past), x_dot,
+            theta_dot)
