@@ -312,4 +312,7 @@ class NoiseParams:
 
     @property
     def any(self) -> bool:
-        return self.x_std_m > 0.0 or self.theta_std_rad > 0.0 or self.current_std_a > 0.0
+        """Whether any noise is drawn (for a plant set, whether any rig has some)."""
+        return bool(np.any(np.asarray(self.x_std_m) > 0.0)
+                    or np.any(np.asarray(self.theta_std_rad) > 0.0)
+                    or np.any(np.asarray(self.current_std_a) > 0.0))

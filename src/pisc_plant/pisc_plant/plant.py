@@ -16,11 +16,19 @@ saturation and 7-bit quantisation, or, for an ideal force source
 (``models.armature = ideal_force``), the cart force in newtons. Output: raw device
 values (ADC codes, encoder count) and the same values decoded to SI, as the driver does,
 or the true values for ideal sensors. The arithmetic is in :mod:`pisc_plant.kernel`.
+
+A plant set (:func:`plant_set`) is a configuration whose ``rig``, ``motor``,
+``friction`` and ``noise.*_std_*`` fields may hold one value a rig (1-D arrays of one
+length n): its :class:`Plant` steps n rigs, state (n, size), each with its own
+constants, and each rig gives the same bits as a plant built from its own values.
+:meth:`Plant.advance` also takes one duration a rig.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,7 +48,17 @@ from pisc_plant.params import (
     TrackParams,
 )
 
-__all__ = ["PLANT_SECTIONS", "IntegratorParams", "Plant", "PlantConfig", "STATE_NAMES"]
+__all__ = [
+    "PER_RIG_SECTIONS",
+    "PLANT_SECTIONS",
+    "IntegratorParams",
+    "Plant",
+    "PlantConfig",
+    "STATE_NAMES",
+    "pack_constants",
+    "plant_set",
+    "rigs_of",
+]
 
 STATE_NAMES = ("x", "x_dot", "theta", "theta_dot", "i", "v_ir", "v_cur")
 X, X_DOT, THETA, THETA_DOT = range(4)
@@ -89,18 +107,140 @@ PLANT_SECTIONS: dict[str, type] = {
 }
 
 
+#: The sections whose fields a plant set may give one value a rig (noise: ``*_std_*``).
+PER_RIG_SECTIONS = ("rig", "motor", "friction", "noise")
+
+
+def _per_rig_fields(section: str) -> dict[str, dataclasses.Field]:
+    fields = {f.name: f for f in dataclasses.fields(PLANT_SECTIONS[section])}
+    if section == "noise":
+        fields = {name: f for name, f in fields.items() if "_std_" in name}
+    return fields
+
+
+def rigs_of(config: PlantConfig) -> int | None:
+    """The number of rigs of a plant set (:func:`plant_set`), None for one rig."""
+    return _rig_count(config)[0]
+
+
+def _rig_count(config: PlantConfig) -> tuple[int | None, str]:
+    """The number of rigs of a plant set and the first parameter that says so."""
+    rigs: int | None = None
+    first = ""
+    for section in PER_RIG_SECTIONS:
+        values = getattr(config, section)
+        for f in dataclasses.fields(values):
+            value = getattr(values, f.name)
+            if not isinstance(value, np.ndarray):
+                continue
+            name = f"{section}.{f.name}"
+            if value.ndim != 1:
+                raise ConfigError(f"{name}: one value a rig (a 1-D array), not shape "
+                                  f"{value.shape}")
+            if rigs is None:
+                rigs, first = len(value), name
+            elif len(value) != rigs:
+                raise ConfigError(f"{name}: {len(value)} values, but {first} has {rigs}")
+    return rigs, first
+
+
+def plant_set(base: PlantConfig, values: Mapping[str, ArrayLike]) -> PlantConfig:
+    """A plant set: ``base`` with one value a rig for the parameters named.
+
+    Parameters
+    ----------
+    base
+        The configuration every rig shares otherwise (itself a set or one rig).
+    values
+        Dotted parameter names of the sections :data:`PER_RIG_SECTIONS` (``rig.*``,
+        ``motor.*``, ``friction.*``, ``noise.*_std_*``), each with a 1-D array of one
+        value a rig, all of one length n, or a number for every rig.
+
+    Returns
+    -------
+    PlantConfig
+        ``base`` with the fields named holding read-only float64 arrays of shape (n,);
+        a :class:`Plant` of it steps n rigs.
+
+    Raises
+    ------
+    ConfigError
+        Starting with the parameter's name: a name that is unknown or outside those
+        sections, arrays of different lengths (or of another length than ``base``'s
+        rigs), no array at all, or a value that breaks the field's rule.
+    """
+    rigs, first = _rig_count(base)
+    arrays: dict[str, np.ndarray] = {}
+    for name, value in values.items():
+        section, _, field_name = name.partition(".")
+        if section not in PLANT_SECTIONS or field_name not in {
+                f.name for f in dataclasses.fields(PLANT_SECTIONS[section])}:
+            raise ConfigError(f"{name}: unknown parameter")
+        fields = _per_rig_fields(section) if section in PER_RIG_SECTIONS else {}
+        if field_name not in fields:
+            raise ConfigError(f"{name}: not a parameter a plant set may vary from rig to rig "
+                              "(rig.*, motor.*, friction.*, noise.*_std_*)")
+        try:
+            array = np.array(value, dtype=float)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name}: must be a number or a 1-D array of numbers") from None
+        if array.ndim > 1:
+            raise ConfigError(f"{name}: must be a number or a 1-D array of numbers, not an "
+                              f"array of shape {array.shape}")
+        if array.ndim == 1:
+            if len(array) == 0:
+                raise ConfigError(f"{name}: no values (a plant set has at least one rig)")
+            if rigs is None:
+                rigs, first = len(array), name
+            elif len(array) != rigs:
+                raise ConfigError(f"{name}: {len(array)} values, but {first} has {rigs}")
+        rule = fields[field_name].metadata["rule"]
+        numbers = array.ravel().tolist()
+        problem = rule(numbers)
+        if problem:
+            bad = next(k for k, v in enumerate(numbers) if rule(v))
+            raise ConfigError(f"{name}: {problem} (rig {bad}: {numbers[bad]})" if array.ndim
+                              else f"{name} = {numbers[0]}: {problem}")
+        arrays[name] = array
+    if rigs is None:
+        raise ConfigError(f"{next(iter(values), 'plant_set')}: a plant set needs one value a "
+                          "rig (a 1-D array) for at least one parameter")
+    sections: dict[str, dict[str, np.ndarray]] = {}
+    for name, array in arrays.items():
+        section, _, field_name = name.partition(".")
+        column = np.array(np.broadcast_to(array, (rigs,)), dtype=float)
+        column.setflags(write=False)
+        sections.setdefault(section, {})[field_name] = column
+    return dataclasses.replace(base, **{
+        section: dataclasses.replace(getattr(base, section), **changes)
+        for section, changes in sections.items()})
+
+
+def _reflected(m: MotorParams) -> tuple:
+    """J_m / r^2 and b_m / r^2; with one radius a rig, r^2 with Python's arithmetic (as a
+    plant of one rig computes it: numpy's square can differ from pow in the last bit)."""
+    if isinstance(m.wheel_radius_m, np.ndarray):
+        r2 = np.array([r**2 for r in m.wheel_radius_m.tolist()])
+        return m.rotor_inertia_kgm2 / r2, m.viscous_friction_nms / r2
+    return m.reflected_mass_kg, m.reflected_damping_ns_per_m
+
+
 def pack_constants(c: PlantConfig) -> np.ndarray:
-    """The configuration as the kernel's constant vector."""
-    p = np.zeros(kernel.N_CONSTANTS)
+    """The configuration as the kernel's constants (``kernel.P_*``): (N_CONSTANTS,), or
+    for a plant set of n rigs (N_CONSTANTS, n), rig k's constants in column k (the
+    kernel reads them in the blocks of :func:`pisc_plant.kernel.lanes`)."""
+    rigs = rigs_of(c)
+    p = np.zeros(kernel.N_CONSTANTS if rigs is None else (kernel.N_CONSTANTS, rigs))
     rig, m, s, t, f = c.rig, c.motor, c.sensors, c.track, c.friction
     friction = c.models.friction
+    reflected_mass, reflected_damping = _reflected(m)
     p[kernel.P_A1] = rig.a1
     # the rotor's inertia reflected to the cart, J_m / r^2, joins the cart row only
-    p[kernel.P_A2] = rig.a2 + (m.reflected_mass_kg if c.models.has_current else 0.0)
+    p[kernel.P_A2] = rig.a2 + (reflected_mass if c.models.has_current else 0.0)
     p[kernel.P_ML] = rig.ml
     p[kernel.P_G] = rig.gravity_mps2
     p[kernel.P_KF] = m.force_per_amp
-    p[kernel.P_BM] = m.reflected_damping_ns_per_m
+    p[kernel.P_BM] = reflected_damping
     p[kernel.P_R] = m.resistance_ohm
     p[kernel.P_L] = m.inductance_h
     p[kernel.P_KER] = m.back_emf_v_s_per_rad / m.wheel_radius_m
@@ -128,8 +268,14 @@ class Plant:
 
     The object holds only constants derived from the configuration; the state is an
     array passed in and returned, so one ``Plant`` steps any number of rigs, with the
-    same compiled arithmetic for one rig and for many.
+    same compiled arithmetic for one rig and for many. The plant of a plant set
+    (:func:`plant_set`, :attr:`rigs` = n) steps states of shape (n, size), rig k with
+    its own constants; its :attr:`lam` is (n, size).
     """
+
+    #: The number of rigs of a plant set; None for a plant whose rigs share one
+    #: configuration (any number of them)
+    rigs: int | None
 
     def __init__(self, config: PlantConfig) -> None:
         self.config = config
@@ -146,20 +292,30 @@ class Plant:
             self.index["v_ir"] = self.layout.ir_index
             self.index["v_cur"] = self.layout.current_sensor_index
         self.state_names = tuple(sorted(self.index, key=self.index.__getitem__))
+        self.rigs = rigs_of(c)
         self._p = pack_constants(c)
         # Linear, diagonal, stiff part of the right-hand side (in the exponential
         # scheme's variables): the armature's decay and the RC filters.
-        self.lam = np.zeros(self.size)
+        self.lam = np.zeros((self.size,) if self.rigs is None else (self.rigs, self.size))
         if models.has_current_state:
-            self.lam[self.layout.current_index] = -c.motor.resistance_ohm / c.motor.inductance_h
+            self.lam[..., self.layout.current_index] = (-c.motor.resistance_ohm
+                                                        / c.motor.inductance_h)
         if models.sensor_filters:
-            self.lam[self.layout.ir_index] = -self._p[kernel.P_WIR]
-            self.lam[self.layout.current_sensor_index] = -self._p[kernel.P_WCUR]
+            self.lam[..., self.layout.ir_index] = -self._p[kernel.P_WIR]
+            self.lam[..., self.layout.current_sensor_index] = -self._p[kernel.P_WCUR]
         self._method = kernel.METHODS.index(c.integrator.method)
         self._coefficients: dict[float, np.ndarray] = {}
+        # per-rig steps: the operator tables (by the steps' bytes, the latest last), the
+        # armature's rate of each rig, the constants in the kernel's blocks
+        self._rig_tables: dict[bytes, np.ndarray] = {}
+        self._rates: np.ndarray | None = None
+        self._lanes: dict[int, np.ndarray] = {}
+        if self.rigs is not None:
+            self._p_rows = np.ascontiguousarray(self._p.T)  # rig k's constants, contiguous
+            self._lanes[self.rigs] = kernel.lanes(self._p)
         self._u1 = np.zeros(1)  # the one rig's input, for the kernel's rows
         self.nominal_substep_s = c.loop.period_s / c.integrator.substeps
-        stiffest = float(np.max(-self.lam, initial=0.0))
+        stiffest = float(np.max(-self.lam, initial=0.0))  # of the stiffest rig
         if c.integrator.method == "rk4" and self.nominal_substep_s * stiffest >= RK4_STABILITY:
             needed = math.ceil(c.loop.period_s * stiffest / RK4_STABILITY * 1.05)
             raise ConfigError(
@@ -190,9 +346,14 @@ class Plant:
         current_a: ArrayLike = 0.0,
     ) -> np.ndarray:
         """A state with the sensor filters settled on the given mechanical state."""
-        x, x_dot, theta, theta_dot, current_a = np.broadcast_arrays(
-            *(np.asarray(v, dtype=float) for v in (x, x_dot, theta, theta_dot, current_a))
-        )
+        values = [np.asarray(v, dtype=float) for v in (x, x_dot, theta, theta_dot, current_a)]
+        if self.rigs is not None:
+            shape = np.broadcast_shapes(*(v.shape for v in values))
+            if shape not in ((), (self.rigs,)):
+                raise ValueError(f"this plant is a set of {self.rigs} rigs: the initial values "
+                                 f"must be numbers or of shape ({self.rigs},), not {shape}")
+            values = [np.broadcast_to(v, (self.rigs,)) for v in values]
+        x, x_dot, theta, theta_dot, current_a = np.broadcast_arrays(*values)
         parts = [x, x_dot, theta, theta_dot]
         if self.config.models.has_current_state:
             parts.append(current_a)
@@ -219,21 +380,35 @@ class Plant:
         out = np.empty_like(ys)
         arm, filters = self.layout.armature, self.layout.filters
         for row in range(ys.shape[0]):
-            kernel.rhs_one(ys[row], us[row], self._p, arm, filters, out[row])
+            kernel.rhs_one(ys[row], us[row], self._constants_of(row), arm, filters, out[row])
         return out.reshape(np.shape(y))
 
-    def applied_derivative(self, y: np.ndarray, applied: float) -> np.ndarray:
-        """y' of one rig for an input already through the actuator (reference solvers)."""
+    def applied_derivative(self, y: np.ndarray, applied: float,
+                           rig: int | None = None) -> np.ndarray:
+        """y' of one rig for an input already through the actuator (reference solvers);
+        of a plant set, of the rig numbered ``rig``."""
+        if self.rigs is not None and rig is None:
+            raise ValueError(f"this plant is a set of {self.rigs} rigs: say which (rig=k)")
         out = np.empty(self.size)
-        kernel.rhs_one(np.asarray(y, dtype=float), float(applied), self._p,
+        kernel.rhs_one(np.asarray(y, dtype=float), float(applied),
+                       self._constants_of(0 if rig is None else rig),
                        self.layout.armature, self.layout.filters, out)
         return out
+
+    def _constants_of(self, row: int) -> np.ndarray:
+        """The constants of a state's row: the plant's, or of a plant set rig ``row``'s."""
+        return self._p if self.rigs is None else self._p_rows[row]
 
     # -- integration ---------------------------------------------------------------------
 
     def coefficients(self, step_s: float) -> np.ndarray:
+        """The exponential scheme's operator table for a step, (15, OP_WIDTH)
+        (:func:`pisc_plant.kernel.exp_coefficients`); of a plant set, every rig's, as
+        :meth:`rig_coefficients`."""
         coef = self._coefficients.get(step_s)
         if coef is None:
+            if self.rigs is not None:
+                return self.rig_coefficients(np.full(self.rigs, float(step_s)))
             filters = self.config.models.sensor_filters
             full = self.config.models.has_current_state
             coef = kernel.exp_coefficients(
@@ -245,22 +420,76 @@ class Plant:
                 self._coefficients[step_s] = coef
         return coef
 
+    def rig_coefficients(self, steps_s: np.ndarray) -> np.ndarray:
+        """Every rig's operator table for its own step ``steps_s[k]``, in the kernel's
+        blocks: ``kernel.lanes`` of (N_TABLE, rigs), rig k's table (rows 0-12 of
+        :meth:`coefficients`, row-major) in column k; the same numbers, computed by
+        :func:`pisc_plant.kernel.exp_tables`. The last four sets of steps are kept (a
+        rig's latency, the rest of its period and the period, say)."""
+        steps_s = np.ascontiguousarray(steps_s, dtype=float)
+        key = steps_s.tobytes()
+        tables = self._rig_tables.pop(key, None)
+        if tables is None:
+            rigs = steps_s.shape[0]
+            if self.rigs is not None and rigs != self.rigs:
+                raise ValueError(f"{rigs} steps for a set of {self.rigs} rigs")
+            p = self._p if self.rigs is None else self._p_rows[0]  # the sensors are common
+            filters = self.config.models.sensor_filters
+            tables = np.empty((-(-rigs // kernel.BLOCK), kernel.N_TABLE * kernel.BLOCK))
+            kernel.exp_tables(p[kernel.P_WIR] if filters else 0.0,
+                              p[kernel.P_WCUR] if filters else 0.0,
+                              p[kernel.P_WCUR] / p[kernel.P_CURSCALE],
+                              self._armature_rates(rigs), steps_s, tables)
+            while len(self._rig_tables) >= 4:
+                del self._rig_tables[next(iter(self._rig_tables))]
+        self._rig_tables[key] = tables
+        return tables
+
+    def _armature_rates(self, rigs: int) -> np.ndarray:
+        """Each rig's :func:`pisc_plant.kernel.armature_rate` (0 without the armature)."""
+        if self._rates is None or self._rates.shape[0] != rigs:
+            rates = np.zeros(rigs)
+            if self.config.models.has_current_state:
+                if self.rigs is None:
+                    rates[:] = kernel.armature_rate(self._p)
+                else:
+                    kernel.armature_rates(self._p, rates)
+            self._rates = rates
+        return self._rates
+
+    def _lane_constants(self, rigs: int) -> np.ndarray:
+        """The constants of ``rigs`` rigs in the kernel's blocks (:func:`kernel.lanes`)."""
+        p = self._lanes.get(rigs)
+        if p is None:
+            p = kernel.lanes(np.repeat(self._p[:, None], rigs, axis=1))
+            self._lanes = {rigs: p}
+        return p
+
     def _rows(self, y: np.ndarray, command: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         y = np.asarray(y, dtype=float)
         if y.shape[-1] != self.size:
             raise ValueError(f"state has {y.shape[-1]} components, this scene's plant has "
                              f"{self.size} ({', '.join(self.state_names)})")
+        if self.rigs is not None and y.shape[:-1] != (self.rigs,):
+            raise ValueError(f"this plant is a set of {self.rigs} rigs: a state has shape "
+                             f"({self.rigs}, {self.size}), not {y.shape}")
         ys = np.array(y.reshape(-1, self.size), dtype=float, order="C")
         us = np.ascontiguousarray(
             np.broadcast_to(self.applied(command), y.shape[:-1]).reshape(-1), dtype=float)
         return ys, us
 
-    def advance(self, y: np.ndarray, command: ArrayLike, duration_s: float) -> np.ndarray:
+    def advance(self, y: np.ndarray, command: ArrayLike,
+                duration_s: float | np.ndarray) -> np.ndarray:
         """Integrate over ``duration_s`` with the command held constant; a new array.
 
         The interval is cut into equal substeps no longer than ``period / substeps``;
-        after each substep the end stops act.
+        after each substep the end stops act. ``duration_s`` may give one duration a
+        rig (shape (n,) for states (n, size)): every rig then takes the substeps the
+        longest needs, each of its own duration over their number; a rig with
+        duration 0 keeps its state.
         """
+        if type(duration_s) is not float or self.rigs is not None:
+            return self._advance_rigs(y, command, duration_s)
         if not duration_s > 0.0:
             if duration_s == 0.0:
                 return y
@@ -285,6 +514,42 @@ class Plant:
             self._kernels.advance_many(ys, us, self._p, stops, self._method, n, h, coef)
         return ys.reshape(np.shape(y))
 
+    def _advance_rigs(self, y: np.ndarray, command: ArrayLike,
+                      duration_s: float | np.ndarray) -> np.ndarray:
+        """:meth:`advance` of a plant set or with one duration a rig: the kernel's entry
+        points that give every rig its own constants and step."""
+        durations = np.asarray(duration_s, dtype=float)
+        if self.rigs is None and durations.ndim == 0:
+            return self.advance(y, command, float(durations))
+        ys, us = self._rows(y, command)
+        rigs = ys.shape[0]
+        if durations.ndim == 0:
+            durations = np.full(rigs, float(durations))
+        elif durations.shape != (rigs,) or np.ndim(y) != 2:
+            raise ValueError(f"duration_s has shape {durations.shape}: one duration a rig "
+                             f"takes states of shape (n, {self.size}) and durations (n,); "
+                             f"the state has shape {np.shape(y)}")
+        bad = ~(np.isfinite(durations) & (durations >= 0.0))
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise ValueError(f"duration_s = {durations[k]} (rig {k}) must be finite and not "
+                             "negative")
+        longest = float(durations.max(initial=0.0))
+        if longest == 0.0:
+            return ys.reshape(np.shape(y))
+        n = max(1, math.ceil(longest / self.nominal_substep_s - 1e-9))
+        steps = durations / n
+        p = self._lane_constants(rigs)
+        tables = (self.rig_coefficients(steps) if self._method == kernel.EXPRK4
+                  else np.empty((p.shape[0], 0)))
+        stops = self.layout.end_stops
+        if rigs <= kernel.CHUNK:
+            self._kernels.advance_set(ys, us, 0, rigs, p, stops, self._method, n, steps,
+                                      tables)
+        else:
+            self._kernels.advance_set_many(ys, us, p, stops, self._method, n, steps, tables)
+        return ys.reshape(np.shape(y))
+
     def end_stops(self, y: np.ndarray) -> np.ndarray:
         """Perfectly inelastic end stops of the track.
 
@@ -294,8 +559,8 @@ class Plant:
         the impact, with the impulse acting on the cart row only).
         """
         ys, _ = self._rows(y, 0.0)
-        for row in ys:
-            kernel.end_stops(row, self._p)
+        for k, row in enumerate(ys):
+            kernel.end_stops(row, self._constants_of(k))
         return ys.reshape(np.shape(y))
 
     # -- measurement ---------------------------------------------------------------------
