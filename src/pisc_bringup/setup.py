@@ -13,6 +13,7 @@ setup(
         ('share/pisc_bringup', ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/scenes', glob('scenes/*.yaml')),
+        ('share/' + package_name + '/distributions', glob('distributions/*.yaml')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,

@@ -1,0 +1,294 @@
+"""What is not known about a rig, as a YAML file: ranges over plant parameters, the
+initial state and the command latency, and the draws taken from them.
+
+A distribution file::
+
+    distribution:
+      description: the thesis rig as far as the thesis does not pin it down
+      plant:                          # fixed plant overrides (sections the plant reads)
+        models: {friction: coulomb}
+      parameters:                     # one entry per varied parameter, by its full name
+        motor.resistance_ohm: {relative: 0.3}       # nominal x (1 + u), u in [-0.3, 0.3]
+        motor.inductance_h: {factor: [0.5, 2.0]}    # nominal x f, f log-uniform in [0.5, 2]
+        friction.cart_coulomb_n: {uniform: [0.0, 0.1]}
+        initial.theta_rad: {offset: 0.5}            # nominal + u, u in [-0.5, 0.5]
+        actuator.command_delay_s: {uniform: [0.0, 0.002]}
+
+Each entry takes exactly one of ``uniform: [low, high]`` (absolute values), ``offset``
+(added to the nominal value), ``relative`` (nominal times 1 + u) and ``factor`` (nominal
+times f, drawn uniformly in log f); ``offset`` and ``relative`` take a width w (the
+range [-w, w]) or ``[low, high]``. Every value is uniform over its range, independent of
+the others. The nominal value is the configuration's (the plant the controllers assume).
+
+Parameters that can vary: every field of ``rig``, ``motor``, ``friction`` and ``noise``
+(the standard deviations), ``initial.*`` and ``actuator.command_delay_s``. Both ends of
+each range must satisfy the parameter's own rule, so no draw is a plant that a
+parameter file could not describe.
+
+:func:`draw` takes ``n`` draws from a seed: the same seed gives the same draws.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from pisc_bringup.configuration import CONFIG_DIR, SECTIONS, GraphConfig, check_plant_overrides
+from pisc_msgs_py.config import ConfigError, flatten, from_flat
+from pisc_plant.params import (
+    ActuatorParams,
+    FrictionParams,
+    InitialParams,
+    MotorParams,
+    NoiseParams,
+    RigParams,
+)
+
+__all__ = ["DISTRIBUTION_DIR", "Distribution", "Draws", "Range", "distribution_names",
+           "load_distribution", "unit_of", "VARIABLE_SECTIONS"]
+
+DISTRIBUTION_DIR = CONFIG_DIR.parent / "distributions"
+KINDS = ("uniform", "offset", "relative", "factor")
+KEYS = ("description", "plant", "parameters")
+
+#: The sections whose fields a distribution may vary (plant parameters, one per rig),
+#: and the single field of ``actuator`` it may vary.
+VARIABLE_SECTIONS: dict[str, type] = {
+    "rig": RigParams, "motor": MotorParams, "friction": FrictionParams, "noise": NoiseParams,
+    "initial": InitialParams,
+}
+LATENCY = "actuator.command_delay_s"
+NOT_VARIABLE = {"noise.seed"}
+
+
+@dataclass(frozen=True)
+class Range:
+    """One varied parameter: values uniform over [low, high] (in log for ``factor``)."""
+
+    name: str
+    kind: str  # one of KINDS
+    low: float  # of the kind's quantity (absolute value, offset, relative change or factor)
+    high: float
+    nominal: float
+
+    @property
+    def value_range(self) -> tuple[float, float]:
+        """The parameter's smallest and largest value."""
+        return self.value(self.low), self.value(self.high)
+
+    def value(self, q: Any) -> Any:
+        if self.kind == "uniform":
+            return q
+        if self.kind == "offset":
+            return self.nominal + q
+        if self.kind == "relative":
+            return self.nominal * (1.0 + q)
+        return self.nominal * q
+
+    def sample(self, u: np.ndarray) -> np.ndarray:
+        """Values for uniform draws ``u`` in [0, 1)."""
+        if self.kind == "factor":
+            lo, hi = math.log(self.low), math.log(self.high)
+            return self.nominal * np.exp(lo + (hi - lo) * u)
+        return self.value(self.low + (self.high - self.low) * u)
+
+    def describe(self) -> str:
+        lo, hi = self.value_range
+        how = {"uniform": "", "offset": f" (nominal {self.nominal:.6g} {self.low:+.6g} .. "
+               f"{self.high:+.6g})", "relative": f" (nominal {self.nominal:.6g} "
+               f"{100 * self.low:+.0f} % .. {100 * self.high:+.0f} %)",
+               "factor": f" (nominal {self.nominal:.6g} x{self.low:g} .. x{self.high:g}, "
+               "log-uniform)"}[self.kind]
+        return f"{self.name} in [{lo:.6g}, {hi:.6g}]{how}"
+
+
+@dataclass(frozen=True)
+class Draws:
+    """``n`` draws: each varied parameter's values, one per draw."""
+
+    values: dict[str, np.ndarray]
+    n: int
+
+    def __getitem__(self, index: Any) -> Draws:
+        picked = {k: v[index] for k, v in self.values.items()}
+        return Draws(picked, len(next(iter(picked.values()))) if picked else 0)
+
+    def one(self, k: int) -> dict[str, float]:
+        return {name: float(v[k]) for name, v in self.values.items()}
+
+
+@dataclass(frozen=True)
+class Distribution:
+    name: str
+    description: str
+    plant: dict[str, Any]  # fixed flat plant overrides
+    ranges: tuple[Range, ...]
+    text: str  # the file as read, for provenance
+
+    @property
+    def digest(self) -> str:
+        """A hash of the distribution's content (names, kinds, ranges, fixed overrides)."""
+        canon = yaml.safe_dump({"plant": self.plant, "ranges": [
+            (r.name, r.kind, r.low, r.high, r.nominal) for r in self.ranges]},
+            sort_keys=True)
+        return hashlib.sha256(canon.encode()).hexdigest()[:16]
+
+    def draw(self, n: int, seed: int) -> Draws:
+        """``n`` draws from ``seed``; the same seed gives the same draws."""
+        if n < 1:
+            raise ConfigError(f"draws = {n}: at least one draw")
+        rng = np.random.default_rng(seed)
+        u = rng.random((len(self.ranges), n))
+        return Draws({r.name: r.sample(u[j]) for j, r in enumerate(self.ranges)}, n)
+
+    def range(self, name: str) -> Range | None:
+        return next((r for r in self.ranges if r.name == name), None)
+
+
+def distribution_names() -> list[str]:
+    """The shipped distributions (the directory also holds pisc_tune's search spaces)."""
+    return sorted(p.stem for p in DISTRIBUTION_DIR.glob("*.yaml")
+                  if file_kind(p) == "distribution")
+
+
+def file_kind(path: Path) -> str | None:
+    """The top-level key of a YAML file ('distribution', 'space'), None if it has none."""
+    try:
+        document = yaml.safe_load(path.read_text())
+    except yaml.YAMLError:
+        return None
+    return next(iter(document), None) if isinstance(document, Mapping) else None
+
+
+def distribution_path(name_or_path: str) -> Path:
+    candidate = DISTRIBUTION_DIR / f"{name_or_path}.yaml"
+    if candidate.exists():
+        return candidate
+    path = Path(name_or_path)
+    if path.exists():
+        return path
+    raise ConfigError(f"{name_or_path}: no such distribution (shipped: "
+                      f"{', '.join(distribution_names())}) or file")
+
+
+def _field(name: str) -> tuple[type, Any]:
+    """The dataclass and field a variable parameter names; ConfigError otherwise."""
+    section, _, leaf = name.partition(".")
+    if name == LATENCY:
+        cls = ActuatorParams
+    elif section in VARIABLE_SECTIONS and name not in NOT_VARIABLE:
+        cls = VARIABLE_SECTIONS[section]
+    else:
+        raise ConfigError(
+            f"{name}: cannot be varied (varied parameters: the fields of "
+            f"{', '.join(VARIABLE_SECTIONS)}, and {LATENCY})")
+    for f in fields(cls):
+        if f.name == leaf:
+            return cls, f
+    known = ", ".join(f.name for f in fields(cls))
+    raise ConfigError(f"{name}: unknown parameter (known in '{section}': {known})")
+
+
+def unit_of(name: str) -> str:
+    """The unit of a parameter that can vary (empty when it has none)."""
+    return str(_field(name)[1].metadata["unit"])
+
+
+def _nominal(config: GraphConfig, name: str) -> float:
+    section, _, leaf = name.partition(".")
+    if section == "initial":
+        return float(getattr(config.initial, leaf))
+    return float(getattr(getattr(config.plant, section), leaf))
+
+
+def _bounds(where: str, kind: str, spec: Any) -> tuple[float, float]:
+    if isinstance(spec, bool):
+        raise ConfigError(f"{where}: {kind}: expected a width or [low, high], got {spec!r}")
+    if isinstance(spec, (int, float)):
+        if kind not in ("offset", "relative"):
+            raise ConfigError(f"{where}: {kind}: expected [low, high], got {spec!r}")
+        if not math.isfinite(spec) or spec < 0:
+            raise ConfigError(f"{where}: {kind}: {spec!r} is a negative or non-finite width "
+                              "(the range is [-width, +width])")
+        return -float(spec), float(spec)
+    if (not isinstance(spec, list) or len(spec) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in spec)):
+        raise ConfigError(f"{where}: {kind}: expected [low, high], got {spec!r}")
+    low, high = float(spec[0]), float(spec[1])
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise ConfigError(f"{where}: {kind}: [{low}, {high}] must be finite")
+    if low > high:
+        raise ConfigError(f"{where}: {kind}: lower bound {low} is above upper bound {high}")
+    if kind == "factor" and low <= 0:
+        raise ConfigError(f"{where}: factor: [{low}, {high}] must be positive (log-uniform)")
+    return low, high
+
+
+def parse_range(config: GraphConfig, name: str, spec: Any, where: str = "") -> Range:
+    """One entry of ``parameters``; ConfigError naming the parameter and the rule."""
+    try:
+        cls, field = _field(name)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}{exc}") from None
+    where = f"{where}{name}"
+    if not isinstance(spec, Mapping) or len(spec) != 1 or next(iter(spec)) not in KINDS:
+        raise ConfigError(f"{where}: expected one of {', '.join(KINDS)} (e.g. "
+                          f"{{relative: 0.3}}), got {spec!r}")
+    kind, bounds = next(iter(spec.items()))
+    low, high = _bounds(where, kind, bounds)
+    r = Range(name, kind, low, high, _nominal(config, name))
+    rule = field.metadata["rule"]
+    for value in r.value_range:
+        problem = rule(float(value))
+        if problem:
+            raise ConfigError(f"{where}: the range reaches {value:.6g}, which {problem}")
+    return r
+
+
+def load_distribution(name_or_path: str, config: GraphConfig) -> Distribution:
+    """Read and check a distribution around ``config``'s plant; ConfigError on bad input."""
+    path = distribution_path(name_or_path)
+    text = path.read_text()
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(document, Mapping) or not isinstance(document.get("distribution"),
+                                                           Mapping):
+        raise ConfigError(f"{path}: a distribution file holds one mapping under the key "
+                          "'distribution'")
+    body = document["distribution"]
+    unknown = sorted(set(body) - set(KEYS))
+    if unknown:
+        raise ConfigError(f"{path}: distribution.{unknown[0]}: unknown key (known: "
+                          f"{', '.join(KEYS)})")
+    plant = body.get("plant") or {}
+    if not isinstance(plant, Mapping):
+        raise ConfigError(f"{path}: distribution.plant must be a mapping of sections")
+    plant = flatten(plant)
+    check_plant_overrides(plant, f"{path}: distribution.plant:")
+    for section in sorted({name.split(".", 1)[0] for name in plant}):
+        try:
+            from_flat(SECTIONS[section], plant, section)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: distribution.plant: {exc}") from None
+    parameters = body.get("parameters") or {}
+    if not isinstance(parameters, Mapping) or not parameters:
+        raise ConfigError(f"{path}: distribution.parameters must map parameter names to "
+                          "ranges")
+    ranges = []
+    for name in sorted(parameters):
+        if name in plant:
+            raise ConfigError(f"{path}: {name} is both fixed (distribution.plant) and varied "
+                              "(distribution.parameters)")
+        ranges.append(parse_range(config, str(name), parameters[name],
+                                  f"{path}: distribution.parameters."))
+    return Distribution(path.stem, str(body.get("description", "")), dict(plant),
+                        tuple(ranges), text)
