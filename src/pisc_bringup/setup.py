@@ -29,6 +29,7 @@ setup(
             'pisc_scene = pisc_bringup.scene_cli:main',
             'pisc_batch_bench = pisc_bringup.batch_bench:main',
             'pisc_bag = pisc_bringup.bag_cli:main',
+            'pisc_robustness = pisc_bringup.robustness_cli:main',
         ],
     },
 )

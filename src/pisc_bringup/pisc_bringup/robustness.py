@@ -1,0 +1,241 @@
+"""How often a configuration swings up and holds rigs it was not tuned on.
+
+:func:`evaluate` draws plants, starts and latencies from a
+:class:`~pisc_bringup.uncertainty.Distribution`, runs each draw through the pure closed
+loop (:func:`pisc_bringup.closed_loop.simulate_batch`: the controllers' cores with the
+configuration's nominal model, each plant with its own parameters, on the compiled
+kernel) and scores it against :class:`Criteria`.
+
+Draws are cut into chunks of :data:`CHUNK_DRAWS`; a chunk's measurement noise comes from
+a generator seeded by (seed, chunk index). A chunk's result depends on nothing else,
+so the same seed gives the same numbers whether the chunks run in this process, on a
+local Dask cluster or on a remote one (:mod:`pisc_bringup.cluster`).
+"""
+
+from __future__ import annotations
+
+import math
+import shlex
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from pisc_bringup.closed_loop import simulate_batch
+from pisc_bringup.configuration import SECTIONS, GraphConfig
+from pisc_bringup.uncertainty import LATENCY, Distribution, Draws
+from pisc_msgs_py.config import from_flat, to_flat
+from pisc_plant.params import InitialParams
+from pisc_plant.plant import PlantConfig, plant_set
+
+__all__ = ["CHUNK_DRAWS", "FAILURES", "Criteria", "Outcomes", "base_plant",
+           "binomial_interval", "evaluate", "evaluate_chunk", "prepare", "rerun_command",
+           "success_by_value"]
+
+CHUNK_DRAWS = 1000
+#: The kinds of failure, in the order :meth:`Outcomes.kinds` checks them: a draw that
+#: both faulted and was never caught counts as a fault.
+FAILURES = ("fault: cart left the safe range", "fault", "never caught", "caught, then lost",
+            "caught for good too late", "not held")
+INITIAL = ("initial.x_m", "initial.x_dot_mps", "initial.theta_rad", "initial.theta_dot_radps")
+
+
+@dataclass(frozen=True)
+class Criteria:
+    """What a successful run is (issue 13): caught by ``catch_by_s`` in the catch that
+    lasts, held with |theta| < ``theta_rad`` and |x| < ``x_m`` from ``hold_start_s`` to
+    the end of ``duration_s``, never outside the safe range, no fault."""
+
+    duration_s: float = 10.0
+    catch_by_s: float = 3.0
+    hold_start_s: float = 6.0
+    theta_rad: float = 0.05
+    x_m: float = 0.02
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.duration_s) and self.duration_s > self.hold_start_s > 0):
+            raise ValueError(f"duration {self.duration_s} s must exceed the hold's start "
+                             f"{self.hold_start_s} s")
+
+
+@dataclass(frozen=True)
+class Outcomes:
+    """Per-draw results, in draw order."""
+
+    success: np.ndarray
+    caught_at_s: np.ndarray  # start of the catch that lasts; inf if none
+    first_catch_s: np.ndarray
+    largest_x_m: np.ndarray  # largest |x| over the run (true state)
+    hold_theta_rad: np.ndarray
+    hold_x_m: np.ndarray
+    hold_setpoint_rms_a: np.ndarray
+    faulted: np.ndarray
+    left_range: np.ndarray  # the true cart position left the safe range
+
+    @staticmethod
+    def concatenate(parts: Sequence[Outcomes]) -> Outcomes:
+        return Outcomes(*(np.concatenate([getattr(p, f) for p in parts])
+                          for f in Outcomes.__dataclass_fields__))
+
+    def __len__(self) -> int:
+        return len(self.success)
+
+    @property
+    def rate(self) -> float:
+        return float(np.mean(self.success))
+
+    def kinds(self, criteria: Criteria) -> np.ndarray:
+        """Each draw's failure as an index into :data:`FAILURES`; -1 for a success."""
+        never = ~np.isfinite(self.caught_at_s)
+        return np.select(
+            [self.success, self.left_range, self.faulted,
+             never & ~np.isfinite(self.first_catch_s), never,
+             self.caught_at_s > criteria.catch_by_s],
+            [-1, 0, 1, 2, 3, 4], 5)
+
+    def why(self, k: int, criteria: Criteria) -> str:
+        """In words, why draw ``k`` failed (empty for a success)."""
+        kind = int(self.kinds(criteria)[k])
+        if kind < 0:
+            return ""
+        if kind == 3:
+            return f"caught at {self.first_catch_s[k]:.2f} s, lost"
+        if kind == 4:
+            return f"caught for good only at {self.caught_at_s[k]:.2f} s"
+        if kind == 5:
+            return (f"not held: |theta| up to {self.hold_theta_rad[k]:.3f} rad, |x| up to "
+                    f"{self.hold_x_m[k]:.3f} m")
+        return FAILURES[kind]
+
+    def badness(self, criteria: Criteria) -> np.ndarray:
+        """A ranking of failures, worst first when sorted in descending order."""
+        never = ~np.isfinite(self.caught_at_s)
+        late = np.where(never, 0.0, np.maximum(self.caught_at_s - criteria.catch_by_s, 0.0))
+        hold = np.where(never, 0.0, self.hold_theta_rad / criteria.theta_rad
+                        + self.hold_x_m / criteria.x_m)
+        return (~self.success) * (4.0 * (self.faulted | self.left_range) + 2.0 * never
+                                  + np.minimum(late, 1.0) + np.minimum(hold, 1.0))
+
+
+def _chunk_seed(seed: int, chunk: int) -> int:
+    return int(np.random.SeedSequence([seed, chunk]).generate_state(1)[0])
+
+
+def evaluate_chunk(config: GraphConfig, base_plant: PlantConfig, draws: Draws,
+                   criteria: Criteria, noise_seed: int) -> Outcomes:
+    """Simulate one chunk of draws (a pure function of its arguments)."""
+    n = draws.n
+    values = draws.values
+    physical = {k: v for k, v in values.items() if k not in INITIAL and k != LATENCY}
+    plant = plant_set(base_plant, physical) if physical else base_plant
+    i0 = config.initial
+    start = [values.get(name, np.full(n, float(getattr(i0, name.split(".")[1]))))
+             for name in INITIAL]
+    delay = values.get(LATENCY, 0.0)
+    out = simulate_batch(config, start[0], criteria.duration_s, criteria.hold_start_s,
+                         delay, x_dot0_mps=start[1], theta0_rad=start[2],
+                         theta_dot0_radps=start[3], plant=plant, noise_seed=noise_seed)
+    safety = config.supervisor.safety
+    left = (out.x_min_m < safety.x_min_m) | (out.x_max_m > safety.x_max_m)
+    success = ((out.caught_at_s <= criteria.catch_by_s)
+               & (out.hold_theta_rad < criteria.theta_rad) & (out.hold_x_m < criteria.x_m)
+               & ~out.faulted & ~left)
+    largest = np.maximum(np.abs(out.x_min_m), np.abs(out.x_max_m))
+    return Outcomes(success, out.caught_at_s, out.first_catch_s, largest, out.hold_theta_rad,
+                    out.hold_x_m, out.hold_setpoint_rms_a, out.faulted, left)
+
+
+MapChunks = Callable[[Callable[..., Outcomes], Sequence[tuple[Any, ...]]], list[Outcomes]]
+
+
+def run_here(fn: Callable[..., Outcomes], tasks: Sequence[tuple[Any, ...]],
+             progress: Callable[[int], None] | None = None) -> list[Outcomes]:
+    out = []
+    for task in tasks:
+        out.append(fn(*task))
+        if progress is not None:
+            progress(1)
+    return out
+
+
+def evaluate(config: GraphConfig, base_plant: PlantConfig, draws: Draws,
+             criteria: Criteria = Criteria(), seed: int = 0,
+             map_chunks: MapChunks | None = None) -> Outcomes:
+    """Every draw, in chunks of :data:`CHUNK_DRAWS`; ``map_chunks(fn, tasks)`` runs the
+    chunks (default: one after another in this process) and returns their results in
+    order (:func:`pisc_bringup.cluster.chunk_runner`)."""
+    size = CHUNK_DRAWS
+    tasks = [(config, base_plant, draws[lo:lo + size], criteria, _chunk_seed(seed, c))
+             for c, lo in enumerate(range(0, draws.n, size))]
+    runner = map_chunks or run_here
+    return Outcomes.concatenate(runner(evaluate_chunk, tasks))
+
+
+def base_plant(config: GraphConfig, distribution: Distribution) -> PlantConfig:
+    """The plant the draws vary: the configuration's (or its true plant) with the
+    distribution's fixed overrides applied (``initial`` aside: see :func:`prepare`)."""
+    plant = config.simulated_plant
+    sections = {}
+    for name in sorted({k.split(".", 1)[0] for k in distribution.plant} - {"initial"}):
+        flat = {**to_flat(getattr(plant, name), name), **distribution.plant}
+        sections[name] = from_flat(SECTIONS[name], flat, name)
+    return replace(plant, **sections)
+
+
+def prepare(config: GraphConfig, distribution: Distribution) -> tuple[GraphConfig, PlantConfig]:
+    """What :func:`evaluate` takes for ``distribution``: the configuration with the
+    distribution's fixed initial state (``plant: {initial: ...}``), and :func:`base_plant`."""
+    if any(k.startswith("initial.") for k in distribution.plant):
+        flat = {**to_flat(config.initial, "initial"), **distribution.plant}
+        config = replace(config, initial=from_flat(InitialParams, flat, "initial"))
+    return config, base_plant(config, distribution)
+
+
+def success_by_value(values: np.ndarray, success: np.ndarray, bins: int = 10,
+                     log: bool = False, span: tuple[float, float] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(bin edges, success rate, draws) in ``bins`` equal bins (equal in log for ``log``)
+    over ``span`` (default: the values' smallest to largest); the rate is NaN in an empty
+    bin."""
+    lo, hi = span if span is not None else (float(np.min(values)), float(np.max(values)))
+    if hi <= lo:
+        hi = lo + (abs(lo) or 1.0) * 1e-9
+    edges = np.geomspace(lo, hi, bins + 1) if log else np.linspace(lo, hi, bins + 1)
+    which = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, bins - 1)
+    count = np.bincount(which, minlength=bins)
+    wins = np.bincount(which, weights=success.astype(float), minlength=bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(count > 0, wins / np.maximum(count, 1), np.nan)
+    return edges, rate, count
+
+
+def binomial_interval(successes: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """Clopper-Pearson (exact) interval of a success probability."""
+    from scipy.stats import beta
+
+    tail = (1.0 - level) / 2.0
+    low = 0.0 if successes == 0 else float(beta.ppf(tail, successes, n - successes + 1))
+    high = 1.0 if successes == n else float(beta.ppf(1.0 - tail, successes + 1, n - successes))
+    return low, high
+
+
+def rerun_command(config_name: str, overrides: Mapping[str, Any],
+                  fixed: Mapping[str, Any], draw: Mapping[str, float]) -> str:
+    """The ``./pisc run`` command that reruns one draw through the ROS graph."""
+    args = ["./pisc", "run", "--config", config_name]
+    for name, value in overrides.items():
+        args += ["--set", f"{name}={_yaml_value(value)}"]
+    for name, value in {**fixed, **draw}.items():
+        args += ["--plant-set", f"{name}={_yaml_value(value)}"]
+    return shlex.join(args)
+
+
+def _yaml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_yaml_value(v) for v in value) + "]"
+    return str(value)

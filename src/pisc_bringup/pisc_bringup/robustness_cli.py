@@ -1,0 +1,275 @@
+"""pisc_robustness: how often a configuration swings up and holds rigs drawn from a
+distribution of what is not known about the rig (docs/robustness.md).
+
+    pisc_robustness default --distribution thesis-rig --draws 10000 --seed 1
+
+Prints the success rate with its 95 % interval, the failures by kind, the catch time,
+the largest |x|, the hold's current set-point RMS, the wall time, and the worst draws
+with the command that reruns each through the ROS graph; writes
+``DIR/success_by_parameter.png``. The same seed gives the same numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import textwrap
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from pisc_bringup.robustness import Criteria, Outcomes
+    from pisc_bringup.uncertainty import Distribution, Draws
+
+PROG = "pisc_robustness"
+PLOT = "success_by_parameter.png"
+
+
+def quiet_threads() -> None:
+    """Let idle numba (OpenMP) threads sleep instead of spinning, unless the environment
+    says otherwise; set before the plant's kernel starts its threads.
+
+    With OpenMP's default active wait, the kernel's two threads ran a chunk of 1000
+    draws in 15-38 s instead of 3 s when other processes shared the two cores (a
+    thread spins at every period's barrier while its partner waits for a core);
+    passive, 3.1 s (docs/robustness.md, "Scaling").
+    """
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def add_run_arguments(parser: argparse.ArgumentParser, draws: int) -> None:
+    """The arguments pisc_robustness and pisc_tune share."""
+    parser.add_argument("config", metavar="CONFIG",
+                        help="a configuration name (default, thesis) or a parameter file")
+    parser.add_argument("--distribution", default="thesis-rig", metavar="NAME|FILE",
+                        help="a shipped distribution or a distribution file "
+                        "(default: %(default)s)")
+    parser.add_argument("--draws", type=int, default=draws, metavar="N",
+                        help="draws from the distribution (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=1, metavar="S",
+                        help="seed of the draws and of the measurement noise "
+                        "(default: %(default)s)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="override a parameter of the configuration (repeatable)")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N",
+                       help="0: in this process without Dask; N: a local Dask cluster of N "
+                       "worker processes (default: one per core for more than one chunk of "
+                       "draws, else in this process)")
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="run on an existing Dask cluster (tcp://host:8786)")
+
+
+def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    if args.draws < 1:
+        parser.error(f"--draws {args.draws}: at least 1")
+    if args.workers is not None and args.workers < 0:
+        parser.error(f"--workers {args.workers}: 0 (in this process) or more")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    add_run_arguments(parser, draws=10000)
+    parser.add_argument("--out", type=Path, default=Path("robustness"), metavar="DIR",
+                        help="directory of the plot (default: %(default)s)")
+    parser.add_argument("--worst", type=int, default=5, metavar="K",
+                        help="show the K worst draws (default: %(default)s)")
+    quiet_threads()
+    args = parser.parse_args(argv)
+    check_run_arguments(parser, args)
+    if args.worst < 0:
+        parser.error(f"--worst {args.worst}: 0 or more")
+
+    from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
+    from pisc_bringup.configuration import config_path, load_graph_config
+    from pisc_bringup.robustness import CHUNK_DRAWS, Criteria, evaluate, prepare
+    from pisc_bringup.uncertainty import load_distribution
+    from pisc_control.supervisor import Supervisor
+    from pisc_msgs_py.config import ConfigError, parse_overrides
+
+    try:
+        overrides = parse_overrides(args.set)
+        config, _ = load_graph_config(args.config, overrides)
+        Supervisor(config.supervisor)  # the gain condition (3.29) and the catch design
+        distribution = load_distribution(args.distribution, config)
+        draws = distribution.draw(args.draws, args.seed)
+        config, plant = prepare(config, distribution)
+    except ConfigError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
+    criteria = Criteria()
+    chunks = -(-args.draws // CHUNK_DRAWS)
+    workers = default_workers(chunks) if args.workers is None and not args.scheduler \
+        else args.workers
+    print(f"configuration {args.config} ({config_path(args.config)})"
+          + "".join(f"\n  --set {item}" for item in args.set))
+    print(describe_distribution(distribution))
+    print(f"draws {args.draws}, seed {args.seed}; {describe_criteria(criteria)}")
+    start = time.perf_counter()
+    try:
+        with progress_bar(chunks, "chunks") as bar, \
+                chunk_runner(workers, args.scheduler, bar) as map_chunks:
+            outcomes = evaluate(config, plant, draws, criteria, args.seed, map_chunks)
+    except OSError as exc:  # the scheduler cannot be reached
+        print(f"{PROG}: {args.scheduler}: {exc}", file=sys.stderr)
+        return 2
+    wall = time.perf_counter() - start
+    print("\n".join(report(outcomes, criteria)))
+    print(f"wall time {wall:.1f} s ({describe_runner(workers, args.scheduler)}, {chunks} "
+          f"chunk{'s' if chunks != 1 else ''}), "
+          f"{args.draws * criteria.duration_s / wall:.0f} simulated s per wall s")
+    print("\n".join(worst(outcomes, criteria, draws, distribution, args.config, overrides,
+                          args.worst)))
+    args.out.mkdir(parents=True, exist_ok=True)
+    plot = args.out / PLOT
+    plot_success(plot, distribution, draws, outcomes, f"{args.config} on "
+                 f"{distribution.name}, {args.draws} draws, seed {args.seed}")
+    print(f"plot: {plot}")
+    return 0
+
+
+def describe_distribution(distribution: Distribution) -> str:
+    lines = [f"distribution {distribution.name} (digest {distribution.digest})"
+             + (f": {distribution.description}" if distribution.description else "")]
+    lines += [f"  {name} = {value} (fixed)" for name, value in distribution.plant.items()]
+    lines += [f"  {r.describe()}" for r in distribution.ranges]
+    return "\n".join(lines)
+
+
+def describe_criteria(criteria: Criteria) -> str:
+    return (f"success: caught by {criteria.catch_by_s:g} s, held with |theta| < "
+            f"{criteria.theta_rad:g} rad and |x| < {criteria.x_m:g} m from "
+            f"{criteria.hold_start_s:g} s to {criteria.duration_s:g} s, inside the safe range, "
+            "no fault")
+
+
+def percentiles(values: np.ndarray, unit: str, digits: int = 3) -> str:
+    if values.size == 0:
+        return "none"
+    p5, p50, p95 = np.percentile(values, [5, 50, 95])
+    return (f"p5 {p5:.{digits}f}, p50 {p50:.{digits}f}, p95 {p95:.{digits}f}, max "
+            f"{np.max(values):.{digits}f} {unit}")
+
+
+def report(outcomes: Outcomes, criteria: Criteria) -> list[str]:
+    """The summary lines (everything but the wall time and the worst draws)."""
+    from pisc_bringup.robustness import FAILURES, binomial_interval
+
+    n = len(outcomes)
+    wins = int(np.sum(outcomes.success))
+    low, high = binomial_interval(wins, n)
+    lines = [f"success {wins} of {n} = {100 * wins / n:.2f} % (95 % interval "
+             f"{100 * low:.2f} .. {100 * high:.2f} %)"]
+    kinds = outcomes.kinds(criteria)
+    counts = [(int(np.sum(kinds == k)), name) for k, name in enumerate(FAILURES)]
+    failures = [f"{name} {count}" for count, name in counts if count]
+    lines.append("failures: " + (", ".join(failures) if failures else "none"))
+    caught = outcomes.caught_at_s[np.isfinite(outcomes.caught_at_s)]
+    lines.append(f"catch time ({caught.size} caught): {percentiles(caught, 's', 2)}")
+    lines.append(f"largest |x| (all draws): {percentiles(outcomes.largest_x_m, 'm')}")
+    rms = outcomes.hold_setpoint_rms_a[outcomes.success]
+    lines.append("hold's current set-point RMS (successes): " + (
+        "none" if rms.size == 0 else
+        f"median {np.median(rms):.4f} A, p95 {np.percentile(rms, 95):.4f} A"))
+    return lines
+
+
+def worst(outcomes: Outcomes, criteria: Criteria, draws: Draws, distribution: Distribution,
+          config: str, overrides: dict[str, Any], k: int) -> list[str]:
+    """The ``k`` worst failures, each with its values and the command that reruns it."""
+    from pisc_bringup.robustness import rerun_command
+
+    badness = outcomes.badness(criteria)
+    order = [int(i) for i in np.argsort(-badness, kind="stable")[:k] if badness[i] > 0]
+    if not order:
+        return ["worst draws: no failure"] if k else []
+    lines = [f"worst {len(order)} draws (the graph draws its own measurement noise):"]
+    for i in order:
+        values = {name: float(f"{v:.6g}") for name, v in draws.one(i).items()}
+        lines.append(f"  draw {i}: {outcomes.why(i, criteria)}")
+        lines += textwrap.wrap(", ".join(f"{name}={v:g}" for name, v in values.items()),
+                               width=100, initial_indent="    ", subsequent_indent="    ",
+                               break_on_hyphens=False)
+        lines.append("    " + rerun_command(config, overrides, distribution.plant, values))
+    return lines
+
+
+def plot_success(path: Path, distribution: Distribution, draws: Draws, outcomes: Outcomes,
+                 title: str) -> None:
+    """Success rate in 10 bins of each varied parameter's value, one panel each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FixedLocator, FuncFormatter, MaxNLocator, NullFormatter
+
+    from pisc_bringup.robustness import success_by_value
+    from pisc_bringup.uncertainty import unit_of
+
+    ranges = distribution.ranges
+    columns = 4
+    rows = -(-len(ranges) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(3.3 * columns, 2.2 * rows + 0.7),
+                             sharey=True, squeeze=False)
+    overall = 100 * outcomes.rate
+    short = FuncFormatter(lambda v, _: f"{v:.3g}")
+    for ax, r in zip(axes.flat, ranges, strict=False):
+        log = r.kind == "factor"
+        edges, rate, count = success_by_value(draws.values[r.name], outcomes.success,
+                                              log=log, span=r.value_range)
+        percent = 100 * np.nan_to_num(rate)
+        ax.stairs(percent, edges, fill=True, alpha=0.3, color="C0")
+        ax.stairs(percent, edges, color="C0", lw=1.2)
+        ax.axhline(overall, color="C3", lw=0.9, ls="--")
+        if log:  # factor ranges: log axis, ticks at the ends and the nominal value
+            ax.set_xscale("log")
+            ax.xaxis.set_major_locator(FixedLocator([*r.value_range, r.nominal]))
+            ax.xaxis.set_minor_formatter(NullFormatter())
+        else:
+            ax.xaxis.set_major_locator(MaxNLocator(4))
+        ax.xaxis.set_major_formatter(short)
+        ax.set_xlim(edges[0], edges[-1])
+        unit = unit_of(r.name)
+        ax.set_xlabel(r.name + (f" [{unit}]" if unit else ""), fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.set_ylim(0, 102)
+        ax.set_yticks([0, 25, 50, 75, 100])
+        ax.grid(alpha=0.3)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("success [%]", fontsize=8)
+    for ax in list(axes.flat)[len(ranges):]:
+        ax.set_visible(False)
+    fig.suptitle(f"{title}\nsuccess in 10 bins of each parameter's value; dashed: all draws, "
+                 f"{overall:.1f} %", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+class progress_bar:  # noqa: N801 (a context manager used like a function)
+    """A tqdm bar on stderr, quiet when stderr is not a terminal; called with a count."""
+
+    def __init__(self, total: int, unit: str, desc: str = "") -> None:
+        self.total, self.unit, self.desc = total, unit, desc
+        self.bar: Any = None
+
+    def __enter__(self) -> progress_bar:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=self.total, unit=self.unit, desc=self.desc or None,
+                        disable=not sys.stderr.isatty(), leave=False, file=sys.stderr)
+        return self
+
+    def __call__(self, n: int) -> None:
+        self.bar.update(n)
+
+    def __exit__(self, *exc: object) -> None:
+        self.bar.close()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

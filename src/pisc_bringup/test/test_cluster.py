@@ -1,0 +1,80 @@
+"""The chunks of an evaluation give the same numbers, bit for bit, wherever they run."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pisc_bringup import robustness
+from pisc_bringup.cluster import chunk_runner, default_workers
+from pisc_bringup.configuration import load_graph_config
+from pisc_bringup.robustness import Criteria, evaluate, prepare
+from pisc_bringup.uncertainty import load_distribution
+
+SHORT = Criteria(duration_s=6.5, hold_start_s=6.0)  # catch by 3 s, hold 6 .. 6.5 s
+
+
+@pytest.fixture(scope="module")
+def setup():
+    config = load_graph_config("default")[0]
+    distribution = load_distribution("thesis-rig", config)
+    config, plant = prepare(config, distribution)
+    return config, plant, distribution.draw(160, seed=5)
+
+
+def assert_same_bits(a, b) -> None:
+    for field in dataclasses.fields(a):
+        x, y = getattr(a, field.name), getattr(b, field.name)
+        assert x.dtype == y.dtype and x.shape == y.shape, field.name
+        assert x.tobytes() == y.tobytes(), field.name
+
+
+def test_a_local_cluster_of_two_workers_gives_the_in_process_outcomes_bit_for_bit(
+        setup, monkeypatch):
+    config, plant, draws = setup
+    monkeypatch.setattr(robustness, "CHUNK_DRAWS", 80)  # two chunks, one per worker
+    with chunk_runner(workers=0) as here:
+        expected = evaluate(config, plant, draws, SHORT, seed=5, map_chunks=here)
+    seen = []
+    with chunk_runner(workers=2, progress=seen.append) as on_cluster:
+        got = evaluate(config, plant, draws, SHORT, seed=5, map_chunks=on_cluster)
+    assert seen == [1, 1]
+    assert len(got) == 160
+    assert_same_bits(expected, got)
+    # and the default, sequential runner is the in-process one
+    assert_same_bits(expected, evaluate(config, plant, draws, SHORT, seed=5))
+
+
+def test_an_existing_scheduler_runs_the_chunks_it_is_given(setup, monkeypatch):
+    from distributed import LocalCluster
+
+    config, plant, draws = setup
+    draws = draws[:40]
+    monkeypatch.setattr(robustness, "CHUNK_DRAWS", 20)
+    expected = evaluate(config, plant, draws, SHORT, seed=2)
+    with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster, \
+            chunk_runner(scheduler=cluster.scheduler_address) as on_cluster:
+        got = evaluate(config, plant, draws, SHORT, seed=2, map_chunks=on_cluster)
+    assert_same_bits(expected, got)
+
+
+def test_chunks_with_another_seed_draw_other_noise(setup, monkeypatch):
+    config, plant, draws = setup
+    draws = draws[:20]
+    a = evaluate(config, plant, draws, SHORT, seed=1)
+    b = evaluate(config, plant, draws, SHORT, seed=2)
+    assert not np.array_equal(a.hold_setpoint_rms_a, b.hold_setpoint_rms_a)
+
+
+def test_the_default_runs_one_chunk_here_and_more_on_a_worker_per_core():
+    assert default_workers(1) == 0
+    assert 1 <= default_workers(2) <= 2
+    assert default_workers(100) >= 1
+
+
+@pytest.mark.parametrize("workers, scheduler", [(-1, None), (2, "tcp://localhost:1")])
+def test_a_bad_runner_is_refused(workers, scheduler):
+    with pytest.raises(ValueError), chunk_runner(workers, scheduler):
+        pass

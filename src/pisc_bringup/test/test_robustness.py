@@ -1,0 +1,171 @@
+"""pisc_robustness and the scoring behind it: what a success is, how failures are told
+apart, and the same numbers from the same seed."""
+
+from __future__ import annotations
+
+import math
+import shlex
+
+import numpy as np
+import pytest
+
+from pisc_bringup.configuration import load_graph_config
+from pisc_bringup.robustness import (
+    FAILURES,
+    Criteria,
+    Outcomes,
+    binomial_interval,
+    prepare,
+    rerun_command,
+    success_by_value,
+)
+from pisc_bringup.robustness_cli import PLOT
+from pisc_bringup.robustness_cli import main as robustness_main
+from pisc_bringup.uncertainty import load_distribution
+
+
+def outcomes(**columns) -> Outcomes:
+    n = len(next(iter(columns.values())))
+    base = dict(success=np.zeros(n, bool), caught_at_s=np.full(n, 1.0),
+                first_catch_s=np.full(n, 1.0), largest_x_m=np.full(n, 0.05),
+                hold_theta_rad=np.full(n, 0.01), hold_x_m=np.full(n, 0.005),
+                hold_setpoint_rms_a=np.full(n, 0.02), faulted=np.zeros(n, bool),
+                left_range=np.zeros(n, bool))
+    base.update({k: np.asarray(v) for k, v in columns.items()})
+    return Outcomes(**base)
+
+
+def test_failures_are_told_apart_and_ranked_worst_first():
+    c = Criteria()
+    o = outcomes(
+        success=[True, False, False, False, False, False, False],
+        left_range=[False, True, False, False, False, False, False],
+        faulted=[False, True, True, False, False, False, False],
+        caught_at_s=[1.0, math.inf, math.inf, math.inf, math.inf, 4.0, 1.0],
+        first_catch_s=[1.0, math.inf, math.inf, math.inf, 2.0, 4.0, 1.0],
+        hold_theta_rad=[0.01, 0, 0, 0, 0, 0.01, 0.2])
+    assert list(o.kinds(c)) == [-1, 0, 1, 2, 3, 4, 5]
+    assert o.why(0, c) == ""
+    assert o.why(1, c) == FAILURES[0]
+    assert o.why(4, c) == "caught at 2.00 s, lost"
+    assert o.why(5, c) == "caught for good only at 4.00 s"
+    assert o.why(6, c).startswith("not held: |theta| up to 0.200 rad")
+    badness = o.badness(c)
+    assert badness[0] == 0
+    assert np.argmax(badness) in (1, 2)  # faults first
+    assert badness[3] > badness[5] > 0  # never caught before caught late
+
+
+def test_the_binomial_interval_holds_the_rate_and_reaches_the_ends():
+    low, high = binomial_interval(950, 1000)
+    assert low < 0.95 < high
+    assert (low, high) == pytest.approx((0.9346, 0.9627), abs=5e-4)
+    assert binomial_interval(0, 10)[0] == 0.0
+    assert binomial_interval(10, 10)[1] == 1.0
+
+
+def test_success_by_value_bins_the_draws():
+    values = np.arange(100.0)
+    success = values < 50
+    edges, rate, count = success_by_value(values, success, bins=10)
+    assert len(edges) == 11 and count.sum() == 100
+    np.testing.assert_array_equal(rate, [1] * 5 + [0] * 5)
+    edges, rate, count = success_by_value(np.geomspace(1, 100, 50), np.ones(50, bool),
+                                          bins=5, log=True)
+    np.testing.assert_allclose(edges, np.geomspace(1, 100, 6))
+    assert np.all(count == 10)
+
+
+def test_a_fixed_initial_state_in_the_distribution_starts_every_draw(tmp_path):
+    config = load_graph_config("default")[0]
+    path = tmp_path / "d.yaml"
+    path.write_text("distribution: {plant: {initial: {x_m: 0.05}, motor: {resistance_ohm: "
+                    "15.0}}, parameters: {initial.theta_rad: {offset: 0.1}}}")
+    distribution = load_distribution(str(path), config)
+    started, plant = prepare(config, distribution)
+    assert started.initial.x_m == 0.05
+    assert plant.motor.resistance_ohm == 15.0
+    assert config.plant.motor.resistance_ohm == 14.0  # the controllers' model stays
+
+
+def test_the_rerun_command_sets_the_controllers_and_the_plant():
+    command = rerun_command("default", {"swing_up.k_x": 5.0}, {"models.friction": "coulomb"},
+                            {"motor.resistance_ohm": 12.5, "initial.theta_rad": 3.0})
+    assert shlex.split(command) == [
+        "./pisc", "run", "--config", "default", "--set", "swing_up.k_x=5.0",
+        "--plant-set", "models.friction=coulomb", "--plant-set", "motor.resistance_ohm=12.5",
+        "--plant-set", "initial.theta_rad=3.0"]
+
+
+def run(tmp_path, capsys, *extra: str) -> str:
+    assert robustness_main(["default", "--draws", "120", "--seed", "3", "--worst", "3",
+                            "--out", str(tmp_path), *extra]) == 0
+    return capsys.readouterr().out
+
+
+def test_pisc_robustness_prints_the_same_numbers_for_the_same_seed(tmp_path, capsys):
+    first = run(tmp_path / "a", capsys)
+    again = run(tmp_path / "b", capsys)
+    other = run(tmp_path / "c", capsys, "--seed", "4")
+
+    def numbers(out: str) -> list[str]:
+        return [line for line in out.splitlines() if not line.startswith(("wall time", "plot:"))]
+
+    assert numbers(first) == numbers(again)
+    assert numbers(first) != numbers(other)
+    for expected in ("distribution thesis-rig (digest ", "motor.resistance_ohm in [9.8, 18.2]",
+                     "draws 120, seed 3", "success ", "95 % interval", "failures: ",
+                     "catch time (", "largest |x| (all draws): p5 ",
+                     "hold's current set-point RMS (successes): ", "simulated s per wall s",
+                     f"plot: {tmp_path / 'a' / PLOT}"):
+        assert expected in first, expected
+    assert (tmp_path / "a" / PLOT).stat().st_size > 10_000
+    worst = [line.strip() for line in first.splitlines()
+             if line.strip().startswith("./pisc run")]
+    assert 0 < len(worst) <= 3 or "worst draws: no failure" in first
+    for command in worst:
+        args = shlex.split(command)
+        assert args[:4] == ["./pisc", "run", "--config", "default"]
+        assert "models.friction=coulomb" in args
+        assert any(a.startswith("motor.resistance_ohm=") for a in args)
+
+
+def wall_time(draws: int, workers: int, tmp_path, **env: str) -> tuple[float, str]:
+    """Run pisc_robustness as a user does; its printed wall time and success line."""
+    import os
+    import re
+    import subprocess
+    import sys
+
+    completed = subprocess.run(
+        [sys.executable, "-m", "pisc_bringup.robustness_cli", "default", "--draws",
+         str(draws), "--seed", "1", "--workers", str(workers), "--worst", "0", "--out",
+         str(tmp_path)], capture_output=True, text=True, timeout=1800,
+        env={**os.environ, **env})
+    assert completed.returncode == 0, completed.stderr
+    wall = re.search(r"^wall time ([0-9.]+) s", completed.stdout, re.M)
+    success = re.search(r"^success .*$", completed.stdout, re.M)
+    return float(wall[1]), success[0]
+
+
+@pytest.mark.bench
+def test_bench_wall_time_by_draws_and_workers(tmp_path):
+    """How the wall time of ``pisc_robustness default`` (cluster start-up included) grows
+    with the draws and the workers; prints the table of docs/robustness.md, "Scaling"."""
+    import os
+
+    wall_time(10, 0, tmp_path)  # the kernel compiled into its cache
+    table = {}
+    for n in (1000, 3000, 10000):
+        for workers in (0, 1, 2):
+            wall, success = wall_time(n, workers, tmp_path)
+            table[n, workers] = wall
+            print(f"{n:6d} draws, --workers {workers}: {wall:6.1f} s wall, "
+                  f"{n * 10.0 / wall:6.0f} simulated s per wall s; {success}", flush=True)
+    active, _ = wall_time(1000, 0, tmp_path, OMP_WAIT_POLICY="ACTIVE")
+    print(f"  1000 draws, --workers 0, OMP_WAIT_POLICY=ACTIVE: {active:.1f} s wall")
+    print(f"\n{os.cpu_count()} cores; load average {os.getloadavg()}")
+    print("| draws | --workers 0 (in process) | --workers 1 | --workers 2 |")
+    print("|---:|---:|---:|---:|")
+    for n in (1000, 3000, 10000):
+        print(f"| {n} | " + " | ".join(f"{table[n, w]:.1f} s" for w in (0, 1, 2)) + " |")
