@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import textwrap
 import time
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"draws {args.draws}, seed {args.seed}; {describe_criteria(criteria)}")
     start = time.perf_counter()
     try:
-        with progress_bar(chunks, "chunks") as bar, \
+        with progress_bar(chunks, "chunk") as bar, \
                 chunk_runner(workers, args.scheduler, bar) as map_chunks:
             outcomes = evaluate(config, plant, draws, criteria, args.seed, map_chunks)
     except OSError as exc:  # the scheduler cannot be reached
@@ -260,8 +261,10 @@ class progress_bar:  # noqa: N801 (a context manager used like a function)
     def __enter__(self) -> progress_bar:
         from tqdm import tqdm
 
+        width = min(shutil.get_terminal_size((100, 24)).columns, 120)
         self.bar = tqdm(total=self.total, unit=self.unit, desc=self.desc or None,
-                        disable=not sys.stderr.isatty(), leave=False, file=sys.stderr)
+                        disable=not sys.stderr.isatty(), leave=False, file=sys.stderr,
+                        ncols=width)
         return self
 
     def __call__(self, n: int) -> None:

@@ -1,0 +1,431 @@
+"""Search the controllers' parameters for the highest success rate over a distribution.
+
+A search space is a YAML file::
+
+    space:
+      description: what the search may change
+      parameters:                       # one entry per searched parameter
+        swing_up.k_x: {log: [1.0, 100.0]}         # log-uniform between the bounds
+        switching.delta_s: {linear: [0.05, 0.6]}  # uniform between the bounds
+        catch.poles[2]: {linear: [-6.0, -1.0]}    # one element of a list parameter
+
+Each entry takes exactly one of ``linear: [low, high]`` and ``log: [low, high]`` (both
+bounds positive), with low below high; both bounds must satisfy the parameter's own rule.
+Parameters come from the controllers' sections (:data:`TUNABLE_SECTIONS`): a number, or
+one element ``name[i]`` of a list of numbers. The plant's sections (the model the
+controllers assume) and ``safety`` (the track's limits) are not searched.
+
+:func:`tune` runs an Optuna study (TPE by default, or CMA-ES, seeded): every trial scores
+a candidate by :func:`pisc_bringup.robustness.evaluate` over the **same** draws (the
+study's seed: common random numbers), so trials compare fairly and the same seed gives
+the same result. A candidate that the configuration refuses (:class:`ConfigError`, e.g.
+the gain condition (3.29)) scores 0 and is marked ``refused`` in its user attributes.
+When the start configuration lies inside the space it is the first trial.
+
+A study lives in an Optuna storage (an SQLite file by default) and can be resumed by the
+same command; the storage holds one tuning: its distribution's digest, configuration,
+draws, seed, space, criteria and sampler are recorded in the study's name and user
+attributes, and a storage that holds another tuning is refused (:class:`StudyMismatch`),
+never mixed in.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from pisc_bringup.configuration import CONFIG_DIR, SECTIONS, GraphConfig, load_graph_config
+from pisc_bringup.robustness import Criteria, MapChunks, evaluate, prepare
+from pisc_bringup.uncertainty import Distribution, file_kind
+from pisc_control.supervisor import Supervisor
+from pisc_msgs_py.config import ConfigError, from_flat, to_flat
+
+__all__ = ["SAMPLERS", "SPACE_DIR", "TUNABLE_SECTIONS", "Dimension", "Space", "StudyMismatch",
+           "TuneResult", "Tuning", "load_space", "space_names", "tune", "tuned_file_text"]
+
+SPACE_DIR = CONFIG_DIR.parent / "distributions"
+DEFAULT_SPACE = "tuning-space"
+SAMPLERS = ("tpe", "cmaes")
+SCALES = ("linear", "log")
+TUNABLE_SECTIONS = ("estimator", "swing_up", "catch", "switching", "startup", "current_loop")
+NAME = re.compile(r"^(?P<parameter>[a-z_]+\.[a-z0-9_]+)(\[(?P<index>\d+)\])?$")
+
+
+class StudyMismatch(ConfigError):
+    """The storage holds a study of another tuning (distribution, draws, seed, space...)."""
+
+
+@dataclass(frozen=True)
+class Dimension:
+    """One searched value: a parameter, or element ``index`` of a list parameter."""
+
+    name: str  # as in the space file, e.g. "catch.poles[2]"
+    parameter: str  # "catch.poles"
+    index: int | None
+    low: float
+    high: float
+    log: bool
+
+    def describe(self) -> str:
+        return f"{self.name} in [{self.low:g}, {self.high:g}] ({'log' if self.log else 'linear'})"
+
+
+@dataclass(frozen=True)
+class Space:
+    name: str
+    description: str
+    dimensions: tuple[Dimension, ...]
+
+    @property
+    def digest(self) -> str:
+        canon = yaml.safe_dump([asdict(d) for d in self.dimensions], sort_keys=True)
+        return hashlib.sha256(canon.encode()).hexdigest()[:16]
+
+    def values(self, flat: Mapping[str, Any]) -> dict[str, float]:
+        """Each dimension's value in the flat parameters of a configuration."""
+        out = {}
+        for d in self.dimensions:
+            value = flat[d.parameter]
+            out[d.name] = float(value if d.index is None else value[d.index])
+        return out
+
+    def overrides(self, flat: Mapping[str, Any], values: Mapping[str, float]) -> dict[str, Any]:
+        """The flat overrides that set ``values`` (by dimension name) in ``flat``."""
+        out: dict[str, Any] = {}
+        for d in self.dimensions:
+            if d.index is None:
+                out[d.parameter] = float(values[d.name])
+            else:
+                current = list(out.get(d.parameter, flat[d.parameter]))
+                current[d.index] = float(values[d.name])
+                out[d.parameter] = current
+        return out
+
+    def contains(self, values: Mapping[str, float]) -> bool:
+        return all(d.low <= values[d.name] <= d.high for d in self.dimensions)
+
+
+def space_names() -> list[str]:
+    """The shipped search spaces (beside the distributions)."""
+    return sorted(p.stem for p in SPACE_DIR.glob("*.yaml") if file_kind(p) == "space")
+
+
+def space_path(name_or_path: str) -> Path:
+    candidate = SPACE_DIR / f"{name_or_path}.yaml"
+    if candidate.exists():
+        return candidate
+    path = Path(name_or_path)
+    if path.exists():
+        return path
+    raise ConfigError(f"{name_or_path}: no such search space (shipped: "
+                      f"{', '.join(space_names())}) or file")
+
+
+def full_flat(flat: Mapping[str, Any]) -> dict[str, Any]:
+    """Every parameter of every section, the defaults included, as flat values."""
+    out: dict[str, Any] = {}
+    for section, cls in SECTIONS.items():
+        out.update(to_flat(from_flat(cls, flat, section), section))
+    return out
+
+
+def _dimension(name: str, spec: Any, flat: Mapping[str, Any], where: str) -> Dimension:
+    match = NAME.match(name)
+    if not match:
+        raise ConfigError(f"{where}{name}: expected a parameter name such as swing_up.k_x "
+                          "or catch.poles[2]")
+    parameter, index = match["parameter"], match["index"]
+    section, _, leaf = parameter.partition(".")
+    if section not in TUNABLE_SECTIONS:
+        raise ConfigError(f"{where}{name}: cannot be searched (searched sections: "
+                          f"{', '.join(TUNABLE_SECTIONS)}; the plant's sections are the model "
+                          "and safety is the track)")
+    field = next((f for f in fields(SECTIONS[section]) if f.name == leaf), None)
+    if field is None:
+        known = ", ".join(f.name for f in fields(SECTIONS[section]))
+        raise ConfigError(f"{where}{name}: unknown parameter (known in '{section}': {known})")
+    current = flat[parameter]
+    if isinstance(current, (list, tuple)):
+        if index is None:
+            raise ConfigError(f"{where}{name}: a list of {len(current)} numbers; search one "
+                              f"element, e.g. {parameter}[0]")
+        if int(index) >= len(current):
+            raise ConfigError(f"{where}{name}: index {index} beyond the {len(current)} "
+                              f"elements of {parameter}")
+    elif index is not None:
+        raise ConfigError(f"{where}{name}: {parameter} is not a list")
+    elif isinstance(current, bool) or not isinstance(current, float):
+        raise ConfigError(f"{where}{name}: not a real number ({current!r}); only real "
+                          "parameters can be searched")
+    if (not isinstance(spec, Mapping) or len(spec) != 1 or next(iter(spec)) not in SCALES):
+        raise ConfigError(f"{where}{name}: expected one of {', '.join(SCALES)} with [low, "
+                          f"high] (e.g. {{log: [1.0, 100.0]}}), got {spec!r}")
+    scale, bounds = next(iter(spec.items()))
+    if (not isinstance(bounds, list) or len(bounds) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                       for v in bounds)):
+        raise ConfigError(f"{where}{name}: {scale}: expected [low, high], got {bounds!r}")
+    low, high = float(bounds[0]), float(bounds[1])
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise ConfigError(f"{where}{name}: {scale}: [{low}, {high}] must be finite")
+    if not low < high:
+        raise ConfigError(f"{where}{name}: {scale}: lower bound {low:g} must be below the "
+                          f"upper bound {high:g}")
+    if scale == "log" and low <= 0:
+        raise ConfigError(f"{where}{name}: log: [{low:g}, {high:g}] must be positive "
+                          "(log-uniform); use linear")
+    for value in (low, high):
+        problem = field.metadata["rule"](value)
+        if problem:
+            raise ConfigError(f"{where}{name}: the range reaches {value:g}, which {problem}")
+    return Dimension(name, parameter, None if index is None else int(index), low, high,
+                     scale == "log")
+
+
+def load_space(name_or_path: str, flat: Mapping[str, Any]) -> Space:
+    """Read and check a search space against a configuration's flat parameters;
+    :class:`ConfigError` naming the entry and the rule on bad input."""
+    path = space_path(name_or_path)
+    try:
+        document = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(document, Mapping) or not isinstance(document.get("space"), Mapping):
+        raise ConfigError(f"{path}: a search space file holds one mapping under the key "
+                          "'space'")
+    body = document["space"]
+    unknown = sorted(set(body) - {"description", "parameters"})
+    if unknown:
+        raise ConfigError(f"{path}: space.{unknown[0]}: unknown key (known: description, "
+                          "parameters)")
+    parameters = body.get("parameters")
+    if not isinstance(parameters, Mapping) or not parameters:
+        raise ConfigError(f"{path}: space.parameters must map parameter names to ranges")
+    full = full_flat(flat)
+    where = f"{path}: space.parameters."
+    dimensions = tuple(_dimension(str(name), spec, full, where)
+                       for name, spec in parameters.items())
+    return Space(path.stem, str(body.get("description", "")), dimensions)
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """What a study is about; everything in :meth:`key` must match to resume it."""
+
+    config: str  # a configuration name or parameter file
+    overrides: dict[str, Any]  # --set
+    distribution: Distribution
+    space: Space
+    draws: int
+    seed: int
+    sampler: str = "tpe"
+    criteria: Criteria = Criteria()
+
+    def __post_init__(self) -> None:
+        if self.sampler not in SAMPLERS:
+            raise ConfigError(f"sampler {self.sampler!r}: one of {', '.join(SAMPLERS)}")
+        if self.draws < 1:
+            raise ConfigError(f"draws = {self.draws}: at least one draw")
+
+    def key(self) -> dict[str, Any]:
+        from pisc_bringup.configuration import config_path
+
+        text = config_path(self.config).read_text()
+        return {
+            "config": self.config,
+            "config_digest": hashlib.sha256(text.encode()).hexdigest()[:16],
+            "overrides": yaml.safe_dump(self.overrides, sort_keys=True).strip(),
+            "distribution": self.distribution.name,
+            "distribution_digest": self.distribution.digest,
+            "draws": self.draws,
+            "seed": self.seed,
+            "space": self.space.name,
+            "space_digest": self.space.digest,
+            "criteria": yaml.safe_dump(asdict(self.criteria), sort_keys=True).strip(),
+            "sampler": self.sampler,
+        }
+
+    @property
+    def study_name(self) -> str:
+        k = self.key()
+        return (f"pisc_tune {Path(self.config).stem} {k['distribution']} "
+                f"{k['distribution_digest']} draws {self.draws} seed {self.seed} space "
+                f"{k['space_digest']} {self.sampler}")
+
+
+@dataclass(frozen=True)
+class TuneResult:
+    start_success: float
+    best_success: float
+    best_trial: int
+    best_values: dict[str, float]  # by dimension name
+    best_flat: dict[str, Any]  # the whole configuration with the best values
+    trials: int  # complete trials in the study
+    refused: int  # of which the configuration refused
+
+
+def _sampler(tuning: Tuning, offset: int) -> Any:
+    import optuna
+
+    seed = tuning.seed + offset
+    if tuning.sampler == "cmaes":
+        # from the middle of the space (the start, when inside, is the first trial anyway)
+        return optuna.samplers.CmaEsSampler(seed=seed)
+    # trials run one after another: no constant liar (a trial that a killed run left
+    # RUNNING would otherwise count as a bad value for ever)
+    return optuna.samplers.TPESampler(seed=seed, multivariate=True, constant_liar=False)
+
+
+def open_study(tuning: Tuning, storage: str) -> Any:
+    """Create or resume the study of ``tuning`` in ``storage``; :class:`StudyMismatch`
+    if the storage holds another tuning."""
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    from sqlalchemy.exc import SQLAlchemyError
+
+    key = tuning.key()
+    try:
+        summaries = optuna.get_all_study_summaries(storage, include_best_trial=False)
+    except (SQLAlchemyError, ValueError, ImportError) as exc:
+        raise ConfigError(f"{storage}: cannot open the study storage "
+                          f"({str(exc).splitlines()[0]})") from None
+    existing = 0
+    for summary in summaries:
+        theirs = summary.user_attrs.get("pisc_tune")
+        if summary.study_name == tuning.study_name and theirs in (key, None):
+            existing = summary.n_trials
+            continue
+        if not isinstance(theirs, Mapping):
+            raise StudyMismatch(f"{storage}: holds study '{summary.study_name}', which is not "
+                                "a pisc_tune study; use another --out or --storage")
+        diff = [f"{k} {theirs.get(k)!r} (now {v!r})" for k, v in key.items()
+                if theirs.get(k) != v]
+        raise StudyMismatch(f"{storage}: holds a tuning with another "
+                            + "; ".join(diff or [f"study name '{summary.study_name}'"])
+                            + ". Resuming mixes no other tuning in: use another --out or "
+                            "--storage, or delete the study file to start again")
+    # a resumed study samples on from another seed than the first run's start
+    study = optuna.create_study(storage=storage, study_name=tuning.study_name,
+                                direction="maximize", load_if_exists=True,
+                                sampler=_sampler(tuning, existing))
+    if "pisc_tune" not in study.user_attrs:
+        study.set_user_attr("pisc_tune", key)
+    return study
+
+
+def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None = None,
+         progress: Callable[[int, float], None] | None = None) -> TuneResult:
+    """Run the study of ``tuning`` until it holds ``trials`` complete trials.
+
+    ``progress(done, best)`` is called after each trial with the number of complete
+    trials and the best success so far.
+    """
+    start_config, start_flat = load_graph_config(tuning.config, tuning.overrides)
+    draws = tuning.distribution.draw(tuning.draws, tuning.seed)
+    _, plant = prepare(start_config, tuning.distribution)
+    start_values = tuning.space.values(full_flat(start_flat))
+    inside = tuning.space.contains(start_values)
+    study = open_study(tuning, storage)
+
+    def score(values: Mapping[str, float]) -> tuple[float, str]:
+        overrides = {**tuning.overrides, **tuning.space.overrides(start_flat, values)}
+        try:
+            config, _ = load_graph_config(tuning.config, overrides)
+            Supervisor(config.supervisor)  # the gain condition and the catch design
+        except ConfigError as exc:
+            return 0.0, str(exc)
+        config, _ = prepare(config, tuning.distribution)
+        outcomes = evaluate(config, plant, draws, tuning.criteria, tuning.seed, map_chunks)
+        return outcomes.rate, ""
+
+    def objective(trial: Any) -> float:
+        values = {d.name: trial.suggest_float(d.name, d.low, d.high, log=d.log)
+                  for d in tuning.space.dimensions}
+        rate, refused = score(values)
+        if refused:
+            trial.set_user_attr("refused", refused)
+        return rate
+
+    from optuna.trial import TrialState
+
+    def complete() -> list[Any]:
+        return study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+
+    if inside and not study.get_trials(deepcopy=False):
+        study.enqueue_trial(start_values, user_attrs={"start": True})
+
+    def callback(study_: Any, trial: Any) -> None:
+        if progress is not None:
+            progress(len(complete()), study_.best_value)
+
+    remaining = trials - len(complete())
+    if remaining > 0:
+        study.optimize(objective, n_trials=remaining, callbacks=[callback], catch=())
+    done = complete()
+    accepted = [t for t in done if "refused" not in t.user_attrs]
+    if not accepted:
+        refusal = done[-1].user_attrs["refused"] if done else "no trial completed"
+        raise ConfigError(f"the configuration refused all {len(done)} candidates, the last "
+                          f"with: {refusal}; check the search space")
+    best = max(accepted, key=lambda t: t.value)  # the first of equals
+    start = next((t for t in done if t.user_attrs.get("start")), None)
+    if start is None and "start_success" not in study.user_attrs:
+        # outside the space (or its trial was killed): scored once, kept with the study
+        study.set_user_attr("start_success", score(start_values)[0])
+    start_success = (float(start.value) if start is not None
+                     else float(study.user_attrs["start_success"]))
+    best_values = {d.name: float(best.params[d.name]) for d in tuning.space.dimensions}
+    best_flat = full_flat({**start_flat,
+                           **tuning.space.overrides(start_flat, best_values)})
+    return TuneResult(start_success, float(best.value), best.number, best_values, best_flat,
+                      len(done), sum(1 for t in done if "refused" in t.user_attrs))
+
+
+def provenance(result: TuneResult, tuning: Tuning, command: str, date: str,
+               storage: str) -> list[str]:
+    """The lines that say where a tuned file comes from."""
+    key = tuning.key()
+    overrides = " ".join(f"--set {k}={v}" for k, v in tuning.overrides.items())
+    return [
+        f"command: {command}",
+        f"date: {date}",
+        f"configuration: {tuning.config} (digest {key['config_digest']})"
+        + (f" {overrides}" if overrides else ""),
+        f"distribution: {tuning.distribution.name} (digest {tuning.distribution.digest})",
+        f"space: {tuning.space.name} (digest {tuning.space.digest}): "
+        + ", ".join(d.name for d in tuning.space.dimensions),
+        f"draws {tuning.draws}, seed {tuning.seed}, sampler {tuning.sampler}, trials "
+        f"{result.trials} ({result.refused} refused by the configuration), study in {storage}",
+        f"success: start {100 * result.start_success:.2f} %, best "
+        f"{100 * result.best_success:.2f} % (trial {result.best_trial}), on the same draws",
+        "best: " + ", ".join(f"{k} = {v:.6g}" for k, v in result.best_values.items()),
+    ]
+
+
+def tuned_file_text(result: TuneResult, tuning: Tuning, command: str, date: str,
+                    storage: str) -> str:
+    """A ROS 2 parameter file of the whole configuration with the best values, headed by
+    comment lines that record its provenance."""
+    from pisc_bringup.configuration import params_file_text
+
+    head = ["pisc_tune: the configuration with the best values the search found"]
+    head += provenance(result, tuning, command, date, storage)
+    return "".join(f"# {line}\n" for line in head) + params_file_text(
+        {k: _plain(v) for k, v in result.best_flat.items()})
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
