@@ -154,7 +154,7 @@ def load_graph_config(
         estimator=s["estimator"],
         supervisor=SupervisorConfig(rig=s["rig"], swing_up=s["swing_up"], catch=s["catch"],
                                     switching=s["switching"], startup=s["startup"],
-                                    safety=s["safety"]),
+                                    safety=s["safety"], loop=s["loop"]),
         current_loop=s["current_loop"],
     )
     return config, flat

@@ -37,6 +37,9 @@ class CatchParams:
         "", nonnegative)
     lqr_r: float = param(1.0, "R, weight of f^2 for design 'lqr'", "1/N^2", positive)
     target_m: float = param(0.0, "x*, where the catch balances the cart", "m", finite)
+    settle_rate_mps: float = param(
+        0.0, "the catch's cart reference starts where the cart is when the catch begins and "
+        "moves to x* at this speed (0 = x* at once, the thesis's law)", "m/s", nonnegative)
 
     @property
     def pole_set(self) -> np.ndarray:

@@ -35,12 +35,13 @@ from pisc_control.swing_up import (
     SwingUpParams,
     check_gain_condition,
     energy_pump_force,
+    pendulum_energy,
     swing_up_force,
 )
 from pisc_msgs_py.config import ConfigError, nonnegative, param, positive
 from pisc_msgs_py.types import Mode
 from pisc_plant.dynamics import wrap_to_upright
-from pisc_plant.params import RigParams
+from pisc_plant.params import LoopParams, RigParams
 
 __all__ = [
     "FAULT_NONE",
@@ -70,6 +71,10 @@ class SwitchingParams:
                            positive)
     delta_exit: float = param(0.6, "stop catching when the criterion reaches it "
                               "(hysteresis; = delta_s is the thesis's rule)", "rad^2", positive)
+    energy_band_j: float = param(
+        0.0, "catch only while the pendulum's own energy is within this of upright at rest "
+        "(0 J), so that it can coast up; 0 = no energy condition, the thesis's rule", "J",
+        nonnegative)
 
     def __post_init__(self) -> None:
         if self.delta_exit < self.delta_s:
@@ -107,6 +112,7 @@ class SupervisorConfig:
     switching: SwitchingParams = field(default_factory=SwitchingParams)
     startup: StartupParams = field(default_factory=StartupParams)
     safety: SafetyParams = field(default_factory=SafetyParams)
+    loop: LoopParams = field(default_factory=LoopParams)
 
 
 @dataclass(frozen=True)
@@ -117,6 +123,7 @@ class SupervisorState:
     fault: np.ndarray | None = None
     startup_target_m: np.ndarray | None = None
     caught: np.ndarray | None = None  # has caught at least once
+    catch_reference_m: np.ndarray | None = None  # the catch's cart reference (settling)
 
 
 def switching_criterion(k_va: float, theta: ArrayLike, theta_dot: ArrayLike) -> np.ndarray:
@@ -175,7 +182,12 @@ class Supervisor:
         criterion = switching_criterion(c.switching.k_va, theta, theta_dot)
         catching = mode == Mode.CATCH.code
         threshold = np.where(catching, c.switching.delta_exit, c.switching.delta_s)
-        new_mode = np.where(criterion < threshold, Mode.CATCH.code, Mode.SWING_UP.code)
+        inside = criterion < threshold
+        band = c.switching.energy_band_j
+        if band > 0.0:
+            coasting = np.abs(pendulum_energy(c.rig, theta, theta_dot)) < band
+            inside &= catching | coasting
+        new_mode = np.where(inside, Mode.CATCH.code, Mode.SWING_UP.code)
         new_mode = np.where(new_fault != FAULT_NONE, Mode.FAULT.code, new_mode)
 
         caught = caught | (new_mode == Mode.CATCH.code)
@@ -186,13 +198,30 @@ class Supervisor:
                                             target, (c.safety.x_min_m, c.safety.x_max_m))
             else:
                 f_swing = swing_up_force(c.rig, c.swing_up, x, x_dot, theta, theta_dot, target)
-            f_catch = catch_force(self.gain, x, x_dot, theta, theta_dot, c.catch.target_m)
+            reference = self._catch_reference(state, mode, new_mode, x)
+            f_catch = catch_force(self.gain, x, x_dot, theta, theta_dot, reference)
         force = np.where(new_mode == Mode.CATCH.code, f_catch,
                          np.where(new_mode == Mode.SWING_UP.code, f_swing, 0.0))
         # (3.29) keeps the swing-up denominator positive; a non-finite force can only come
         # from non-finite inputs, which fault above. Never pass one on.
         force = np.where(np.isfinite(force), force, 0.0)
-        return SupervisorState(new_mode, new_fault, startup_target, caught), force, new_mode
+        return (SupervisorState(new_mode, new_fault, startup_target, caught, reference), force,
+                new_mode)
+
+    def _catch_reference(self, state: SupervisorState, mode: np.ndarray, new_mode: np.ndarray,
+                         x: np.ndarray) -> np.ndarray:
+        """The catch's cart reference: ``catch.target_m``, or with ``settle_rate_mps`` > 0
+        the cart's position when the catch began, moved towards it by rate x Ts a sample."""
+        c = self.config
+        rate = c.catch.settle_rate_mps
+        if rate == 0.0:
+            return np.broadcast_to(np.asarray(c.catch.target_m, dtype=float), np.shape(x))
+        previous = x if state.catch_reference_m is None else state.catch_reference_m
+        entering = (new_mode == Mode.CATCH.code) & (mode != Mode.CATCH.code)
+        reference = np.where(entering, x, previous)
+        step = rate * c.loop.period_s
+        return np.where(new_mode == Mode.CATCH.code,
+                        reference + np.clip(c.catch.target_m - reference, -step, step), reference)
 
     def fault_reason(self, fault: int, x: float) -> str:
         c = self.config.safety

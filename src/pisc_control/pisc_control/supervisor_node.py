@@ -20,7 +20,7 @@ from pisc_msgs_py.base_node import ERROR, OK, PiscNode, run_node
 from pisc_msgs_py.convert import MessageError, cart_force_to_msg, mode_to_msg, state_from_msg
 from pisc_msgs_py.topics import CART_FORCE, MODE, STATE
 from pisc_msgs_py.types import CartForce, Mode, ModeReport
-from pisc_plant.params import RigParams
+from pisc_plant.params import LoopParams, RigParams
 
 SECTIONS = {
     "rig": RigParams,
@@ -29,6 +29,7 @@ SECTIONS = {
     "switching": SwitchingParams,
     "startup": StartupParams,
     "safety": SafetyParams,
+    "loop": LoopParams,
 }
 
 

@@ -1,4 +1,5 @@
-"""Supervisor: switching rule (4.1) with hysteresis, start-up target, safety faults."""
+"""Supervisor: switching rule (4.1) with hysteresis and an energy band, start-up target,
+the catch's settling reference, safety faults."""
 
 import math
 
@@ -94,3 +95,45 @@ def test_batch_of_rigs_in_one_call():
     s, force, mode = sup.update(SupervisorState(), x, np.zeros(3), theta, np.zeros(3))
     assert list(mode) == [SWING, CATCH, FAULT]
     assert force[2] == 0.0
+
+
+def test_the_catch_reference_settles_from_where_the_catch_began():
+    """settle_rate 0.05 m/s at Ts = 5 ms: a catch that begins at x = -0.05 m balances about
+    -0.05 + 0.00025 k after k more samples, then about x* = 0."""
+    from pisc_control.catch import CatchParams, catch_force
+
+    cfg = SupervisorConfig(catch=CatchParams(settle_rate_mps=0.05))
+    sup = Supervisor(cfg)
+    s = SupervisorState()
+    for k in range(250):
+        s, force, mode = sup.update(s, -0.05, 0.0, 0.01, 0.0)
+        expected_ref = min(-0.05 + 0.00025 * (k + 1), 0.0)
+        assert int(mode) == CATCH
+        assert float(s.catch_reference_m) == pytest.approx(expected_ref, abs=1e-12)
+        assert float(force) == pytest.approx(
+            float(catch_force(sup.gain, -0.05, 0.0, 0.01, 0.0, expected_ref)), rel=1e-12)
+    # without the rate, the thesis's law: x* at once
+    plain = Supervisor(SupervisorConfig())
+    _, force, _ = plain.update(SupervisorState(), -0.05, 0.0, 0.01, 0.0)
+    assert float(force) == pytest.approx(float(catch_force(plain.gain, -0.05, 0.0, 0.01, 0.0)))
+
+
+def test_the_energy_band_catches_only_a_pendulum_that_can_coast_up():
+    """Both states lie inside (4.1) (theta = 0.3 rad, delta_s 0.6); at rest 0.3 rad from
+    upright the pendulum's energy is m g l (cos 0.3 - 1) = -0.40 mJ, moving at 3 rad/s
+    towards upright it is +0.07 mJ. A 0.2 mJ band catches the second only; once
+    catching, only (4.1)'s exit threshold lets go."""
+    from pisc_control.swing_up import pendulum_energy
+    from pisc_plant.params import RigParams
+
+    rig = RigParams()
+    assert float(pendulum_energy(rig, 0.3, 0.0)) == pytest.approx(-4.0e-4, rel=0.01)
+    assert abs(float(pendulum_energy(rig, 0.3, -3.0))) < 2e-4
+    sup = Supervisor(SupervisorConfig(switching=SwitchingParams(energy_band_j=2e-4)))
+    _, _, mode = sup.update(SupervisorState(), np.zeros(2), np.zeros(2), np.array([0.3, 0.3]),
+                            np.array([0.0, -3.0]))
+    assert list(mode) == [SWING, CATCH]
+    catching = SupervisorState(np.array([CATCH]), np.array([0]), np.array([0.0]),
+                               np.array([True]))
+    _, _, mode = sup.update(catching, 0.0, 0.0, 0.3, 0.0)
+    assert list(mode) == [CATCH]
