@@ -17,7 +17,7 @@ EXECUTABLES = {
     "pisc_plant": ["plant_node", "pisc_virtual_rig"],
     "pisc_control": ["estimator_node", "supervisor_node", "current_loop_node"],
     "pisc_bringup": ["pisc_graph", "pisc_record", "pisc_bag", "pisc_scene",
-                     "pisc_integrators", "pisc_batch_bench"],
+                     "pisc_integrators", "pisc_batch_bench", "pisc_robustness", "pisc_tune"],
     "pisc_msgs_py": [],
     "pisc_driver": ["driver_node", "pisc_parser_bench"],
     "pisc_analysis": ["pisc_analysis"],
@@ -51,7 +51,10 @@ def test_every_node_executable_lands_where_ros2_run_looks(install, package):
 
 def test_installed_configuration_and_node_run_from_the_install(install, env_for_domain):
     config = install / "pisc_bringup" / "share" / "pisc_bringup" / "config"
-    assert sorted(p.name for p in config.glob("*.yaml")) == ["default.yaml", "thesis.yaml"]
+    assert sorted(p.name for p in config.glob("*.yaml")) == [
+        "default.yaml", "lyapunov-tuned.yaml", "thesis.yaml"]
+    distributions = config.parent / "distributions"
+    assert "thesis-rig.yaml" in [p.name for p in distributions.glob("*.yaml")]
     env = dict(env_for_domain)
     env["PYTHONPATH"] = os.pathsep.join(
         str(p) for p in install.glob("*/lib/python3*/site-packages"))

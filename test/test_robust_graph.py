@@ -1,0 +1,107 @@
+"""Issue 13 through the ROS graph: the default configuration catches starts and plants it
+was not tuned on, and balances without chatter.
+
+Each case is one lockstep run of ``pisc_graph`` (what ``./pisc run`` runs), with the
+plant's model error given as ``--plant-set`` would give it: the controllers keep the
+nominal model of ``default.yaml``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import DomainClaim
+from pisc_bringup.bag import read_bag
+from pisc_bringup.closed_loop import simulate_batch
+from pisc_bringup.configuration import load_graph_config
+from pisc_bringup.graph import RunOptions, main, run_graph
+from pisc_msgs_py.convert import motor_sample_from_msg
+from pisc_msgs_py.topics import CURRENT_SETPOINT
+
+pytestmark = pytest.mark.integration
+
+R_NOMINAL = 14.0
+M_PENDULUM = 0.01055
+
+# name: (overrides of both the controllers and the plant, overrides of the plant only)
+CASES = {
+    "theta0 3.0 rad at rest": ({"initial.theta_rad": 3.0}, {}),
+    "theta0 3.3 rad at rest": ({"initial.theta_rad": 3.3}, {}),
+    "x_dot0 -0.1 m/s": ({"initial.x_dot_mps": -0.1}, {}),
+    "x_dot0 +0.2 m/s": ({"initial.x_dot_mps": 0.2}, {}),
+    "plant R +30 %": ({}, {"motor.resistance_ohm": 1.3 * R_NOMINAL}),
+    "plant cart Coulomb 0.05 N": ({}, {"models.friction": "coulomb",
+                                        "friction.cart_coulomb_n": 0.05}),
+    "plant pendulum mass +20 %": ({}, {"rig.pendulum_mass_kg": 1.2 * M_PENDULUM}),
+}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    results = {}
+    for name, (overrides, plant_overrides) in CASES.items():
+        claim = DomainClaim()
+        try:
+            results[name] = run_graph(RunOptions(
+                overrides=overrides, plant_overrides=plant_overrides, duration_s=10.0,
+                bag_dir=tmp_path_factory.mktemp("bags") / name.replace(" ", "_"),
+                domain_id=claim.domain_id))
+        finally:
+            claim.release()
+    return results
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_the_graph_catches_by_3_s_and_holds(runs, name):
+    summary = runs[name].summary
+    assert summary.caught_at_s is not None and summary.caught_at_s <= 3.0, summary.format()
+    assert summary.held and summary.hold_theta_rad < 0.05 and summary.hold_x_m < 0.02, (
+        summary.format())
+    assert summary.state_source == "true" and not summary.faults, summary.format()
+
+
+def test_the_plant_ran_its_own_parameters(runs):
+    """The model error reached the plant node and not the controllers."""
+    from pisc_msgs_py.config import load_params_file
+
+    bag = runs["plant R +30 %"].bag_dir
+    assert load_params_file(bag / "plant_params.yaml")["motor.resistance_ohm"] == 18.2
+    assert load_params_file(bag / "pisc_params.yaml")["motor.resistance_ohm"] == R_NOMINAL
+
+
+def test_the_hold_does_not_chatter_through_the_graph(runs):
+    """From 6 s to 10 s of the nominal start at rest the current set-point's RMS is at most
+    0.05 A (issue 13; 0.21 A with the lyapunov-tuned configuration)."""
+    bag = runs["theta0 3.3 rad at rest"].bag_dir
+    samples = [motor_sample_from_msg(m.message) for m in read_bag(bag, [CURRENT_SETPOINT.name])]
+    t0 = min(s.stamp_ns for s in samples)
+    late = np.array([s.value for s in samples if s.stamp_ns - t0 >= 6_000_000_000])
+    assert len(late) >= 800
+    assert float(np.sqrt(np.mean(late**2))) <= 0.05
+
+
+def test_the_command_line_takes_plant_overrides_as_pisc_run_does(tmp_path, domain_id, capfd):
+    """``./pisc run --plant-set ...`` for one case: exit 0 (caught and held)."""
+    status = main(["--duration", "10", "--bag", str(tmp_path / "bag"), "--domain-id",
+                   str(domain_id), "--plant-set", "models.friction=coulomb",
+                   "--plant-set", "friction.cart_coulomb_n=0.05",
+                   "--plant-set", "friction.cart_viscous_ns_per_m=0.3"])
+    out = capfd.readouterr().out
+    assert status == 0, out
+    assert "result                 CAUGHT" in out
+
+
+@pytest.mark.xfail(strict=True, reason="known miss of the default configuration (issue 13 "
+                   "stays open): from x0 = +0.07 m a catch entered with the cart at -0.39 m/s "
+                   "runs into the far end of the track; the other 40 starts pass")
+def test_the_nominal_rig_catches_from_41_starts_without_chatter():
+    """The pure closed loop (the graph reproduces it bit for bit, test_graph.py): every x0
+    in [-0.10, 0.10] m caught by 3.0 s and held from 6 s, set-point RMS <= 0.05 A."""
+    cfg, _ = load_graph_config("default")
+    x0 = np.linspace(-0.10, 0.10, 41)
+    out = simulate_batch(cfg, x0, 10.0)
+    assert np.all(out.caught_at_s <= 3.0), x0[out.caught_at_s > 3.0]
+    assert np.all(out.hold_theta_rad < 0.05) and np.all(out.hold_x_m < 0.02)
+    assert not np.any(out.faulted)
+    assert np.all(out.hold_setpoint_rms_a <= 0.05), out.hold_setpoint_rms_a.max()
