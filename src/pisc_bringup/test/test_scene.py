@@ -176,7 +176,8 @@ def test_swing_up_gains_on_the_boundary_of_3_29_are_refused_and_just_inside_stay
     bound_kv = k_e * rig.a2 * 2.0 * rig.mgl
     path = _write(tmp_path, f"""\
         scene:
-          parameters: {{swing_up: {{k_v: {bound_kv!r}, k_e: {k_e}, energy_target_j: 0.0}}}}
+          parameters: {{swing_up: {{law: lyapunov, k_v: {bound_kv!r}, k_e: {k_e},
+                                    energy_target_j: 0.0}}}}
         """)
     with pytest.raises(ConfigError, match=r"\(3.29\)"):
         load_scene(path)

@@ -282,7 +282,7 @@ def exit_code(argv: list[str]) -> int:
 
 @pytest.mark.parametrize("argv, message", [
     (["default", "--space", "nosuch"], "nosuch: no such search space"),
-    (["default", "--set", "swing_up.k_e=100"], "(3.29)"),
+    (["thesis", "--set", "swing_up.k_e=100"], "(3.29)"),
     (["default", "--trials", "0"], "--trials 0: at least 1"),
     (["default", "--draws", "0"], "--draws 0: at least 1"),
     (["default", "--sampler", "nosuch"], "invalid choice: 'nosuch'"),

@@ -135,7 +135,7 @@ def test_the_command_prints_no_traceback_for_a_bad_distribution(tmp_path):
 @pytest.mark.parametrize("argv, expected", [
     (["nosuch"], "nosuch: no such configuration"),
     (["default", "--distribution", "nosuch"], "nosuch: no such distribution"),
-    (["default", "--set", "swing_up.k_e=100"], "(3.29)"),
+    (["thesis", "--set", "swing_up.k_e=100"], "(3.29)"),
     (["default", "--set", "nosuch.x=1"], "nosuch.x: unknown parameter section"),
 ])
 def test_pisc_robustness_refuses_other_bad_input_with_exit_2(tmp_path, capsys, argv,
