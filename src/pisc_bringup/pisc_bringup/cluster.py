@@ -18,10 +18,16 @@ ways give the same numbers bit for bit.
   ``dask worker`` started elsewhere, with PISC installed on every worker); nothing is
   started or stopped here.
 
-The default (``workers=None``) is the local cluster with one worker per core,
-:data:`DEFAULT_WORKERS`, chosen by measurement: on the project's 2-core machine, 10,000
-draws of 10 s took about two thirds of the in-process time with a cluster of two
-workers, start-up of the cluster (about 2 s) included (docs/robustness.md, "Scaling").
+The commands' default is in this process (:data:`DEFAULT_WORKERS` = 0), chosen by
+measurement: on the project's 2-core machine (shared with other jobs, load 2.4-3.6),
+``pisc_robustness default --draws 10000`` took 21.7-23.3 s in this process, 26.4-28.6 s
+on a local cluster of one worker and 28.3-29.7 s on two, the cluster's start-up (about
+2.5 s) included (docs/robustness.md, "Scaling"). ``--workers N`` is for a machine with
+more free cores than the in-process run keeps busy (its numpy controllers run on one).
+
+The commands let idle OpenMP threads sleep (``OMP_WAIT_POLICY=PASSIVE``, here and in the
+local workers): with OpenMP's default active wait, spinning threads made a chunk of 1000
+draws take 5 to 12 times longer whenever other processes shared the cores.
 
 Why Dask and not Ray: Dask's wheels are pure Python and a few MB, a ``LocalCluster``
 starts inside the command in seconds with nothing to install or run beforehand, and it
@@ -37,16 +43,18 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["DEFAULT_WORKERS", "chunk_runner", "core_count", "default_workers", "describe_runner"]
+__all__ = ["DEFAULT_WORKERS", "chunk_runner", "core_count", "describe_runner"]
 
-#: ``workers`` when the command is given neither ``--workers`` nor ``--scheduler``:
-#: None means one local Dask worker per core (see the module's docstring).
-DEFAULT_WORKERS: int | None = None
+#: ``workers`` when a command is given neither ``--workers`` nor ``--scheduler``: in this
+#: process (see the module's docstring).
+DEFAULT_WORKERS = 0
 
-#: Environment of every local worker process: one numba thread (and one BLAS thread)
-#: per worker, which has one core.
-WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-              "MKL_NUM_THREADS": "1"}
+#: Environment of every local worker process: one numba thread (and one BLAS thread) per
+#: worker, which has one core, and OpenMP threads that sleep when idle. With OpenMP's
+#: default active wait a worker's chunk of 1000 draws took 20-26 s of wall time and twice
+#: that in CPU time (two threads spinning at every period's barrier) instead of 2.3 s.
+WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE",
+              "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 MapChunks = Callable[[Callable[..., Any], Sequence[tuple[Any, ...]]], list[Any]]
 Progress = Callable[[int], None]
@@ -58,12 +66,6 @@ def core_count() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         return os.cpu_count() or 1
-
-
-def default_workers(chunks: int) -> int:
-    """``--workers`` when the command is given neither it nor ``--scheduler``: in this
-    process for a single chunk, else one local worker per core (at most one per chunk)."""
-    return 0 if chunks <= 1 else min(core_count(), chunks)
 
 
 def describe_runner(workers: int | None, scheduler: str | None) -> str:
@@ -106,7 +108,7 @@ def _map_on(client: Any, progress: Progress | None) -> MapChunks:
 
 
 @contextmanager
-def chunk_runner(workers: int | None = DEFAULT_WORKERS, scheduler: str | None = None,
+def chunk_runner(workers: int | None = None, scheduler: str | None = None,
                  progress: Progress | None = None) -> Iterator[MapChunks]:
     """A ``map_chunks(fn, tasks)`` that runs chunks as the module's docstring says.
 
