@@ -18,12 +18,13 @@ ways give the same numbers bit for bit.
   ``dask worker`` started elsewhere, with PISC installed on every worker); nothing is
   started or stopped here.
 
-The commands' default is in this process (:data:`DEFAULT_WORKERS` = 0), chosen by
-measurement: on the project's 2-core machine (shared with other jobs, load 2.4-3.6),
-``pisc_robustness default --draws 10000`` took 21.7-23.3 s in this process, 26.4-28.6 s
-on a local cluster of one worker and 28.3-29.7 s on two, the cluster's start-up (about
-2.5 s) included (docs/robustness.md, "Scaling"). ``--workers N`` is for a machine with
-more free cores than the in-process run keeps busy (its numpy controllers run on one).
+The commands' default (:func:`default_workers`) was chosen by measurement on the
+project's 2-core machine (``pisc_robustness default --seed 1``, docs/robustness.md,
+"Scaling"): for 10,000 draws (10 chunks) a local cluster of two workers took 15.6-16.1 s
+when no other job competed for the cores, against 19.8-20.9 s in this process (24-28 s
+against 22-23 s while other jobs shared the cores); for 3000 draws 7.6-9.2 s against 6.5-6.8 s,
+for 1000 draws 5.8-6.0 s against 2.4-2.5 s. The cluster's start-up (about 2.5 s, and the
+first chunk of each worker loads the compiled kernel) pays off from about five chunks.
 
 The commands let idle OpenMP threads sleep (``OMP_WAIT_POLICY=PASSIVE``, here and in the
 local workers): with OpenMP's default active wait, spinning threads made a chunk of 1000
@@ -43,11 +44,11 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["DEFAULT_WORKERS", "chunk_runner", "core_count", "describe_runner"]
+__all__ = ["CLUSTER_FROM_CHUNKS", "chunk_runner", "core_count", "default_workers",
+           "describe_runner"]
 
-#: ``workers`` when a command is given neither ``--workers`` nor ``--scheduler``: in this
-#: process (see the module's docstring).
-DEFAULT_WORKERS = 0
+#: Chunks from which a command's default is a local cluster (one worker per core).
+CLUSTER_FROM_CHUNKS = 5
 
 #: Environment of every local worker process: one numba thread (and one BLAS thread) per
 #: worker, which has one core, and OpenMP threads that sleep when idle. With OpenMP's
@@ -66,6 +67,14 @@ def core_count() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         return os.cpu_count() or 1
+
+
+def default_workers(chunks: int) -> int:
+    """``--workers`` when a command is given neither it nor ``--scheduler``: in this
+    process below :data:`CLUSTER_FROM_CHUNKS` chunks or on one core, else a local cluster
+    of one worker per core (at most one per chunk)."""
+    cores = core_count()
+    return 0 if chunks < CLUSTER_FROM_CHUNKS or cores < 2 else min(cores, chunks)
 
 
 def describe_runner(workers: int | None, scheduler: str | None) -> str:

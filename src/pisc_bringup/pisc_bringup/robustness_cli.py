@@ -58,8 +58,9 @@ def add_run_arguments(parser: argparse.ArgumentParser, draws: int) -> None:
                         help="override a parameter of the configuration (repeatable)")
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, metavar="N",
-                       help="0 (default): in this process, without Dask; N: a local Dask "
-                       "cluster of N worker processes with one thread each")
+                       help="0: in this process, without Dask; N: a local Dask cluster of N "
+                       "worker processes with one thread each (default: in this process up "
+                       "to 4000 draws, else one worker per core)")
     where.add_argument("--scheduler", metavar="ADDRESS",
                        help="run on an existing Dask cluster (tcp://host:8786)")
 
@@ -84,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.worst < 0:
         parser.error(f"--worst {args.worst}: 0 or more")
 
-    from pisc_bringup.cluster import DEFAULT_WORKERS, chunk_runner, describe_runner
+    from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
     from pisc_bringup.configuration import config_path, load_graph_config
     from pisc_bringup.robustness import CHUNK_DRAWS, Criteria, evaluate, prepare
     from pisc_bringup.uncertainty import load_distribution
@@ -103,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     criteria = Criteria()
     chunks = -(-args.draws // CHUNK_DRAWS)
-    workers = DEFAULT_WORKERS if args.workers is None and not args.scheduler else args.workers
+    workers = (default_workers(chunks) if args.workers is None and not args.scheduler
+               else args.workers)
     print(f"configuration {args.config} ({config_path(args.config)})"
           + "".join(f"\n  --set {item}" for item in args.set))
     print(describe_distribution(distribution))

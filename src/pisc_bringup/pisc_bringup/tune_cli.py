@@ -46,8 +46,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--trials {args.trials}: at least 1")
     command = shlex.join([PROG, *(sys.argv[1:] if argv is None else argv)])
 
-    from pisc_bringup.cluster import DEFAULT_WORKERS, chunk_runner, describe_runner
+    from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
     from pisc_bringup.configuration import load_graph_config
+    from pisc_bringup.robustness import CHUNK_DRAWS
     from pisc_bringup.robustness_cli import describe_distribution, progress_bar
     from pisc_bringup.tune import Tuning, load_space, provenance, tune, tuned_file_text
     from pisc_bringup.uncertainty import load_distribution
@@ -66,7 +67,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
-    workers = DEFAULT_WORKERS if args.workers is None and not args.scheduler else args.workers
+    chunks = -(-args.draws // CHUNK_DRAWS)
+    workers = (default_workers(chunks) if args.workers is None and not args.scheduler
+               else args.workers)
     print(f"configuration {args.config}; " + describe_distribution(distribution))
     print(f"space {space.name} (digest {space.digest})"
           + "".join(f"\n  {d.describe()}" for d in space.dimensions))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pisc_bringup import robustness
-from pisc_bringup.cluster import DEFAULT_WORKERS, WORKER_ENV, chunk_runner
+from pisc_bringup.cluster import WORKER_ENV, chunk_runner, core_count, default_workers
 from pisc_bringup.configuration import load_graph_config
 from pisc_bringup.robustness import Criteria, evaluate, prepare
 from pisc_bringup.uncertainty import load_distribution
@@ -68,8 +68,10 @@ def test_chunks_with_another_seed_draw_other_noise(setup, monkeypatch):
     assert not np.array_equal(a.hold_setpoint_rms_a, b.hold_setpoint_rms_a)
 
 
-def test_the_commands_run_here_by_default_and_workers_sleep_when_idle():
-    assert DEFAULT_WORKERS == 0  # measured: docs/robustness.md, "Scaling"
+def test_the_default_runs_few_chunks_here_and_many_on_a_worker_per_core():
+    assert default_workers(1) == default_workers(4) == 0  # measured: docs/robustness.md
+    many = default_workers(10)
+    assert many == (min(core_count(), 10) if core_count() > 1 else 0)
     assert WORKER_ENV["NUMBA_NUM_THREADS"] == "1"
     assert WORKER_ENV["OMP_WAIT_POLICY"] == "PASSIVE"
 
