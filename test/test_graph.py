@@ -179,7 +179,9 @@ def test_nodes_as_separate_processes_through_their_entry_points(tmp_path, env_fo
 
 def test_leaving_the_safe_range_goes_to_zero_volts_and_says_why(tmp_path, domain_id):
     """A fault mid-run: no force, 0 V from the current loop, /diagnostics says why."""
+    # the previous default: the default's track guard keeps the cart inside this range
     result = run_graph(RunOptions(
+        config="lyapunov-tuned",
         overrides={"initial.x_m": 0.05, "safety.x_min_m": -0.03}, duration_s=2.0,
         bag_dir=tmp_path / "fault", domain_id=domain_id))
     fault_stamp = None

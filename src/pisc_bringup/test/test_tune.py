@@ -244,11 +244,14 @@ def test_a_bad_search_space_file_is_refused(tmp_path, text, message):
         load_space(str(path), load_graph_config("default")[1])
 
 
-@pytest.mark.parametrize("config", ["default", "thesis"])
-def test_the_shipped_search_space_fits_the_shipped_configurations(config):
-    space = load_space("tuning-space", load_graph_config(config)[1])
-    names = [d.name for d in space.dimensions]
-    assert "swing_up.k_x" in names and "catch.poles[2]" in names
+@pytest.mark.parametrize("config", ["default", "thesis", "lyapunov-tuned"])
+def test_the_shipped_search_spaces_fit_the_shipped_configurations(config):
+    """tuning-space searches the energy pump (the default's law), lyapunov-space (3.30)."""
+    pump = [d.name for d in load_space("tuning-space", load_graph_config(config)[1]).dimensions]
+    assert "swing_up.pump_gain" in pump and "catch.poles[2]" in pump
+    assert "swing_up.k_x" not in pump
+    lyapunov = load_space("lyapunov-space", load_graph_config(config)[1]).dimensions
+    assert "swing_up.k_x" in [d.name for d in lyapunov]
 
 
 def test_pisc_tune_writes_the_file_and_refuses_a_study_of_another_distribution(
