@@ -149,14 +149,10 @@ def evaluate_chunk(config: GraphConfig, base_plant: PlantConfig, draws: Draws,
 MapChunks = Callable[[Callable[..., Outcomes], Sequence[tuple[Any, ...]]], list[Outcomes]]
 
 
-def run_here(fn: Callable[..., Outcomes], tasks: Sequence[tuple[Any, ...]],
-             progress: Callable[[int], None] | None = None) -> list[Outcomes]:
-    out = []
-    for task in tasks:
-        out.append(fn(*task))
-        if progress is not None:
-            progress(1)
-    return out
+def run_here(fn: Callable[..., Outcomes], tasks: Sequence[tuple[Any, ...]]) -> list[Outcomes]:
+    """The chunks one after another in this process (``cluster.chunk_runner(0)`` does the
+    same with a progress bar)."""
+    return [fn(*task) for task in tasks]
 
 
 def evaluate(config: GraphConfig, base_plant: PlantConfig, draws: Draws,
