@@ -148,3 +148,26 @@ def test_one_rig_fast_path_is_the_batch_arithmetic():
     y = plant.initial_state(0.02, 0.1, 3.0, 0.5, 0.1)
     np.testing.assert_array_equal(plant.advance(y, 3.3, 0.005),
                                   plant.advance(y[None, :], np.array([3.3]), 0.005)[0])
+
+
+def test_a_simulated_command_latency_applies_the_voltage_that_long_into_the_period():
+    """actuator.command_delay_s = 2 ms: the same state as a command given 2 ms into the
+    period on a plant without it, and unlike a command applied at once."""
+    import dataclasses
+
+    from pisc_plant.params import ActuatorParams
+
+    plain = Plant(PlantConfig())
+    late = Plant(dataclasses.replace(PlantConfig(),
+                                     actuator=ActuatorParams(command_delay_s=0.002)))
+    a = SampledPlant(plain, plain.initial_state(0.0))
+    b = SampledPlant(late, late.initial_state(0.0))
+    c = SampledPlant(plain, plain.initial_state(0.0))
+    for voltage in (5.0, -3.0, 8.0):
+        a.command(voltage, 0.002)
+        b.command(voltage)
+        c.command(voltage)
+        for s in (a, b, c):
+            s.advance()
+    np.testing.assert_array_equal(a.state, b.state)
+    assert not np.array_equal(b.state, c.state)
