@@ -6,7 +6,11 @@ Each sample the supervisor decides the mode and the force on the cart:
   ``theta^2 + k_va theta_dot^2``, with theta from the nearest upright, is below
   ``delta_s``; once catching it keeps catching until the criterion reaches
   ``delta_exit`` (``delta_exit = delta_s`` is the thesis's rule without hysteresis);
-* **swing_up** (3.30) otherwise;
+  with ``switching.energy_band_j`` > 0 a catch also needs the pendulum's own energy
+  within the band of upright's, so that it can coast up; the catch's cart reference
+  may settle from where the catch began (``catch.settle_rate_mps``);
+* **swing_up** otherwise: (3.30), or the energy pump (``swing_up.law``,
+  :func:`pisc_control.swing_up.energy_pump_force`);
 * **fault** when the state is not finite or the cart leaves the safe range: the force
   is zero, the mode latches, and downstream the current loop commands zero volts.
 
