@@ -32,7 +32,7 @@ from pisc_control.supervisor import (
     SwitchingParams,
 )
 from pisc_control.swing_up import SwingUpParams
-from pisc_msgs_py.config import ConfigError, from_flat, load_params_file
+from pisc_msgs_py.config import ConfigError, find_file, from_flat, load_params_file
 from pisc_plant.params import (
     ActuatorParams,
     FrictionParams,
@@ -106,14 +106,8 @@ class GraphConfig:
 
 def config_path(name_or_path: str) -> Path:
     """A configuration by name (``default``, ``thesis``) or a path to a parameter file."""
-    candidate = CONFIG_DIR / f"{name_or_path}.yaml"
-    if candidate.exists():
-        return candidate
-    path = Path(name_or_path)
-    if path.exists():
-        return path
-    known = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
-    raise ConfigError(f"{name_or_path}: no such configuration (named ones: {known}) or file")
+    return find_file(name_or_path, CONFIG_DIR, "configuration",
+                     lambda: sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
 
 
 def _sections(flat: Mapping[str, Any]) -> dict[str, Any]:

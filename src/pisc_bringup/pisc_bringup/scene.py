@@ -35,8 +35,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from pisc_bringup.configuration import (
     CONFIG_DIR,
     PLANT_READS,
@@ -45,7 +43,7 @@ from pisc_bringup.configuration import (
     write_params_file,
 )
 from pisc_control.supervisor import Supervisor
-from pisc_msgs_py.config import ConfigError, flatten
+from pisc_msgs_py.config import ConfigError, find_file, flatten, load_keyed_yaml
 from pisc_msgs_py.topics import graph_topics_named
 
 __all__ = ["DEFAULT_SCENE", "SCENE_DIR", "Scene", "load_scene", "scene_names", "scene_path"]
@@ -85,14 +83,7 @@ def scene_names() -> list[str]:
 
 
 def scene_path(name_or_path: str) -> Path:
-    candidate = SCENE_DIR / f"{name_or_path}.yaml"
-    if candidate.exists():
-        return candidate
-    path = Path(name_or_path)
-    if path.suffix in (".yaml", ".yml") and path.exists():
-        return path
-    raise ConfigError(f"{name_or_path}: no such scene (shipped: {', '.join(scene_names())}) "
-                      "or scene file")
+    return find_file(name_or_path, SCENE_DIR, "scene", scene_names, (".yaml", ".yml"))
 
 
 def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None,
@@ -103,16 +94,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None,
     Raises :class:`ConfigError` naming the file and the offending key or parameter.
     """
     path = scene_path(name_or_path)
-    try:
-        document = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-    if not isinstance(document, Mapping) or not isinstance(document.get("scene"), Mapping):
-        raise ConfigError(f"{path}: a scene file holds one mapping under the key 'scene'")
-    body = document["scene"]
-    unknown = sorted(set(body) - set(KEYS))
-    if unknown:
-        raise ConfigError(f"{path}: scene.{unknown[0]}: unknown key (known: {', '.join(KEYS)})")
+    body = load_keyed_yaml(path, "scene", KEYS, "scene")
     configuration = str(body.get("configuration", "default"))
     duration = body.get("duration_s", 10.0)
     if isinstance(duration, bool) or not isinstance(duration, (int, float)) or not (

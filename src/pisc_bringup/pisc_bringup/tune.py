@@ -42,11 +42,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from pisc_bringup.configuration import CONFIG_DIR, SECTIONS, GraphConfig, load_graph_config
+from pisc_bringup.configuration import CONFIG_DIR, SECTIONS, load_graph_config
 from pisc_bringup.robustness import Criteria, MapChunks, evaluate, prepare
 from pisc_bringup.uncertainty import Distribution, file_kind
 from pisc_control.supervisor import Supervisor
-from pisc_msgs_py.config import ConfigError, from_flat, to_flat
+from pisc_msgs_py.config import ConfigError, find_file, from_flat, load_keyed_yaml, to_flat
 
 __all__ = ["SAMPLERS", "SPACE_DIR", "TUNABLE_SECTIONS", "Dimension", "Space", "StudyMismatch",
            "TuneResult", "Tuning", "load_space", "space_names", "tune", "tuned_file_text"]
@@ -119,14 +119,7 @@ def space_names() -> list[str]:
 
 
 def space_path(name_or_path: str) -> Path:
-    candidate = SPACE_DIR / f"{name_or_path}.yaml"
-    if candidate.exists():
-        return candidate
-    path = Path(name_or_path)
-    if path.exists():
-        return path
-    raise ConfigError(f"{name_or_path}: no such search space (shipped: "
-                      f"{', '.join(space_names())}) or file")
+    return find_file(name_or_path, SPACE_DIR, "search space", space_names)
 
 
 def full_flat(flat: Mapping[str, Any]) -> dict[str, Any]:
@@ -194,18 +187,7 @@ def load_space(name_or_path: str, flat: Mapping[str, Any]) -> Space:
     """Read and check a search space against a configuration's flat parameters;
     :class:`ConfigError` naming the entry and the rule on bad input."""
     path = space_path(name_or_path)
-    try:
-        document = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-    if not isinstance(document, Mapping) or not isinstance(document.get("space"), Mapping):
-        raise ConfigError(f"{path}: a search space file holds one mapping under the key "
-                          "'space'")
-    body = document["space"]
-    unknown = sorted(set(body) - {"description", "parameters"})
-    if unknown:
-        raise ConfigError(f"{path}: space.{unknown[0]}: unknown key (known: description, "
-                          "parameters)")
+    body = load_keyed_yaml(path, "space", ("description", "parameters"), "search space")
     parameters = body.get("parameters")
     if not isinstance(parameters, Mapping) or not parameters:
         raise ConfigError(f"{path}: space.parameters must map parameter names to ranges")

@@ -41,7 +41,7 @@ import numpy as np
 import yaml
 
 from pisc_bringup.configuration import CONFIG_DIR, SECTIONS, GraphConfig, check_plant_overrides
-from pisc_msgs_py.config import ConfigError, flatten, from_flat
+from pisc_msgs_py.config import ConfigError, find_file, flatten, from_flat, load_keyed_yaml
 from pisc_plant.params import (
     ActuatorParams,
     FrictionParams,
@@ -168,14 +168,7 @@ def file_kind(path: Path) -> str | None:
 
 
 def distribution_path(name_or_path: str) -> Path:
-    candidate = DISTRIBUTION_DIR / f"{name_or_path}.yaml"
-    if candidate.exists():
-        return candidate
-    path = Path(name_or_path)
-    if path.exists():
-        return path
-    raise ConfigError(f"{name_or_path}: no such distribution (shipped: "
-                      f"{', '.join(distribution_names())}) or file")
+    return find_file(name_or_path, DISTRIBUTION_DIR, "distribution", distribution_names)
 
 
 def _field(name: str) -> tuple[type, Any]:
@@ -256,19 +249,7 @@ def load_distribution(name_or_path: str, config: GraphConfig) -> Distribution:
     """Read and check a distribution around ``config``'s plant; ConfigError on bad input."""
     path = distribution_path(name_or_path)
     text = path.read_text()
-    try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-    if not isinstance(document, Mapping) or not isinstance(document.get("distribution"),
-                                                           Mapping):
-        raise ConfigError(f"{path}: a distribution file holds one mapping under the key "
-                          "'distribution'")
-    body = document["distribution"]
-    unknown = sorted(set(body) - set(KEYS))
-    if unknown:
-        raise ConfigError(f"{path}: distribution.{unknown[0]}: unknown key (known: "
-                          f"{', '.join(KEYS)})")
+    body = load_keyed_yaml(path, "distribution", KEYS, "distribution")
     plant = body.get("plant") or {}
     if not isinstance(plant, Mapping):
         raise ConfigError(f"{path}: distribution.plant must be a mapping of sections")

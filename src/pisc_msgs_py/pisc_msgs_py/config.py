@@ -35,6 +35,8 @@ __all__ = [
     "flatten",
     "from_flat",
     "in_range",
+    "find_file",
+    "load_keyed_yaml",
     "load_params_file",
     "nonnegative",
     "one_of",
@@ -257,6 +259,40 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
             raise ConfigError(f"--set {item!r}: expected NAME=VALUE")
         out[name.strip()] = yaml.safe_load(value)
     return out
+
+
+def find_file(name_or_path: str, directory: Path, what: str,
+              shipped: Callable[[], Iterable[str]], suffixes: Sequence[str] = ()) -> Path:
+    """``directory/<name>.yaml`` for a shipped name, else an existing path (with one of
+    ``suffixes``, when given); :class:`ConfigError` naming what was not found."""
+    candidate = directory / f"{name_or_path}.yaml"
+    if candidate.exists():
+        return candidate
+    path = Path(name_or_path)
+    if path.exists() and (not suffixes or path.suffix in suffixes):
+        return path
+    raise ConfigError(f"{name_or_path}: no such {what} (shipped: {', '.join(shipped())}) "
+                      f"or {what} file")
+
+
+def load_keyed_yaml(path: Path, key: str, keys: Iterable[str], what: str) -> Mapping[str, Any]:
+    """The mapping under ``key`` of a YAML file whose keys under it are among ``keys``.
+
+    Raises :class:`ConfigError` naming the file, and the key when one is unknown.
+    """
+    try:
+        document = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(document, Mapping) or not isinstance(document.get(key), Mapping):
+        raise ConfigError(f"{path}: a {what} file holds one mapping under the key '{key}'")
+    body = document[key]
+    known = list(keys)
+    unknown = sorted(set(body) - set(known))
+    if unknown:
+        raise ConfigError(f"{path}: {key}.{unknown[0]}: unknown key (known: "
+                          f"{', '.join(known)})")
+    return body
 
 
 def load_params_file(path: str | Path, node_names: Sequence[str] = ("/**",)) -> dict[str, Any]:
