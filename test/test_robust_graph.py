@@ -92,16 +92,18 @@ def test_the_command_line_takes_plant_overrides_as_pisc_run_does(tmp_path, domai
     assert "result                 CAUGHT" in out
 
 
-@pytest.mark.xfail(strict=True, reason="known miss of the default configuration (issue 13 "
-                   "stays open): from x0 = +0.07 m a catch entered with the cart at -0.39 m/s "
-                   "runs into the far end of the track; the other 40 starts pass")
-def test_the_nominal_rig_catches_from_41_starts_without_chatter():
-    """The pure closed loop (the graph reproduces it bit for bit, test_graph.py): every x0
-    in [-0.10, 0.10] m caught by 3.0 s and held from 6 s, set-point RMS <= 0.05 A."""
+def test_the_nominal_rig_catches_from_the_41_starts_but_one_without_chatter():
+    """The pure closed loop (the graph reproduces it bit for bit, test_graph.py) from every
+    x0 in [-0.10, 0.10] m at rest: the set-point's RMS from 6 s is at most 0.05 A from
+    every start; every start but x0 = +0.07 m is caught by 3.0 s and held. From +0.07 m
+    the catch begins with the cart at -0.39 m/s and runs into the far end: issue 13
+    asks for all 41 (README, "What does not work yet"); this test fails as soon as that
+    start changes, either way."""
     cfg, _ = load_graph_config("default")
     x0 = np.linspace(-0.10, 0.10, 41)
     out = simulate_batch(cfg, x0, 10.0)
-    assert np.all(out.caught_at_s <= 3.0), x0[out.caught_at_s > 3.0]
-    assert np.all(out.hold_theta_rad < 0.05) and np.all(out.hold_x_m < 0.02)
-    assert not np.any(out.faulted)
+    good = ((out.caught_at_s <= 3.0) & (out.hold_theta_rad < 0.05) & (out.hold_x_m < 0.02)
+            & ~out.faulted)
+    np.testing.assert_allclose(x0[~good], [0.07], atol=1e-12)
+    assert out.faulted[~good].all()
     assert np.all(out.hold_setpoint_rms_a <= 0.05), out.hold_setpoint_rms_a.max()
