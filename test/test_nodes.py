@@ -5,9 +5,12 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+import rclpy
 import rclpy.node
+from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -15,7 +18,7 @@ from conftest import spin_until
 from pisc_control.current_loop_node import CurrentLoopNode
 from pisc_control.estimator_node import EstimatorNode
 from pisc_control.supervisor_node import SupervisorNode
-from pisc_msgs_py.base_node import message_class, qos_profile
+from pisc_msgs_py.base_node import PISC_SECTIONS, message_class, parse_ros_arguments, qos_profile
 from pisc_msgs_py.config import ConfigError
 from pisc_msgs_py.convert import (
     joint_sample_to_msg,
@@ -139,3 +142,118 @@ def test_controllers_answer_a_sample_with_a_voltage_of_the_same_stamp(ros_contex
     finally:
         for n in [*nodes, probe]:
             n.destroy_node()
+
+
+# -- issue 15: names no node reads, command lines rcl cannot read, array values -----------
+
+def _node_from_command_line(cls, domain_id, ros_args):
+    """Construct ``cls`` as its entry point would with ``--ros-args *ros_args``."""
+    args = ["node", "--ros-args", *ros_args]
+    context = Context()
+    rclpy.init(args=args, context=context, domain_id=domain_id)
+    try:
+        node = cls(context=context, command_line=parse_ros_arguments(args))
+        node.destroy_node()
+    finally:
+        context.try_shutdown()
+
+
+@pytest.mark.parametrize("node,ros_args,message", [
+    ("plant", ["-p", "nosuch.x:=1"],
+     r"^nosuch.x \(-p nosuch.x:=1\): not a parameter of node 'plant' \(it reads rig, "),
+    ("plant", ["-p", "rigg.cart_mass_kg:=-1"],
+     r"^rigg.cart_mass_kg .*: not a parameter of node 'plant'; did you mean rig.cart_mass_kg\?"),
+    ("supervisor", ["-p", "swingup.k_v:=0.05"],
+     r"^swingup.k_v .*'supervisor'; did you mean swing_up.k_v\?"),
+    # a section another node reads, aimed at this one: still refused
+    ("estimator", ["-p", "swing_up.k_v:=0.05"],
+     r"^swing_up.k_v .*not a parameter of node 'estimator' \(it reads loop, estimator\)"),
+    # -p NODE:NAME:=VALUE aims at that node only
+    ("current_loop", ["-p", "current_loop:loop.period:=0.005", "-p", "plant:nosuch.x:=1"],
+     r"^loop.period \(-p current_loop:loop.period:=0.005\): not a parameter of node "
+     r"'current_loop'; did you mean loop.period_s\?"),
+])
+def test_a_name_aimed_at_a_node_that_it_does_not_declare_is_refused(domain_id, node, ros_args,
+                                                                     message):
+    with pytest.raises(ConfigError, match=message):
+        _node_from_command_line(NODES[node], domain_id, ros_args)
+
+
+def test_a_shared_file_may_hold_other_nodes_sections_but_no_unknown_section(domain_id,
+                                                                            tmp_path):
+    shipped = str(Path(__file__).resolve().parent.parent
+                  / "src/pisc_bringup/config/default.yaml")
+    for cls in NODES.values():  # every node reads its sections of the one file
+        _node_from_command_line(cls, domain_id, ["--params-file", shipped])
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("/**:\n  ros__parameters:\n    swingup:\n      k_v: 0.05\n")
+    for cls in NODES.values():  # and every node refuses a section no node reads
+        with pytest.raises(ConfigError, match=r"^swingup.k_v: unknown parameter; did you mean "
+                           r"swing_up.k_v\? .*'swingup' is no section of a PISC node"):
+            _node_from_command_line(cls, domain_id, ["--params-file", str(typo)])
+
+
+def test_the_known_sections_are_those_the_nodes_read():
+    from pisc_driver.driver_node import SECTIONS as DRIVER_SECTIONS
+    from pisc_plant.plant_node import SECTIONS as PLANT_SECTIONS
+    from pisc_control.supervisor_node import SECTIONS as SUPERVISOR_SECTIONS
+
+    read = {*PLANT_SECTIONS, *SUPERVISOR_SECTIONS, *DRIVER_SECTIONS, "loop", "estimator",
+            "motor", "current_loop"}
+    assert PISC_SECTIONS == read
+
+
+@pytest.mark.parametrize("ros_args,message", [
+    (["--params-file", "/nonexistent.yaml"],
+     "refusing to start: --params-file /nonexistent.yaml: cannot read it (No such file or "
+     "directory)"),
+    (["--params-file", "BROKEN"],
+     "refusing to start: --params-file BROKEN: not valid YAML (line 4, column 1: "),
+    (["-p", "rig.cart_mass_kg"],
+     "refusing to start: -p rig.cart_mass_kg: expected NAME:=VALUE"),
+    (["-p", "rig.cart_mass_kg:=[1,"],
+     "refusing to start: -p rig.cart_mass_kg:=[1,: the value is not valid YAML"),
+    (["-p", "nosuch.x:=1"],
+     "refusing to start: invalid parameter: nosuch.x (-p nosuch.x:=1): not a parameter of "
+     "node 'plant'"),
+])
+def test_a_command_line_rcl_cannot_read_is_one_line_and_no_traceback(env_for_domain, tmp_path,
+                                                                     ros_args, message):
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("/**:\n  ros__parameters:\n    rig: {cart_mass_kg: [1,\n")
+    ros_args = [str(broken) if a == "BROKEN" else a for a in ros_args]
+    message = message.replace("BROKEN", str(broken))
+    completed = subprocess.run(
+        [sys.executable, "-m", "pisc_plant.plant_node", "--ros-args", *ros_args],
+        env=env_for_domain, capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 2
+    assert completed.stderr.startswith(message), completed.stderr
+    assert completed.stderr.count("\n") == 1 and "Traceback" not in completed.stderr
+
+
+def test_an_array_parameter_changes_through_the_set_parameters_service(ros_context):
+    """ros2 param set and rqt send a DOUBLE_ARRAY, which rclpy hands over as array('d')."""
+    from rcl_interfaces.srv import SetParameters
+
+    node = SupervisorNode(context=ros_context)
+    client_node = rclpy.node.Node("client", context=ros_context)
+    client = client_node.create_client(SetParameters, "/supervisor/set_parameters")
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    executor.add_node(client_node)
+    try:
+        assert spin_until(executor, client.service_is_ready, 10.0)
+        results = []
+        for poles in ([-15.0, -11.0, -3.0, -2.4], [-15.0, -11.0, -3.0, 2.4]):
+            request = SetParameters.Request(
+                parameters=[Parameter("catch.poles", value=poles).to_parameter_msg()])
+            future = client.call_async(request)
+            assert spin_until(executor, future.done, 10.0)
+            results.append(future.result().results[0])
+        assert results[0].successful, results[0].reason
+        assert node.config.config.catch.poles == (-15.0, -11.0, -3.0, -2.4)
+        assert not results[1].successful and "negative real" in results[1].reason
+        assert node.config.config.catch.poles == (-15.0, -11.0, -3.0, -2.4)  # unchanged
+    finally:
+        node.destroy_node()
+        client_node.destroy_node()

@@ -2,19 +2,37 @@
 
 A node lists the configuration sections it reads (``{"rig": RigParams, ...}``). For
 each field the base class declares a ROS parameter with a descriptor (description,
-unit), checks that the parameter file does not set unknown names in those sections,
-and builds the typed configuration through :func:`pisc_msgs_py.config.from_flat`, so
-a bad value is refused with the parameter's name and the broken rule, at start-up and
+unit) and builds the typed configuration through :func:`pisc_msgs_py.config.from_flat`,
+so a bad value is refused with the parameter's name and the broken rule, at start-up and
 on every later ``set_parameters``. A valid change is handed to ``on_config``.
+
+**Names.** rclpy keeps a parameter that no node declares and says nothing; PISC refuses
+it at start-up, naming it and the closest known name:
+
+* a name aimed at this node (``-p NAME:=VALUE`` on its command line, or a section of a
+  parameter file that names the node) must be one the node declares;
+* a name every node is handed (a file's ``/**`` section, as the shipped configurations
+  are written, or ``parameter_overrides`` from a runner that hands the whole
+  configuration to each node) must be declared by this node when it is in one of this
+  node's sections, and otherwise be in a section some PISC node reads
+  (:data:`PISC_SECTIONS`): the node that reads it checks the rest.
+
+:func:`run_node` reads ``--ros-args`` before rclpy does, so a missing or broken
+parameter file and a malformed ``-p`` are a one-line refusal, not an rcl traceback.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import importlib
+import re
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
+
+import yaml
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -29,7 +47,8 @@ from pisc_msgs_py import config as cfg
 from pisc_msgs_py.convert import stamp_to_msg
 from pisc_msgs_py.topics import DIAGNOSTICS, QosSpec, Topic
 
-__all__ = ["PiscNode", "message_class", "qos_profile", "run_node"]
+__all__ = ["PISC_SECTIONS", "Override", "PiscNode", "message_class", "parse_ros_arguments",
+           "qos_profile", "run_node"]
 
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
@@ -56,6 +75,116 @@ def _ros_value(value: Any) -> Any:
     return list(value) if isinstance(value, tuple) else value
 
 
+#: The sections some PISC node reads (plant, estimator, supervisor, current loop, driver);
+#: test_nodes checks this against the nodes' own lists.
+PISC_SECTIONS = frozenset({
+    "actuator", "catch", "current_loop", "driver", "estimator", "experiment", "friction",
+    "initial", "integrator", "loop", "models", "motor", "noise", "rig", "safety", "sensors",
+    "simulation", "startup", "swing_up", "switching", "track"})
+
+# parameter file sections every node of the graph reads
+_SHARED_KEYS = ("/**", "/*")
+# --ros-args options that take one argument, and those that take none (rcl's arguments.c)
+_ROS_OPTIONS_WITH_VALUE = ("-r", "--remap", "-e", "--enclave", "--log-level",
+                           "--log-config-file", "--log-file-name")
+
+
+@dataclass(frozen=True)
+class Override:
+    """A parameter a process's command line sets, and for which nodes.
+
+    ``target`` is None for ``-p NAME:=VALUE`` (every node of the process), a key of
+    :data:`_SHARED_KEYS` for a parameter file's shared section, else the node name or
+    pattern a file section or ``-p NODE:NAME:=VALUE`` names.
+    """
+
+    target: str | None
+    name: str
+    origin: str  # the argument or file, for the message
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    return f"line {mark.line + 1}, column {mark.column + 1}: {problem}" if mark else problem
+
+
+def _params_file_overrides(path: str) -> list[Override]:
+    origin = f"--params-file {path}"
+    try:
+        with open(path, encoding="utf-8") as handle:
+            tree = yaml.safe_load(handle)
+    except OSError as exc:
+        raise cfg.ConfigError(f"{origin}: cannot read it ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise cfg.ConfigError(f"{origin}: not valid YAML ({_yaml_problem(exc)})") from None
+    rule = "a ROS 2 parameter file is '<node or /**>: ros__parameters: {...}'"
+    if not isinstance(tree, Mapping):
+        raise cfg.ConfigError(f"{origin}: {rule}")
+    out = []
+    for key, section in tree.items():
+        if not isinstance(section, Mapping) or not isinstance(
+                section.get("ros__parameters"), Mapping):
+            raise cfg.ConfigError(f"{origin}: section '{key}' has no 'ros__parameters' mapping "
+                                  f"({rule})")
+        out += [Override(str(key), name, origin)
+                for name in cfg.flatten(section["ros__parameters"])]
+    return out
+
+
+def parse_ros_arguments(argv: Sequence[str]) -> tuple[Override, ...]:
+    """The parameters ``--ros-args`` set, checked as rcl will read them.
+
+    Raises :class:`ConfigError` naming the argument or file: ``-p`` without
+    ``NAME:=VALUE`` or with a value that is not YAML, a parameter file that cannot be
+    read, is not YAML or is not a ROS 2 parameter file.
+    """
+    out: list[Override] = []
+    inside = False
+    items = list(argv)
+    k = 0
+    while k < len(items):
+        arg = items[k]
+        k += 1
+        if arg == "--ros-args":
+            inside = True
+            continue
+        if not inside:
+            continue
+        if arg == "--":
+            inside = False
+        elif arg in ("-p", "--param", "--params-file"):
+            if k >= len(items):
+                raise cfg.ConfigError(f"{arg}: expected "
+                                      f"{'a file' if arg == '--params-file' else 'NAME:=VALUE'} "
+                                      "after it")
+            value = items[k]
+            k += 1
+            if arg == "--params-file":
+                out += _params_file_overrides(value)
+                continue
+            origin = f"{arg} {value}"
+            head, sep, text = value.partition(":=")
+            if not sep or not head:
+                raise cfg.ConfigError(f"{origin}: expected NAME:=VALUE "
+                                      "(e.g. -p rig.cart_mass_kg:=0.4735)")
+            try:
+                yaml.safe_load(text)
+            except yaml.YAMLError as exc:
+                raise cfg.ConfigError(f"{origin}: the value is not valid YAML "
+                                      f"({_yaml_problem(exc)})") from None
+            node, colon, name = head.rpartition(":")
+            out.append(Override(node if colon else None, name, origin))
+        elif arg in _ROS_OPTIONS_WITH_VALUE:
+            k += 1
+    return tuple(out)
+
+
+def _aims_at(target: str, fully_qualified_name: str) -> bool:
+    pattern = target if target.startswith("/") else "/" + target
+    return fnmatch.fnmatchcase(fully_qualified_name, pattern.replace("/**", "*"))
+
+
 class PiscNode(Node):
     """Base of the PISC nodes. Subclasses pass their sections and implement ``build``."""
 
@@ -65,11 +194,14 @@ class PiscNode(Node):
         sections: Mapping[str, type],
         *,
         parameter_overrides: list[Parameter] | None = None,
+        command_line: Sequence[Override] = (),
         **kwargs: Any,
     ) -> None:
+        """``command_line``: what :func:`parse_ros_arguments` read from this process's
+        arguments (:func:`run_node` passes it); its names aimed at this node must be
+        declared by it."""
         super().__init__(node_name, parameter_overrides=parameter_overrides, **kwargs)
         self._sections = dict(sections)
-        self._check_unknown_overrides()
         for section, cls in self._sections.items():
             for name, default, unit, description in cfg.describe(cls, section):
                 text = f"{description} [{unit}]" if unit else description
@@ -78,6 +210,7 @@ class PiscNode(Node):
                     _ros_value(default),
                     ParameterDescriptor(description=text, dynamic_typing=True),
                 )
+        self._check_unknown_overrides(command_line)
         self._diagnostics = self.create_publisher(
             DiagnosticArray, DIAGNOSTICS.name, qos_profile(DIAGNOSTICS.qos))
         # Refuses to start on a bad value: ConfigError propagates out of __init__.
@@ -102,12 +235,33 @@ class PiscNode(Node):
         names = [n for s, c in self._sections.items() for n, *_ in cfg.describe(c, s)]
         return {p.name: p.value for p in self.get_parameters(names)}
 
-    def _check_unknown_overrides(self) -> None:
-        # rclpy keeps the parameter file's values for this node in _parameter_overrides
-        # and would silently ignore a misspelt name; refuse it instead.
+    def _check_unknown_overrides(self, command_line: Sequence[Override]) -> None:
+        """Refuse a name this node would ignore (module docstring, "Names")."""
+        declared = [name for name in self._parameters]
+        me = self.get_fully_qualified_name()
+        for override in command_line:
+            aimed = override.target is None or (
+                override.target not in _SHARED_KEYS and _aims_at(override.target, me))
+            if aimed and override.name not in declared:
+                raise cfg.ConfigError(
+                    f"{override.name} ({override.origin}): not a parameter of node "
+                    f"'{self.get_name()}'{cfg.closest(override.name, declared)} (it reads "
+                    f"{', '.join(self._sections)})")
+        # rclpy keeps every value given to this node in _parameter_overrides
         overrides = getattr(self, "_parameter_overrides", {}) or {}
         for section, cls in self._sections.items():
             cfg.check_names(cls, overrides, section)
+        for name in sorted(overrides):
+            section, _, rest = name.partition(".")
+            if name in declared or section in PISC_SECTIONS:
+                continue
+            hint = cfg.closest(name, declared)
+            match = cfg.closest(section, PISC_SECTIONS)
+            if not hint and match and rest:
+                hint = f"; did you mean {match[len('; did you mean '):-1]}.{rest}?"
+            raise cfg.ConfigError(
+                f"{name}: unknown parameter{hint} (not a parameter of node "
+                f"'{self.get_name()}', and '{section}' is no section of a PISC node)")
 
     def _validate_change(self, params: list[Parameter]) -> SetParametersResult:
         flat = self.flat_parameters()
@@ -161,12 +315,25 @@ def _shutting_down(wait_s: float = 0.5) -> bool:
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     """Run one node on an EventsExecutor until shutdown; the shape of ros2/demos' talker.
 
-    A node that refuses its parameters prints why and the process exits with status 2.
+    A node that refuses its parameters prints why and the process exits with status 2,
+    as does a command line rcl cannot read (one line, no traceback).
     """
-    rclpy.init(args=args)
+    try:
+        command_line = parse_ros_arguments(sys.argv if args is None else args)
+    except cfg.ConfigError as exc:
+        print(f"refusing to start: {exc}", file=sys.stderr)
+        return 2
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # rclpy's RCLError: whatever rcl refuses that we did not
+        if type(exc).__name__ != "RCLError":
+            raise
+        # drop rcl's source locations (", at /project/src/...c:271")
+        print("refusing to start: " + re.sub(r", at \S+:\d+", "", str(exc)), file=sys.stderr)
+        return 2
     node = None
     try:
-        node = factory()
+        node = factory(command_line=command_line)
         executor = EventsExecutor()
         executor.add_node(node)
         # EventsExecutor.spin() stays in C++ and Python never sees SIGINT or SIGTERM;

@@ -17,7 +17,9 @@ Nested sections become dotted names (``rig.cart_mass_kg``), as ROS does.
 
 from __future__ import annotations
 
+import array
 import dataclasses
+import difflib
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -29,6 +31,7 @@ __all__ = [
     "ConfigError",
     "Rule",
     "check_names",
+    "closest",
     "any_value",
     "describe",
     "finite",
@@ -64,10 +67,15 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+# A list of numbers as ROS hands it over: a YAML list, a tuple, or the array.array('d')
+# or array('q') that rclpy makes of a DOUBLE_ARRAY or INTEGER_ARRAY parameter value.
+_SEQUENCES = (list, tuple, array.array)
+
+
 def _numbers(value: Any) -> list[float]:
     if _is_number(value):
         return [float(value)]
-    if isinstance(value, (list, tuple)) and all(_is_number(v) for v in value):
+    if isinstance(value, _SEQUENCES) and all(_is_number(v) for v in value):
         return [float(v) for v in value]
     return []
 
@@ -172,7 +180,7 @@ def _coerce(name: str, default: Any, value: Any) -> Any:
             return value
         raise ConfigError(f"{name}: expected a string, got {value!r}")
     if isinstance(default, tuple):
-        if isinstance(value, (list, tuple)) and all(_is_number(v) for v in value):
+        if isinstance(value, _SEQUENCES) and all(_is_number(v) for v in value):
             return tuple(float(v) for v in value)
         raise ConfigError(f"{name}: expected a list of numbers, got {value!r}")
     raise TypeError(f"{name}: unsupported parameter type {type(default).__name__}")
@@ -207,14 +215,22 @@ def from_flat(cls: type[T], flat: Mapping[str, Any], section: str) -> T:
     return instance
 
 
+def closest(name: str, known: Iterable[str]) -> str:
+    """'; did you mean X?' for the known name closest to ``name`` (difflib), else ''."""
+    match = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return f"; did you mean {match[0]}?" if match else ""
+
+
 def check_names(cls: type, names: Iterable[str], section: str) -> None:
     """Raise :class:`ConfigError` for a name under ``section`` that ``cls`` does not have."""
     prefix = section + "."
     known = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(n for n in names if n.startswith(prefix) and n[len(prefix):] not in known)
     if unknown:
+        hint = closest(unknown[0], (prefix + k for k in known))
         raise ConfigError(
-            f"{unknown[0]}: unknown parameter (known in '{section}': {', '.join(sorted(known))})"
+            f"{unknown[0]}: unknown parameter{hint} (known in '{section}': "
+            f"{', '.join(sorted(known))})"
         )
 
 
