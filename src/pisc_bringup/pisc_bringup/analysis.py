@@ -93,6 +93,7 @@ class RunTrace:
     mode: list[Mode]  # in force at each cycle
     true_x: np.ndarray | None  # None: the bag has no simulator state
     true_theta: np.ndarray | None
+    start_ns: int = 0  # header stamp of the first cycle (t = 0)
 
     def column(self, name: str) -> np.ndarray:
         return getattr(self, name)
@@ -154,6 +155,7 @@ def trace_from_messages(messages: Iterable[BagMessage], label: str) -> RunTrace:
         mode=in_force,
         true_x=col(SIM_STATE.name, 0) if has_true else None,
         true_theta=col(SIM_STATE.name, 1) if has_true else None,
+        start_ns=t0,
     )
 
 

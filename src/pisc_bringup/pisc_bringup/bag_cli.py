@@ -6,6 +6,8 @@
                                               recompute every controller output, compare
     pisc_bag analyse BAG [--out DIR] [--overlay BAG2]
                                               metrics, PNG plots and the thesis CSV
+    pisc_bag animate BAG [--out FILE.gif|FILE.mp4] [--overlay BAG2]
+                                              the run drawn as the rig, frame by frame
 
 Exit status: 0 success (replay: every output reproduced), 1 replay mismatch, 2 a bag
 that cannot be read or bad arguments; errors name the file and what is wrong.
@@ -32,6 +34,8 @@ SUBCOMMANDS = {
                                       "compare, stamp by stamp"),
     "analyse": ("pisc_bringup.analysis", "metrics, plots like the thesis's Figs. 6.3-6.8 and "
                                          "the CSV log of a bag"),
+    "animate": ("pisc_bringup.animate", "the run drawn as the rig (cart, pendulum, track, "
+                                        "mode, force, time) to a GIF or an MP4"),
 }
 
 
