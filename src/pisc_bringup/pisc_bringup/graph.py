@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import importlib
+import math
 import os
 import shutil
 import signal
@@ -305,9 +306,21 @@ def run_graph(options: RunOptions) -> RunResult:
             f"--driver {options.driver_port} with --plant-config/--plant-set "
             f"({plant_description(options)}): the plant is the device: start "
             "pisc_virtual_rig with its own parameter file")
+    if not math.isfinite(options.duration_s) or options.duration_s <= 0.0:
+        raise ConfigError(f"--duration {options.duration_s}: must be a finite number of "
+                          "seconds > 0")
     config, flat, plant_params = load_run_config(
         options.config, options.overrides, options.plant_config, options.plant_overrides)
     Supervisor(config.supervisor)  # refuses (3.29) and an uncontrollable linearisation
+    track = config.simulated_plant.track
+    if options.driver_port is None and not track.min_m <= config.initial.x_m <= track.max_m:
+        raise ConfigError(f"initial.x_m = {config.initial.x_m} lies outside the track "
+                          f"(track.min_m .. track.max_m = {track.min_m} .. {track.max_m} m)")
+    port = options.driver_port
+    if port is not None and not os.access(port, os.R_OK | os.W_OK):
+        # refused here, before the recorder makes the bag directory
+        problem = "not readable and writable" if os.path.exists(port) else "no such device"
+        raise ConfigError(f"driver.port = {port}: {problem}")
     if options.clock not in ("lockstep", "wall"):
         raise ConfigError(f"--clock {options.clock!r}: expected 'lockstep' or 'wall'")
     if options.executor not in EXECUTORS:
