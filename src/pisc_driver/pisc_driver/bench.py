@@ -1,13 +1,24 @@
 """``pisc_parser_bench``: the frame parser against lost bytes and flipped bits.
 
-    pisc_parser_bench [--frames 200000] [--rates 1e-4 1e-3 1e-2] [--seed 1]
+    pisc_parser_bench [--frames 200000] [--adversarial-frames 100000]
+                      [--rates 1e-4 1e-3 1e-2] [--seed 1]
 
 Frames come from the rig's own physics: a batch of simulated rigs (pisc_plant) driven by
 random sinusoidal voltages, swinging the pendulum through every encoder value and the
 cart from stop to stop, encoded through the sensors' inverse calibrations. Each rig's
 stream is cut as the link would cut it (bursts of 7 bytes every 5 ms at 115200 baud),
 then damaged byte by byte: a byte is lost with probability p ("drop") or has one bit
-flipped ("flip"). Three parsers read the same damaged stream, burst by burst:
+flipped ("flip").
+
+A second, adversarial stream (:func:`adversarial_frames`) puts the header value 0xAA in
+every data byte where the sensors can put it at once: every IR and current code has the
+low byte 0xAA, and the encoder rests or swings by up to 400 counts about a count that
+makes its bytes look like a header (0xAAAA: both bytes 0xAA; 0xAA01: 0xAA followed by a
+byte that passes as an ADC high byte) or like ADC high bytes (0x00AA and 0x0000: the
+pendulum hanging at rest). It is damaged by drops only (a flipped bit is a false frame
+whatever the stream).
+
+Three parsers read the same damaged stream, burst by burst:
 
 * naive: wait for 0xAA, take the next six bytes;
 * FrameParser fed bytes only (no arrival times);
@@ -15,9 +26,12 @@ flipped ("flip"). Three parsers read the same damaged stream, burst by burst:
 
 For each it prints frames delivered, **false frames** (delivered but not a frame the
 device sent: misframed, or with a flipped bit that no check can see without a
-checksum), intact frames lost, and frames to resynchronise after an isolated damaged
-frame (1 = the next frame is delivered again). A frame "delivered late" came out of the
-parser only when a later burst arrived (while hunting, confirmed by the next header).
+checksum), of them those whose **values were never sent** (a misframed frame whose six
+data bytes are nevertheless one sent frame's, with a 0xAA from elsewhere as its header,
+delivers true values), intact frames lost, and frames to resynchronise after an isolated
+damaged frame (1 = the next frame is delivered again). A frame "delivered late" came out
+of the parser only when a later burst arrived (while hunting, confirmed by the next
+header).
 """
 
 from __future__ import annotations
@@ -39,9 +53,14 @@ from pisc_driver.protocol import (
 from pisc_plant.params import LoopParams
 from pisc_plant.plant import Plant, PlantConfig
 
-__all__ = ["ParserScore", "damage", "main", "rig_frames", "score"]
+__all__ = ["ADVERSARIAL_COUNTS", "ParserScore", "adversarial_frames", "damage", "main",
+           "rig_frames", "score"]
 
 BYTE_S = 10 / 115200  # 8N1: ten bits per byte
+PERIOD_S = 0.005
+
+# encoder counts (as the 16-bit register holds them) about which the adversarial rigs rest
+ADVERSARIAL_COUNTS = (0xAAAA, 0xAA01, 0x00AA, 0x0000)
 
 
 def rig_frames(n_frames: int, rigs: int = 100, seed: int = 1) -> list[list[bytes]]:
@@ -69,6 +88,40 @@ def rig_frames(n_frames: int, rigs: int = 100, seed: int = 1) -> list[list[bytes
         out[r] = out[r][:keep]
         total += keep
     return [frames for frames in out if frames]
+
+
+def adversarial_frames(n_frames: int, rigs: int = 100, seed: int = 1,
+                       counts: tuple[int, ...] = ADVERSARIAL_COUNTS,
+                       swing_counts: float = 400.0) -> list[list[bytes]]:
+    """Frames of ``rigs`` rigs, ``n_frames`` in all, with 0xAA in as many data bytes as
+    the sensors allow: every IR and current code ends in 0xAA (the high byte, 0..3, is
+    drawn per rig), and the encoder count stays near one of ``counts`` (rig ``r`` near
+    ``counts[r % len(counts)]``): one in three of each count's rigs rests there (the
+    count jitters by one), the others swing about it by up to ``swing_counts`` at 0.3-2 Hz
+    (at most about 25 counts per period, well inside the parser's rate bound).
+    """
+    rng = np.random.default_rng(seed)
+    per_rig = -(-n_frames // rigs)
+    out: list[list[bytes]] = []
+    total = 0
+    for r in range(rigs):
+        keep = min(per_rig, n_frames - total)
+        if keep <= 0:
+            break
+        total += keep
+        k = np.arange(keep)
+        resting = (r // len(counts)) % 3 == 0
+        amplitude = 0.0 if resting else rng.uniform(0.0, swing_counts)
+        frequency = rng.uniform(0.3, 2.0)
+        phase = rng.uniform(0.0, 2 * np.pi)
+        offset = np.round(amplitude * np.sin(2 * np.pi * frequency * k * PERIOD_S + phase))
+        offset += rng.integers(-1, 2, keep)
+        ir = (int(rng.integers(0, 4)) << 8) | 0xAA
+        current = (int(rng.integers(0, 4)) << 8) | 0xAA
+        centre = counts[r % len(counts)]
+        out.append([encode_frame(Frame(ir, current, wrap_count(centre + int(d))))
+                    for d in offset])
+    return out
 
 
 @dataclass
@@ -113,6 +166,7 @@ class ParserScore:
     delivered: int = 0
     false_frames: int = 0
     misframed: int = 0
+    wrong_values: int = 0  # false frames whose values no sent frame had
     intact_lost: int = 0
     late: int = 0  # delivered after a later burst arrived (hunting)
     resync: list[int] | None = None
@@ -121,6 +175,7 @@ class ParserScore:
         self.delivered += other.delivered
         self.false_frames += other.false_frames
         self.misframed += other.misframed
+        self.wrong_values += other.wrong_values
         self.intact_lost += other.intact_lost
         self.late += other.late
         self.resync = (self.resync or []) + (other.resync or [])
@@ -134,7 +189,7 @@ def score(parser, stream: Damaged, timed: bool) -> ParserScore:
     for k, burst in enumerate(stream.bursts):
         if not burst:
             continue
-        arrival = k * 0.005 + len(burst) * BYTE_S if timed else None
+        arrival = k * PERIOD_S + len(burst) * BYTE_S if timed else None
         for frame in parser.feed(burst, arrival):
             result.delivered += 1
             o = frame.offset
@@ -145,9 +200,16 @@ def score(parser, stream: Damaged, timed: bool) -> ParserScore:
             if not aligned:
                 result.misframed += 1
                 result.false_frames += 1
+                data = origin[1:]  # the data bytes: one sent frame's, unflipped?
+                if not (len(data) == FRAME_LENGTH - 1 and np.all(data == data[0])
+                        and np.array_equal(stream.position[o + 1:o + FRAME_LENGTH],
+                                           np.arange(1, FRAME_LENGTH))
+                        and not np.any(stream.flipped[o + 1:o + FRAME_LENGTH])):
+                    result.wrong_values += 1
                 continue
             if np.any(stream.flipped[o:o + FRAME_LENGTH]):
                 result.false_frames += 1
+                result.wrong_values += int(np.any(stream.flipped[o + 1:o + FRAME_LENGTH]))
                 continue
             good[origin[0]] = True
             if origin[0] < k:
@@ -174,27 +236,34 @@ PARSERS = (("naive (0xAA + 6 bytes)", NaiveParser, False),
            ("FrameParser, bytes + arrival times", FrameParser, True))
 
 
-def run(n_frames: int, rates: list[float], seed: int) -> list[dict]:
-    rigs = rig_frames(n_frames, seed=seed)
+def run(n_frames: int, rates: list[float], seed: int,
+        adversarial: int = 100_000) -> list[dict]:
+    """Rows of the table: the simulated rigs' stream (drops and flips), then
+    ``adversarial`` frames of the adversarial stream (drops; none if 0)."""
+    sources = [("rigs", rig_frames(n_frames, seed=seed), ("drop", "flip"), n_frames, ())]
+    if adversarial:
+        sources.append(("adversarial", adversarial_frames(adversarial, seed=seed), ("drop",),
+                        adversarial, (2,)))
     rows = []
-    for kind in ("drop", "flip"):
-        for rate in rates:
-            rng = np.random.default_rng([seed, int(rate * 1e6), kind == "drop"])
-            streams = [damage(frames, kind, rate, rng) for frames in rigs]
-            for name, cls, timed in PARSERS:
-                total = ParserScore(resync=[])
-                for stream in streams:
-                    total.add(score(cls(), stream, timed))
-                damaged = int(sum(s.damaged_frames.sum() for s in streams))
-                rows.append(dict(kind=kind, rate=rate, parser=name, frames=n_frames,
-                                 damaged=damaged, score=total))
+    for source, rigs, kinds, frames, salt in sources:
+        for kind in kinds:
+            for rate in rates:
+                rng = np.random.default_rng([seed, int(rate * 1e6), kind == "drop", *salt])
+                streams = [damage(f, kind, rate, rng) for f in rigs]
+                for name, cls, timed in PARSERS:
+                    total = ParserScore(resync=[])
+                    for stream in streams:
+                        total.add(score(cls(), stream, timed))
+                    damaged = int(sum(s.damaged_frames.sum() for s in streams))
+                    rows.append(dict(stream=source, kind=kind, rate=rate, parser=name,
+                                     frames=frames, damaged=damaged, score=total))
     return rows
 
 
 def format_rows(rows: list[dict]) -> str:
-    lines = ["| damage | rate/byte | parser | delivered | false frames (misframed) "
-             "| intact lost | delivered late | resync frames max (mean) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| stream | damage | rate/byte | parser | delivered | false frames (misframed) "
+             "| values never sent | intact lost | delivered late | resync frames max (mean) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         s: ParserScore = r["score"]
         if r["parser"].startswith("naive"):
@@ -203,22 +272,54 @@ def format_rows(rows: list[dict]) -> str:
             resync = f"{max(s.resync)} ({np.mean(s.resync):.2f})"
         else:
             resync = "-"
-        lines.append(f"| {r['kind']} | {r['rate']:g} | {r['parser']} | {s.delivered} | "
-                     f"{s.false_frames} ({s.misframed}) | {s.intact_lost} | {s.late} | {resync} |")
+        lines.append(f"| {r.get('stream', 'rigs')} | {r['kind']} | {r['rate']:g} | "
+                     f"{r['parser']} | {s.delivered} | {s.false_frames} ({s.misframed}) | "
+                     f"{s.wrong_values} | {s.intact_lost} | {s.late} | {resync} |")
+    return "\n".join(lines)
+
+
+def format_adversarial(rows: list[dict]) -> str:
+    """One line per FrameParser feeding on the adversarial stream's drops: false frames per
+    100 000 frames at each rate, and the longest resynchronisation."""
+    lines = []
+    for name, _, _ in PARSERS[1:]:
+        mine = [r for r in rows if r.get("stream") == "adversarial" and r["parser"] == name
+                and r["kind"] == "drop"]
+        if not mine:
+            continue
+        parts = []
+        for r in mine:
+            s: ParserScore = r["score"]
+            per = 100_000 / r["frames"]
+            resync = max(s.resync) if s.resync else "-"
+            parts.append(f"drops {r['rate']:g}: {s.false_frames * per:g} false frames "
+                         f"({s.wrong_values * per:g} with values never sent), resync <= {resync}")
+        lines.append(f"adversarial stream, {name}, per 100000 frames: " + "; ".join(parts))
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="pisc_parser_bench",
                                      description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=int, default=200_000)
+    parser.add_argument("--frames", type=int, default=200_000,
+                        help="frames of the simulated rigs per condition")
+    parser.add_argument("--adversarial-frames", type=int, default=100_000,
+                        help="frames of the adversarial stream per condition (0 = none)")
     parser.add_argument("--rates", type=float, nargs="+", default=[1e-4, 1e-3, 1e-2])
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
+    if args.frames < 1 or args.adversarial_frames < 0:
+        parser.error("--frames must be at least 1 and --adversarial-frames at least 0")
+    if not all(0.0 <= r <= 1.0 for r in args.rates):
+        parser.error("--rates are probabilities per byte, in [0, 1]")
     started = time.monotonic()
-    rows = run(args.frames, args.rates, args.seed)
-    print(f"{args.frames} frames per condition (100 simulated rigs), seed {args.seed}")
+    rows = run(args.frames, args.rates, args.seed, args.adversarial_frames)
+    print(f"{args.frames} frames per condition (100 simulated rigs), "
+          f"{args.adversarial_frames} of the adversarial stream (100 rigs), seed {args.seed}")
     print(format_rows(rows))
+    summary = format_adversarial(rows)
+    if summary:
+        print(summary)
     print(f"({time.monotonic() - started:.0f} s)")
     return 0
 

@@ -14,6 +14,12 @@ so a parser that waits for 0xAA and takes six bytes accepts false frames wheneve
 is lost. :class:`FrameParser` hunts for lock on the 7-byte periodicity and on what the
 sensors can physically report, stays locked while every frame passes the checks,
 delivers each frame when its 7th byte arrives, and hunts again when a check fails.
+
+The bytes alone are ambiguous: a stream read from a shifted start can itself be a stream
+of plausible frames (a count resting at 0x00AA with ADC low bytes 0xAA, issue 15). What
+settles it is time: the device sends a frame's seven bytes in 0.61 ms every 5 ms, so a
+frame whose bytes arrived more than ``frame_gap_s`` apart is two frames' pieces. The
+driver passes each read's arrival time; see docs/driver-protocol.md.
 """
 
 from __future__ import annotations
@@ -171,9 +177,10 @@ class ParserParams:
         "falling from upright reaches 18 rad/s at the bottom (2 sqrt(m g l / (I + m l^2))); "
         "a larger change of count means a misframed or corrupted frame", "rad/s", positive)
     frame_gap_s: float = param(
-        0.002, "a frame's bytes take 0.61 ms at 115200 baud; a frame whose last byte is 0xAA "
-        "and arrived this long after its header is the next frame's header: a byte was lost "
-        "(0 = do not use arrival times)", "s", in_range(0.0, 1.0))
+        0.002, "a frame's bytes take 0.61 ms at 115200 baud and frames come 5 ms apart; a "
+        "frame whose last byte arrived more than this after its header is pieces of two "
+        "frames (a byte was lost) and is refused (0 = do not use arrival times: bytes only, "
+        "which cannot refuse every false frame)", "s", in_range(0.0, 1.0))
 
 
 class FrameParser:
@@ -183,13 +190,17 @@ class FrameParser:
     high bytes at most ``(2^bits - 1) >> 8`` = 3) and is confirmed either by another 0xAA
     exactly 7 bytes later followed by plausible ADC high bytes (they come in the same
     burst) or, when arrival times are known, by starting a burst (no byte for
-    ``frame_gap_s`` before it) and arriving whole within that burst; with arrival times,
-    a candidate whose bytes span a gap of more than ``frame_gap_s`` is refused.
+    ``frame_gap_s`` before it) and arriving whole within that burst.
     Locked: each frame is checked and delivered as soon as its 7th byte arrives: header,
     ADC high bytes, encoder change since the last frame at most ``max_rate * period /
-    rad_per_count`` counts per period, the next header if that byte is already here, and a
-    last byte 0xAA arriving after a gap. A failed check drops the frame and hunts again
-    from the byte after its header.
+    rad_per_count`` counts per period, and the next frame's header and ADC high bytes as
+    far as they are already here. A failed check drops the frame and hunts again from the
+    byte after its header.
+    With arrival times, hunting or locked, a frame whose first and last bytes arrived more
+    than ``frame_gap_s`` apart is refused, whatever its bytes: it is the end of one burst
+    and the start of the next (issue 15: locked, a frame whose last byte came 5 ms later
+    was accepted unless that byte was 0xAA). A reader that stalls for more than
+    ``frame_gap_s`` in the middle of a frame costs that frame, never a false one.
 
     Parameters
     ----------
@@ -257,29 +268,39 @@ class FrameParser:
         if self._last_count is None:
             return True
         count = wrap_count((self._buf[p + 5] << 8) | self._buf[p + 6])
-        t, last = self._times[p], self._last_time
-        if t is not None and last is not None:
-            periods = max(1, round((t - last) / self.period_s))
-        else:  # no arrival times: frames elapsed from the stream positions
-            periods = max(1, -(-(self._base + p - self._last_offset) // FRAME_LENGTH))
+        # no arrival times: frames elapsed from the stream positions
+        periods = self._periods(self._last_time, self._times[p], -(
+            -(self._base + p - self._last_offset) // FRAME_LENGTH))
         return abs(wrap_count(count - self._last_count)) <= self.max_count_step * periods
 
-    def _lost_byte(self, p: int) -> bool:
-        """The 7th byte is 0xAA and came after a gap: it is the next frame's header."""
-        if self._buf[p + 6] != HEADER or not self.gap_s:
-            return False
-        t0, t6 = self._times[p], self._times[p + 6]
-        return t0 is not None and t6 is not None and t6 - t0 > self.gap_s
+    def _periods(self, earlier: float | None, later: float | None, otherwise: int) -> int:
+        """Frame periods between two arrivals (at least 1), ``otherwise`` without times."""
+        if earlier is not None and later is not None:
+            return max(1, round((later - earlier) / self.period_s))
+        return max(1, otherwise)
 
     def _spans_gap(self, p: int) -> bool:
-        """While hunting: the candidate's bytes came in two bursts, so it is not a frame."""
-        t0, t6 = self._times[p], self._times[p + 6]
+        """The candidate's bytes came in two bursts (its first byte more than ``frame_gap_s``
+        before its last), so it is not a frame: a byte was lost and the rest of it belongs
+        to the next frame. The device sends a frame's seven bytes in 0.61 ms and the next
+        frame 5 ms later."""
+        t0, t6 = self._times[p], self._times[p + FRAME_LENGTH - 1]
         return bool(self.gap_s) and t0 is not None and t6 is not None and t6 - t0 > self.gap_s
 
+    def _follower_ok(self, p: int) -> bool:
+        """The frame after the one at ``p``, as far as its bytes are already here: its
+        header and ADC high bytes. (Not its count: a jump between two frames does not say
+        which of them is damaged.)"""
+        b = self._buf
+        n = len(b)
+        q = p + FRAME_LENGTH
+        return not ((q < n and b[q] != HEADER)
+                    or (q + 1 < n and b[q + 1] > self.max_adc_high)
+                    or (q + 3 < n and b[q + 3] > self.max_adc_high))
+
     def _locked_ok(self) -> bool:
-        if not self._plausible(0) or not self._count_ok(0) or self._lost_byte(0):
-            return False
-        return len(self._buf) == FRAME_LENGTH or self._buf[FRAME_LENGTH] == HEADER
+        return (self._plausible(0) and self._count_ok(0) and not self._spans_gap(0)
+                and self._follower_ok(0))
 
     def _starts_burst(self, p: int) -> bool:
         t = self._times[p]

@@ -26,10 +26,13 @@ def test_each_frame_becomes_a_sample_in_si_stamped_at_arrival():
     c = core()
     data = frame(400, 780, 0) + frame(401, 781, 3) + frame(402, 782, 6)
     assert c.receive(data[:10], 1000 * MS) == []
-    samples = c.receive(data[10:14], 1005 * MS)  # first frame confirmed by the second
-    samples += c.receive(data[14:], 1010 * MS)
+    # first frame confirmed by the second, whose bytes came 0.3 ms apart (a frame whose
+    # bytes came more than driver.frame_gap_s apart is refused: test_protocol)
+    samples = c.receive(data[10:14], 1000 * MS + 300_000)
+    samples += c.receive(data[14:], 1005 * MS)
     # the chunk that confirms the first frame also completes the second: stamps stay unique
-    assert [s.stamp_ns for s in samples] == [1005 * MS, 1005 * MS + 1000, 1010 * MS]
+    assert [s.stamp_ns for s in samples] == [1000 * MS + 300_000, 1000 * MS + 301_000,
+                                             1005 * MS]
     x, theta, i = decode(SensorParams(), 401, 781, 3)
     assert samples[1].position_m == pytest.approx(float(x), abs=0)
     assert samples[1].angle_rad == pytest.approx(math.pi + 3 * math.pi / 2000, rel=1e-12)

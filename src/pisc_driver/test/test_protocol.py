@@ -218,8 +218,15 @@ def test_implausible_adc_high_byte_or_encoder_jump_forces_a_rehunt():
     frames = [(700 + k, 512, 100 + k) for k in range(6)]
     data = bytearray(stream(*frames))
     data[2 * 7 + 3] = 0x04  # CUR_hi of frame 2 above 3
+    parser = FrameParser()  # frame by frame, as the device sends them
+    got = [f for k in range(6) for f in parser.feed(bytes(data[7 * k:7 * k + 7]))]
+    assert got == [Frame(*f) for k, f in enumerate(frames) if k != 2]
+    assert parser.rehunts == 1
+    # all at once, frame 1 comes with the bytes after it, which do not make a frame: frame
+    # 1 is misframed or frame 2 damaged, and a frame that cannot be told apart from a
+    # false one is not delivered
     parser = FrameParser()
-    assert parser.feed(bytes(data)) == [Frame(*f) for k, f in enumerate(frames) if k != 2]
+    assert parser.feed(bytes(data)) == [Frame(*f) for k, f in enumerate(frames) if k not in (1, 2)]
     assert parser.rehunts == 1
     jump = stream((700, 512, 100), (700, 512, 101), (700, 512, 101 + 200), (700, 512, 102),
                   (700, 512, 103))
@@ -241,3 +248,66 @@ def test_a_candidate_spanning_two_bursts_is_not_a_frame():
     assert got == [Frame(0xE4, 0x2F2, 0xAD), Frame(0xE4, 0x2F2, 0xAB), Frame(0xE3, 0x2F3, 0xA5),
                    Frame(0xE3, 0x2F4, 0xA2)]
     assert parser.rehunts == 1
+
+
+def _issue_15_bursts() -> tuple[list[tuple[int, int, int]], list[bytes]]:
+    """Issue 15's false frame: IR and current low bytes 0xAA, counts near 0xAB5A; the 7th
+    byte of frame 2 (CNT_lo) and the header of frame 3 are lost, so frame 2's first six
+    bytes and frame 3's IR_hi (0x02) look like a frame of count 0xAB02, never sent (88
+    counts, 7.9 degrees, from the count before), followed by frame 3's IR_lo 0xAA."""
+    counts = [0xAB50, 0xAB55, 0xAB5A, 0xAB5E, 0xAB61, 0xAB63]
+    frames = [(0x2AA, 0x1AA, wrap_count(c)) for c in counts]
+    bursts = [raw(*f) for f in frames]
+    bursts[2] = bursts[2][:6]
+    bursts[3] = bursts[3][1:]
+    return frames, bursts
+
+
+@pytest.mark.parametrize("bytewise", [False, True])
+def test_a_locked_frame_completed_by_the_next_burst_is_not_a_frame(bytewise):
+    """Whatever its last byte: locked, a frame whose bytes arrived in two bursts (5 ms
+    apart) is refused with arrival times. Fed whole bursts or byte by byte (as a real
+    UART delivers them, so no later byte is there to refute the frame)."""
+    frames, bursts = _issue_15_bursts()
+    parser = FrameParser()
+    got = []
+    for k, burst in enumerate(bursts):
+        if bytewise:
+            for i in range(len(burst)):
+                got += parser.feed(burst[i:i + 1], 0.005 * k + (i + 1) * 87e-6)
+        else:
+            got += parser.feed(burst, 0.005 * k + len(burst) * 87e-6)
+    assert Frame(0x2AA, 0x1AA, wrap_count(0xAB02)) not in got
+    # frames 2 and 3 damaged; frame 4 is delivered again (resync 1)
+    assert got == [Frame(*frames[k]) for k in (0, 1, 4, 5)]
+    assert parser.rehunts == 1
+
+
+def test_without_arrival_times_the_following_bytes_refute_a_false_frame_if_they_are_here():
+    """Bytes only, the same false frame is refused when the rest of the next burst came
+    with its last byte (the next frame's header, ADC high bytes and count are checked);
+    fed byte by byte nothing refutes it before it is delivered: only arrival times can."""
+    frames, bursts = _issue_15_bursts()
+    parser = FrameParser()
+    got = [f for b in bursts for f in parser.feed(b)]
+    assert got == [Frame(*frames[k]) for k in (0, 1, 4, 5)]
+    parser = FrameParser()
+    got = [f for b in bursts for i in range(len(b)) for f in parser.feed(b[i:i + 1])]
+    assert Frame(0x2AA, 0x1AA, wrap_count(0xAB02)) in got  # the limit of bytes-only parsing
+
+
+def test_a_shifted_start_is_refused_by_arrival_times_only():
+    """A rig resting at count 0x00AA with IR and current codes 0x2AA and 0x1AA: read from
+    its IR_lo on, the stream is itself a plausible stream (header 0xAA, ADC high bytes 1
+    and 0, count 0xAA02, constant). Bytes only, the parser cannot tell (and delivers
+    frames never sent); with the arrival of each 5 ms burst, every such frame spans two
+    bursts and the parser finds the true frames."""
+    bursts = [raw(0x2AA, 0x1AA, 0x00AA)] * 8
+    shifted = [bursts[0][2:]] + bursts[1:]
+    parser = FrameParser()
+    got = [f for b in shifted for f in parser.feed(b)]
+    assert got and set(got) == {Frame(0x1AA, 0x0AA, wrap_count(0xAA02))}
+    parser = FrameParser()
+    got = [f for k, b in enumerate(shifted) for f in parser.feed(b, 0.005 * k + 0.0006)]
+    assert got == [Frame(0x2AA, 0x1AA, 0x00AA)] * 7
+    assert parser.discarded == 5
