@@ -9,8 +9,16 @@ commands it received and the time (ROS time, integer nanoseconds) of each event:
   the command is older than ``driver.command_max_age_periods`` periods or older than
   one already sent;
 * ``tick(now)``: the safety rules between events: zero voltage once the newest command
-  sent is older than the allowed age (the controllers stopped answering), and a fault
-  once the device has sent no frame for ``driver.silence_timeout_s``.
+  sent is older than the allowed age (the controllers stopped answering), a fault once
+  the device has sent no frame for ``driver.silence_timeout_s``, and, while a run is
+  active, an answer to every frame: when a frame arrives and the one before it got no
+  byte, the driver sends one itself (the byte held, which is 0 V once the newest
+  command is older than the allowed age), so that the firmware's command watchdog
+  (docs/driver-protocol.md) never trips while the driver is alive;
+* ``end_run()``: the run is over (the driver stops): no more bytes of its own, so that
+  once the driver is gone the firmware's watchdog zeroes the motor.
+
+A run is active from the first command sent until ``end_run()``.
 """
 
 from __future__ import annotations
@@ -83,9 +91,13 @@ class DriverCore:
         self.sent_stamp_ns: int | None = None  # stamp of the newest command sent
         self.sent_byte = ZERO
         self.silent = False
+        self.active = False  # a run: from the first command sent to end_run()
+        self._frames = 0  # frames received
+        self._answered = 0  # frames received when the last byte was sent
         self.commands = 0
         self.stale_commands = 0
         self.zeroed = 0  # zero bytes sent because the commands stopped
+        self.keepalives = 0  # bytes sent for a frame the controllers did not answer
         self.silences = 0
 
     def receive(self, data: bytes, now_ns: int) -> list[Measurement]:
@@ -106,6 +118,7 @@ class DriverCore:
         if out:
             self.last_frame_ns = now_ns
             self.silent = False
+            self._frames += len(out)
         return out
 
     def command(self, stamp_ns: int, voltage_v: float, now_ns: int) -> int | None:
@@ -117,13 +130,20 @@ class DriverCore:
         self.sent_stamp_ns = stamp_ns
         self.sent_byte = encode_command(voltage_v, self.actuator)
         self.commands += 1
+        self.active = True
+        self._answered = self._frames
         return self.sent_byte
 
     def command_age_ns(self, now_ns: int) -> int | None:
         return None if self.sent_stamp_ns is None else now_ns - self.sent_stamp_ns
 
+    def end_run(self) -> None:
+        """The run is over: the driver sends no byte of its own any more."""
+        self.active = False
+
     def tick(self, now_ns: int) -> tuple[int | None, str | None]:
-        """(zero byte to send or None, fault message or None) at ``now_ns``."""
+        """(byte to send or None, fault message or None) at ``now_ns``: 0 V for a stale
+        command or a silent device, or, in a run, the answer to a frame left unanswered."""
         byte = None
         if self.sent_byte != ZERO and (self.sent_stamp_ns is None
                                        or now_ns - self.sent_stamp_ns > self.max_age_ns):
@@ -139,4 +159,12 @@ class DriverCore:
                      f"= {self.params.silence_timeout_s}); sending 0 V")
             if byte is None:
                 byte = self.sent_byte = ZERO
+        if byte is not None:
+            self._answered = self._frames
+        elif self.active and self._answered < self._frames - 1:
+            # the frame before the newest got no byte: answer it (the newest one is the
+            # controllers' to answer until the next frame comes)
+            byte = self.sent_byte
+            self.keepalives += 1
+            self._answered = self._frames - 1
         return byte, fault

@@ -5,6 +5,12 @@ publishes each frame's sample the moment the frame's last byte arrives, stamped 
 arrival; the voltage answering it is written from the subscription callback as soon as
 it arrives. The executor spins in the main thread (``run_node``). Every decision is
 :class:`pisc_driver.driver.DriverCore`'s; this file does I/O and ROS only.
+
+From the first command sent until the node stops, every frame is answered: a frame the
+controllers leave unanswered gets the byte held (0 V once the newest command is stale)
+when the next frame arrives, so the firmware's command watchdog trips only when this
+process is gone or stalled (docs/driver-protocol.md). On stopping (SIGINT, SIGTERM, a
+parameter change) it sends 0 V and then nothing.
 """
 
 from __future__ import annotations
@@ -68,7 +74,10 @@ class DriverNode(PiscNode):
         self._reader.start()
 
     def _stop(self) -> None:
-        """Stop the reader, send zero voltage, close the port."""
+        """End the run, stop the reader, send zero voltage, close the port; from here on
+        the driver sends nothing, and the firmware's watchdog holds 0 V."""
+        with self._lock:
+            self._core.end_run()
         self._running = False
         if self._reader is not None:
             self._reader.join(timeout=1.0)
@@ -158,7 +167,8 @@ class DriverNode(PiscNode):
                       bytes_discarded=core.parser.discarded, rehunts=core.parser.rehunts,
                       command_age_ms="none" if age is None else f"{age * 1e-6:.2f}",
                       commands_sent=core.commands, stale_commands=core.stale_commands,
-                      zeroed_for_age=core.zeroed, silences=core.silences,
+                      zeroed_for_age=core.zeroed, keepalives_sent=core.keepalives,
+                      silences=core.silences,
                       bytes_not_written=self._unwritten)
 
 

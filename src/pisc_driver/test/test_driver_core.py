@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import struct
 
+import numpy as np
 import pytest
 
 from pisc_driver.driver import ZERO, DriverCore, DriverParams
@@ -87,3 +88,65 @@ def test_device_silence_is_a_fault_with_zero_voltage_reported_once_per_silence()
     assert not c.silent
     assert c.tick(56 * MS)[1].startswith("device silent")
     assert c.silences == 2
+
+
+def run_frames(c: DriverCore, until_ms: int, answer=lambda k: None) -> list[tuple[int, int]]:
+    """A frame every 5 ms and a read every 1 ms up to ``until_ms``; ``answer(k)`` is the
+    voltage the controllers send 1 ms after frame k (None: no answer). Returns the
+    (time in ms, byte) the driver sent."""
+    if not c.parser.locked:  # lock on the frames sent before
+        c.receive(frame(400, 780, 0) * 2, -5 * MS)
+    sent = []
+    for t in range(until_ms + 1):
+        if t % 5 == 0:
+            c.receive(frame(400, 780, 0), t * MS)
+        elif t % 5 == 1 and answer(t // 5) is not None:
+            byte = c.command((t - 1) * MS, answer(t // 5), t * MS)
+            if byte is not None:
+                sent.append((t, byte))
+        byte, _ = c.tick(t * MS)
+        if byte is not None:
+            sent.append((t, byte))
+    return sent
+
+
+def test_no_byte_of_its_own_before_the_run_starts():
+    c = core()
+    assert run_frames(c, 200) == [] and not c.active
+
+
+def test_every_frame_is_answered_while_the_controllers_are_silent():
+    """Issue 15: the driver sent one zero byte and then nothing, so a firmware watchdog
+    would trip (and tell a live host from a dead one no more)."""
+    c = core()
+    sent = run_frames(c, 200, answer=lambda k: 3.0 if k < 4 else None)
+    assert sent[:4] == [(1, 0x21), (6, 0x21), (11, 0x21), (16, 0x21)]  # the controllers'
+    # frame 4 (20 ms) unanswered: at frame 5 the driver answers it with the byte held,
+    # still fresh (10 ms old); 0 V once it is stale (answering frame 5); then each
+    # frame's zero byte when the next frame arrives
+    assert sent[4:6] == [(25, 0x21), (26, ZERO)]
+    assert sent[6:] == [(t, ZERO) for t in range(35, 201, 5)]
+    assert (c.commands, c.zeroed, c.keepalives) == (4, 1, 1 + len(range(35, 201, 5)))
+    gaps = np.diff([t for t, _ in sent])
+    assert gaps.max() <= 9  # never more than two periods without a byte
+
+
+def test_a_frame_the_controllers_answer_gets_no_second_byte():
+    c = core()
+    sent = run_frames(c, 200, answer=lambda k: 1.0)
+    assert sent == [(5 * k + 1, 0x0B) for k in range(40)] and c.keepalives == 0
+    # answering every other frame: the driver answers the others (when the next frame
+    # arrives, with the byte held): one byte per frame
+    c = core()
+    sent = run_frames(c, 200, answer=lambda k: 1.0 if k % 2 == 0 else None)
+    assert sent[:5] == [(1, 0x0B), (10, 0x0B), (11, 0x0B), (20, 0x0B), (21, 0x0B)]
+    assert len(sent) == 40 and c.keepalives == 20 and c.zeroed == 0
+
+
+def test_no_byte_of_its_own_once_the_run_ends():
+    c = core()
+    run_frames(c, 50, answer=lambda k: 2.0)
+    c.end_run()
+    sent = [(t, b) for t, b in run_frames(c, 200)]
+    assert all(b == ZERO for _, b in sent) and len(sent) <= 1  # at most the stale zero
+    assert not c.active
