@@ -1,6 +1,7 @@
 """``pisc_parser_bench``: the frame parser against lost bytes and flipped bits.
 
     pisc_parser_bench [--frames 200000] [--adversarial-frames 100000]
+                      [--adversarial-counts 0xAAAA 0xAA01 0x00AA 0]
                       [--rates 1e-4 1e-3 1e-2] [--seed 1]
 
 Frames come from the rig's own physics: a batch of simulated rigs (pisc_plant) driven by
@@ -236,14 +237,15 @@ PARSERS = (("naive (0xAA + 6 bytes)", NaiveParser, False),
            ("FrameParser, bytes + arrival times", FrameParser, True))
 
 
-def run(n_frames: int, rates: list[float], seed: int,
-        adversarial: int = 100_000) -> list[dict]:
+def run(n_frames: int, rates: list[float], seed: int, adversarial: int = 100_000,
+        counts: tuple[int, ...] = ADVERSARIAL_COUNTS) -> list[dict]:
     """Rows of the table: the simulated rigs' stream (drops and flips), then
-    ``adversarial`` frames of the adversarial stream (drops; none if 0)."""
+    ``adversarial`` frames of the adversarial stream about ``counts`` (drops; none if 0)."""
     sources = [("rigs", rig_frames(n_frames, seed=seed), ("drop", "flip"), n_frames, ())]
     if adversarial:
-        sources.append(("adversarial", adversarial_frames(adversarial, seed=seed), ("drop",),
-                        adversarial, (2,)))
+        sources.append(("adversarial", adversarial_frames(adversarial, seed=seed,
+                                                          counts=counts),
+                        ("drop",), adversarial, (2,)))
     rows = []
     for source, rigs, kinds, frames, salt in sources:
         for kind in kinds:
@@ -305,6 +307,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="frames of the simulated rigs per condition")
     parser.add_argument("--adversarial-frames", type=int, default=100_000,
                         help="frames of the adversarial stream per condition (0 = none)")
+    parser.add_argument("--adversarial-counts", type=lambda text: int(text, 0), nargs="+",
+                        default=list(ADVERSARIAL_COUNTS), metavar="COUNT",
+                        help="encoder counts the adversarial rigs rest or swing about, as "
+                        "the 16-bit register holds them (default 0xAAAA 0xAA01 0x00AA 0)")
     parser.add_argument("--rates", type=float, nargs="+", default=[1e-4, 1e-3, 1e-2])
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
@@ -312,10 +318,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--frames must be at least 1 and --adversarial-frames at least 0")
     if not all(0.0 <= r <= 1.0 for r in args.rates):
         parser.error("--rates are probabilities per byte, in [0, 1]")
+    if not all(0 <= c <= 0xFFFF for c in args.adversarial_counts):
+        parser.error("--adversarial-counts are 16-bit register values, 0 to 0xFFFF")
     started = time.monotonic()
-    rows = run(args.frames, args.rates, args.seed, args.adversarial_frames)
+    counts = tuple(args.adversarial_counts)
+    rows = run(args.frames, args.rates, args.seed, args.adversarial_frames, counts)
     print(f"{args.frames} frames per condition (100 simulated rigs), "
-          f"{args.adversarial_frames} of the adversarial stream (100 rigs), seed {args.seed}")
+          f"{args.adversarial_frames} of the adversarial stream (100 rigs about counts "
+          f"{', '.join(f'0x{c:04X}' for c in counts)}), seed {args.seed}")
     print(format_rows(rows))
     summary = format_adversarial(rows)
     if summary:

@@ -111,6 +111,8 @@ def test_without_arrival_times_a_shifted_adversarial_stream_is_a_plausible_strea
 def test_the_benchmark_command_includes_the_adversarial_stream(capsys):
     assert main(["--frames", "300", "--adversarial-frames", "3000", "--rates", "1e-2"]) == 0
     out = capsys.readouterr().out
+    assert "3000 of the adversarial stream (100 rigs about counts 0xAAAA, 0xAA01, 0x00AA, " \
+           "0x0000)" in out
     assert "| adversarial | drop | 0.01 | FrameParser, bytes + arrival times |" in out
     assert ("adversarial stream, FrameParser, bytes + arrival times, per 100000 frames: "
             "drops 0.01: 0 false frames (0 with values never sent), resync <= 1") in out
@@ -125,3 +127,9 @@ def test_parser_bench_prints_the_table(capsys):
     for rate in ("0.001", "0.01"):
         assert (f"drops {rate}: 0 false frames (0 with values never sent), resync <= 1"
                 in out.split("bytes + arrival times, per 100000 frames:")[1])
+
+
+def test_the_benchmark_refuses_counts_the_register_cannot_hold(capsys):
+    with pytest.raises(SystemExit):
+        main(["--adversarial-counts", "0x10000"])
+    assert "--adversarial-counts are 16-bit register values" in capsys.readouterr().err
