@@ -1,0 +1,105 @@
+"""Compile the plant's numba kernel into its cache, as much as a command needs, saying so.
+
+    python -m pisc_plant.warm [run|all]
+
+``run`` (what ``./pisc run`` needs): the entry points of the layout the default scene
+uses (full armature, sampled PI loop, quantised sensors with their RC filters, exprk4)
+for one rig, the way the plant node and the virtual rig call them. ``all`` (what the test
+suite needs): every layout, for one rig, for rows and for the parallel batch.
+
+numba compiles an entry point the first time it is called and caches it on disk
+(``cache=True`` in :mod:`pisc_plant.kernel`), so what is not compiled here is compiled on
+first use, once, by whatever uses it. Compiling ahead matters for two reasons: a plant
+node that compiles at start-up misses the graph's start, and processes started in
+parallel (tests) would each compile the same entry point. Each step prints one line with
+its time, so set-up never sits silent.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+
+from pisc_plant.params import ModelParams
+
+__all__ = ["LAYOUTS", "SCOPES", "layout_models", "steps", "warm_up"]
+
+SCOPES = ("run", "all")
+LAYOUTS = (("full", True), ("full", False), ("quasi_static", True), ("quasi_static", False),
+           ("ideal_force", True), ("ideal_force", False))
+
+
+def layout_models(armature: str, filters: bool) -> ModelParams:
+    """The plant models of one kernel layout (the first of :data:`LAYOUTS` is the default
+    scene's)."""
+    return ModelParams(armature=armature,
+                       current_loop="ideal" if armature == "ideal_force" else "sampled_pi",
+                       sensors="quantised" if filters else "ideal", sensor_filters=filters)
+
+
+def steps(scope: str) -> Iterator[tuple[str, Callable[[], None]]]:
+    """(what, compile it) for each step of ``scope``."""
+    if scope not in SCOPES:
+        raise ValueError(f"scope {scope!r}: one of {', '.join(SCOPES)}")
+    from pisc_plant.kernel import CHUNK
+    from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
+
+    layouts = LAYOUTS[:1] if scope == "run" else LAYOUTS
+    for armature, filters in layouts:
+        models = layout_models(armature, filters)
+        name = f"{armature}{' + RC filters' if filters else ''}"
+
+        def plant(models: ModelParams = models) -> Plant:
+            return Plant(PlantConfig(models=models, integrator=IntegratorParams("exprk4", 2)))
+
+        def one(plant: Callable[[], Plant] = plant) -> None:
+            p = plant()
+            y = p.initial_state(0.0)
+            p.advance(y, 1.0, 0.005)
+            p.derivative(y, 0.0)
+            p.end_stops(y)
+
+        yield f"{name}: one rig", one
+        if scope == "all":
+            def rows(plant: Callable[[], Plant] = plant) -> None:
+                p = plant()
+                p.advance(p.initial_state(np.zeros(2)), np.zeros(2), 0.005)
+
+            def batch(plant: Callable[[], Plant] = plant) -> None:
+                p = plant()
+                many = CHUNK + 1  # above one chunk: the parallel entry point
+                p.advance(p.initial_state(np.zeros(many)), np.zeros(many), 0.005)
+
+            yield f"{name}: rows", rows
+            yield f"{name}: parallel batch", batch
+
+
+def warm_up(scope: str = "all", say: Callable[[str], None] | None = None) -> float:
+    """Compile (or load from the cache) the entry points of ``scope``; seconds in all."""
+    start = time.perf_counter()
+    for what, compile_it in steps(scope):
+        began = time.perf_counter()
+        compile_it()
+        if say is not None:
+            say(f"  kernel {what}: {time.perf_counter() - began:.1f} s")
+    return time.perf_counter() - start
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    scope = args[0] if args else "all"
+    if scope not in SCOPES or len(args) > 1:
+        print(f"usage: python -m pisc_plant.warm [{'|'.join(SCOPES)}]", file=sys.stderr)
+        return 2
+    print(f"pisc_plant.warm: compiling the plant kernel for '{scope}' (minutes the first "
+          "time, then loaded from numba's cache)", flush=True)
+    total = warm_up(scope, lambda line: print(line, flush=True))
+    print(f"pisc_plant.warm: done in {total:.1f} s", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
