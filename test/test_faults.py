@@ -5,9 +5,34 @@ Each case was found by a hostile test on the landed code; each test here failed 
 
 from __future__ import annotations
 
-import pytest
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
+import pytest
+import rclpy
+import rclpy.node
+from diagnostic_msgs.msg import DiagnosticStatus
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from conftest import spin_until
 from pisc_bringup.graph import main
+from pisc_control.current_loop_node import CurrentLoopNode
+from pisc_control.estimator_node import EstimatorNode
+from pisc_control.supervisor_node import SupervisorNode
+from pisc_msgs_py.base_node import message_class, qos_profile
+from pisc_msgs_py.convert import joint_sample_from_msg, mode_from_msg, motor_sample_to_msg
+from pisc_msgs_py.topics import DIAGNOSTICS, JOINT_STATES, MODE, VOLTAGE
+from pisc_msgs_py.types import Mode, MotorSample
+from pisc_plant.plant_node import CommandWatchdog, PlantNode
+
+OK = DiagnosticStatus.OK
+ERROR = DiagnosticStatus.ERROR
 
 pytestmark = pytest.mark.integration
 
@@ -33,3 +58,234 @@ def test_a_run_refuses_bad_input_with_one_line_and_makes_no_bag(tmp_path, domain
     assert err.startswith(f"pisc_graph: invalid configuration: {message}")
     assert err.count("\n") == 1 and "Traceback" not in err
     assert not bag.exists()
+
+
+# -- the command watchdog, pure -------------------------------------------------------------
+
+def test_the_watchdog_holds_a_command_for_its_periods_then_zero_volts():
+    dog = CommandWatchdog(3)
+    stamps = {k: 1_000 + 5 * k for k in range(12)}
+    for k in range(2):
+        dog.sample(k, stamps[k])
+        assert not dog.expired(k)  # not armed before a first answer
+    assert dog.fresh(stamps[1]) == 1 and dog.answer(1) is None
+    for k in range(2, 4):
+        dog.sample(k, stamps[k])
+        assert not dog.expired(k)  # periods 2, 3 hold sample 1's command
+    dog.sample(4, stamps[4])
+    assert dog.expired(4) and dog.tripped_at == 4  # 3 unanswered in a row: 0 V from 4
+    dog.sample(5, stamps[5])
+    assert dog.expired(5) and dog.tripped_at == 4
+    # only the last 3 samples' stamps are fresh
+    assert dog.fresh(stamps[2]) is None and dog.fresh(stamps[3]) == 3
+    assert dog.answer(3) == 4 and dog.tripped_at is None  # commands resume
+    dog.sample(6, stamps[6])
+    assert not dog.expired(5)  # 5 - 3 < 3: sample 3's command holds through period 5
+    dog.sample(7, stamps[7])
+    assert not dog.expired(5 + 0) and dog.expired(6)  # 0 V again from sample 3 + 3
+
+
+# -- visitors on the command topic and silent controllers, launch-free --------------------
+
+VISITOR_V = 11.47
+
+
+class _Bench:
+    """The plant and the three controllers in this process, a spy on what the plant
+    applies, and a probe of the plant's diagnostics."""
+
+    def __init__(self, context, clock: str) -> None:
+        plant_params = [Parameter("simulation.clock", value=clock),
+                        Parameter("simulation.start_settle_s", value=0.1),
+                        Parameter("simulation.resend_after_s", value=0.2),
+                        Parameter("initial.x_m", value=0.05)]
+        self.controllers = {"estimator": EstimatorNode(context=context),
+                            "supervisor": SupervisorNode(context=context),
+                            "current_loop": CurrentLoopNode(context=context)}
+        self.plant = PlantNode(context=context, parameter_overrides=plant_params)
+        self.applied: list[tuple[int, float]] = []  # (sample index, voltage) per command
+        command = self.plant._sim.command
+
+        def spy(voltage: float, delay_s: float = 0.0) -> None:
+            self.applied.append((self.plant._sim.index, voltage))
+            command(voltage, delay_s)
+
+        self.plant._sim.command = spy
+        self.sample_of: dict[int, int] = {}  # stamp -> index of every sample published
+        record = self.plant._watchdog.sample
+
+        def recorded(index: int, stamp_ns: int) -> None:
+            self.sample_of[stamp_ns] = index
+            record(index, stamp_ns)
+
+        self.plant._watchdog.sample = recorded
+        self.probe = rclpy.node.Node("probe", context=context)
+        self.diagnostics: list = []
+        self.probe.create_subscription(
+            message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
+            lambda m: self.diagnostics.extend(s for s in m.status if s.name == "pisc/plant"),
+            qos_profile(DIAGNOSTICS.qos))
+        self.executor = SingleThreadedExecutor(context=context)
+        for node in [*self.controllers.values(), self.plant, self.probe]:
+            self.executor.add_node(node)
+
+    def spin_until(self, predicate, timeout_s: float = 20.0) -> bool:
+        return spin_until(self.executor, predicate, timeout_s)
+
+    def errors(self, text: str) -> list:
+        return [s for s in self.diagnostics if s.level == ERROR and text in s.message]
+
+    def close(self) -> None:
+        for node in [*self.controllers.values(), self.plant, self.probe]:
+            node.destroy_node()
+
+
+def _values(status) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+@pytest.mark.parametrize("clock", ["lockstep", "wall"])
+def test_a_visitor_answering_every_sample_drives_nothing_and_is_named(ros_context, clock):
+    bench = _Bench(ros_context, clock)
+    visitor = rclpy.node.Node("visitor", context=ros_context)
+    sent: list[int] = []  # sample stamps the visitor answered
+    try:
+        assert bench.spin_until(lambda: bench.plant._sim.index >= 40)
+        applied_before = len(bench.applied)
+        assert any(v != 0.0 for _, v in bench.applied)  # the current loop drives the motor
+        publisher = visitor.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
+                                             qos_profile(VOLTAGE.qos))
+
+        def answer(msg) -> None:
+            sample = joint_sample_from_msg(msg)
+            sent.append(sample.stamp_ns)
+            publisher.publish(motor_sample_to_msg(MotorSample(sample.stamp_ns, VISITOR_V)))
+
+        visitor.create_subscription(message_class(JOINT_STATES.type), JOINT_STATES.name,
+                                    answer, qos_profile(JOINT_STATES.qos))
+        bench.executor.add_node(visitor)
+        start = bench.plant._sim.index
+        assert bench.spin_until(lambda: len(sent) >= 40 and bench.errors("/visitor"))
+        fault = bench.errors("/visitor")[0]
+        assert fault.message.startswith(f"another publisher on {VOLTAGE.name}: /visitor; the "
+                                         "plant applies 0 V while it is there")
+        assert _values(fault)["intruders"] == "/visitor"
+        # none of its commands applied; 0 V from the sample its first answer came for
+        after = bench.applied[applied_before:]
+        assert VISITOR_V not in {v for _, v in bench.applied}
+        faulted_at = int(_values(fault)["sample"])
+        assert start <= faulted_at
+        assert all(v == 0.0 for k, v in after if k >= faulted_at), after
+        assert faulted_at <= bench.sample_of[sent[0]]  # at the latest its first message's
+        # the visitor leaves: the current loop's commands apply again
+        bench.executor.remove_node(visitor)
+        visitor.destroy_node()
+        gone = len(bench.applied)
+        assert bench.spin_until(lambda: any(
+            s.level == OK and "/visitor left" in s.message for s in bench.diagnostics))
+        assert bench.spin_until(lambda: any(v != 0.0 for _, v in bench.applied[gone:]))
+    finally:
+        bench.close()
+
+
+@pytest.mark.parametrize("stage", ["estimator", "supervisor", "current_loop"])
+def test_in_lockstep_a_silent_stage_holds_no_voltage_and_is_named(ros_context, stage):
+    """Lockstep: time advances only on a command carrying the awaited sample's stamp, so a
+    controller that stops holds no voltage over any simulated time; the plant names it."""
+    bench = _Bench(ros_context, "lockstep")
+    try:
+        assert bench.spin_until(lambda: bench.plant._sim.index >= 40)
+        node = bench.controllers.pop(stage)
+        bench.executor.remove_node(node)  # it stops answering; its publishers stay
+        index = bench.plant._sim.index
+        assert bench.spin_until(lambda: bench.errors("command watchdog"), 10.0)
+        assert bench.plant._sim.index == index  # simulated time stood still
+        error = bench.errors("command watchdog")[0]
+        assert f"the {stage} (/{stage}) stopped" in error.message, error.message
+        assert _values(error)["silent"] == f"/{stage}"
+        node.destroy_node()
+    finally:
+        bench.close()
+
+
+# -- crash matrix: SIGKILL of a controller process in a wall-clock graph -------------------
+
+def _child_pid(parent: int, executable: str) -> int | None:
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes().decode(errors="replace")
+        except OSError:
+            continue
+        ppid = int(stat.rpartition(")")[2].split()[1])
+        if ppid == parent and executable in cmdline:
+            return int(entry.name)
+    return None
+
+
+@pytest.mark.parametrize("stage", ["estimator", "supervisor", "current_loop"])
+def test_sigkill_of_a_controller_while_balancing_zeroes_the_motor_and_fails_the_run(
+        tmp_path, domain_id, monkeypatch, stage):
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # as pisc_graph's
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
+    graph = subprocess.Popen(
+        [sys.executable, "-m", "pisc_bringup.graph", "--processes", "--clock", "wall",
+         "--x0", "0.05", "--duration", "60", "--bag", str(tmp_path / "bag"),
+         "--domain-id", str(domain_id)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    probe = rclpy.node.Node("crash_probe", context=context)
+    modes: list = []
+    plant: list = []
+    probe.create_subscription(message_class(MODE.type), MODE.name,
+                              lambda m: modes.append(mode_from_msg(m).mode),
+                              qos_profile(MODE.qos))
+    probe.create_subscription(
+        message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
+        lambda m: plant.extend((m.header.stamp, s) for s in m.status if s.name == "pisc/plant"),
+        qos_profile(DIAGNOSTICS.qos))
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(probe)
+    try:
+        assert spin_until(executor, lambda: Mode.CATCH in modes or graph.poll() is not None,
+                          120.0), "the pendulum was not caught"
+        assert graph.poll() is None, graph.communicate()
+        spin_until(executor, lambda: False, 1.0)  # balancing for a second
+        pid = _child_pid(graph.pid, f"{stage}_node")
+        assert pid is not None
+        killed_ns = time.time_ns()
+        os.kill(pid, signal.SIGKILL)
+
+        _, err = graph.communicate(timeout=120)
+        spin_until(executor, lambda: False, 0.5)  # the last diagnostics
+        # the watchdog trip in force at the end: none resumed after it
+        last = max((k for k, (_, s) in enumerate(plant)
+                    if s.message.startswith("command watchdog")), default=None)
+        assert last is not None and plant[last][1].level == ERROR, [
+            s.message for _, s in plant]
+        stamp, error = plant[last]
+        values = _values(error)
+        zero_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
+        print(f"SIGKILL {stage}: 0 V from {(zero_ns - killed_ns) * 1e-6:.1f} ms after the kill "
+              f"(plant clock), sample {values['sample']}, last answered "
+              f"{values['last_answered_sample']}")
+        assert values["applied_v"] == "0.0"
+        # 0 V from the third sample after the last one answered: 15 ms at 5 ms
+        assert int(values["sample"]) - int(values["last_answered_sample"]) == 3
+        if zero_ns > killed_ns - 15_000_000:
+            # a trip after the kill names the stage that died (on this shared 2-core
+            # machine the chain also stalls past 3 periods now and then, and the watchdog
+            # zeroes the motor for that too: a stall in force at the kill names the stall)
+            assert f"the {stage} (/{stage}) stopped" in error.message, error.message
+            assert values["silent"] == f"/{stage}"
+        assert graph.returncode == 2
+        assert f"{stage}_node exited with status -9" in err, err
+    finally:
+        if graph.poll() is None:
+            graph.kill()
+            graph.communicate()
+        probe.destroy_node()
+        context.try_shutdown()

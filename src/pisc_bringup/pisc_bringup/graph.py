@@ -196,6 +196,9 @@ class RunResult:
     published: dict[str, int] = field(default_factory=dict)
 
 
+# ROS 2 (Jazzy) discovery range: LOCALHOST, SUBNET (the ROS default), OFF or SYSTEM_DEFAULT
+DISCOVERY_RANGE = "ROS_AUTOMATIC_DISCOVERY_RANGE"
+
 EXECUTORS = {"events": EventsExecutor, "single": SingleThreadedExecutor,
              "multi": MultiThreadedExecutor}
 
@@ -345,6 +348,8 @@ def run_graph(options: RunOptions) -> RunResult:
     if source is DRIVER:
         plant_run = {"driver.port": options.driver_port}
     env = dict(os.environ)
+    # discovery stays on this machine unless the user asked for more (docs/safety.md)
+    env.setdefault(DISCOVERY_RANGE, "LOCALHOST")
     if options.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(options.domain_id)
 
@@ -381,6 +386,10 @@ def run_graph(options: RunOptions) -> RunResult:
         if options.processes:
             children = _start_processes(bag_dir, plant_run, watcher, env, lockstep,
                                         source, recorded)
+            # a node process that dies ends the run at once; the plant's watchdog has
+            # zeroed the motor, and _stop below names the process
+            died: list[float] = []
+            watcher.create_timer(0.02, lambda: _end_if_a_node_died(children, progress, died))
             _wait(lambda: _recorder_matched(recorder, ready), 30.0,
                   "pisc_record to match every publisher")
             if lockstep:  # the plant's last awaited subscriber: it may start now
@@ -442,6 +451,16 @@ def run_graph(options: RunOptions) -> RunResult:
     summary = summarise_bag(bag_dir, config.loop.period_s)
     started_as = [Path(c.args[0]).name for c in children]
     return RunResult(bag_dir, summary, recorded, wall, started_as, dict(published))
+
+
+def _end_if_a_node_died(children: Sequence[subprocess.Popen], progress: _Progress,
+                        died: list[float]) -> None:
+    """End the run 0.2 s after a node process died: time for the plant's watchdog to
+    zero the motor and say so on /diagnostics (it takes 3 periods)."""
+    if not died and any(c.poll() is not None for c in children):
+        died.append(time.monotonic())
+    if died and time.monotonic() - died[0] > 0.2 and not progress.future.done():
+        progress.future.set_result(None)
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
@@ -607,6 +626,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="model error: override a parameter of the plant only (after "
                         "--set), e.g. --plant-set motor.resistance_ohm=18.2")
     args = parser.parse_args(argv)
+    # this process's nodes and every process it starts discover on this machine only,
+    # unless the environment says otherwise (docs/safety.md)
+    os.environ.setdefault(DISCOVERY_RANGE, "LOCALHOST")
     try:
         overrides = parse_overrides(args.set)
     except ConfigError as exc:

@@ -6,33 +6,54 @@ time it is published; a voltage takes effect when it arrives, as on the rig.
 it publishes sample k, waits for the voltage stamped with sample k, integrates one
 period and publishes sample k+1, so a run goes as fast as the graph answers. The other
 nodes run with ``use_sim_time``; nothing in the loop depends on timers.
+
+**Command watchdog.** A command is fresh when its stamp is that of one of the last
+``simulation.watchdog_periods`` samples (lockstep: of the awaited sample, the only one
+that advances time). On the wall clock, once that many samples in a row went unanswered,
+the plant applies 0 V until a fresh command comes, and says on ``/diagnostics`` which
+stage of the chain (estimator, supervisor, current loop) stopped answering; in lockstep a
+dead controller stops simulated time, so no voltage is held over any of it, and the
+plant says the same once ``resend_after_s`` passed.
+
+**Only the graph drives the motor.** When the run starts the plant pins the command
+publisher of ``simulation.command_node`` (its GID, from the ROS graph). Any other
+publisher matched on the command topic is a fault on ``/diagnostics`` naming its node,
+and the plant applies 0 V while it is there. rclpy on Jazzy gives no publisher GID with
+a message (ros2/rclpy#1466 came after), so the plant cannot sort messages by sender: it
+watches how many publishers its subscription has matched (on every command and sample)
+and asks the ROS graph who they are when that changes.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
 
-from pisc_msgs_py.base_node import OK, WARN, PiscNode, run_node
-from pisc_msgs_py.config import in_range, one_of, param
+from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, run_node
+from pisc_msgs_py.config import ConfigError, in_range, one_of, param
 from pisc_msgs_py.convert import (
     MessageError,
     joint_sample_to_msg,
     motor_sample_from_msg,
     motor_sample_to_msg,
+    stamp_from_msg,
     stamp_to_msg,
     true_state_to_msg,
 )
 from pisc_msgs_py.topics import (
+    CART_FORCE,
     CLOCK,
     CURRENT_SETPOINT,
     JOINT_STATES,
     MOTOR_CURRENT,
     SIM_STATE,
+    STATE,
     VOLTAGE,
+    Topic,
 )
 from pisc_msgs_py.types import JointSample, MotorSample, TrueState
 from pisc_plant.params import (
@@ -65,6 +86,60 @@ class SimulationParams:
                                   "long before the first sample (a reader matches its writers "
                                   "a little after they match it, and a volatile reader drops "
                                   "what was sent before)", "s", in_range(0.0, 60.0))
+    watchdog_periods: int = param(3, "wall clock: samples in a row left unanswered after which "
+                                  "the plant applies 0 V (3: 0 V at most 15 ms after the last "
+                                  "answered sample at 5 ms, inside the 20 ms a controller's "
+                                  "death allows; 2 missed answers in a row are tolerated)", "",
+                                  in_range(1, 1000))
+    command_node: str = param("current_loop", "the node whose command publisher the plant "
+                              "pins at the start; any other publisher on the command topic "
+                              "is a fault, with 0 V while it is there", "",
+                              lambda v: None if v else "must name a node")
+
+
+class CommandWatchdog:
+    """Which recent sample a command answers, and when the held voltage must end (pure).
+
+    A command is fresh when its stamp is that of one of the last ``periods`` samples.
+    Once armed by a first answer, :meth:`expired` holds when the ``periods`` samples up
+    to the current one all went unanswered: the voltage answering sample j is held
+    through periods j .. j + periods - 1 and 0 V applies from sample j + periods.
+    """
+
+    def __init__(self, periods: int) -> None:
+        self.periods = periods
+        self._recent: deque[tuple[int, int]] = deque(maxlen=periods)  # (stamp, index)
+        self.answered = -1  # index of the newest answered sample
+        self.tripped_at: int | None = None  # sample from which 0 V applies, while it does
+
+    def sample(self, index: int, stamp_ns: int) -> None:
+        self._recent.append((stamp_ns, index))
+
+    def fresh(self, stamp_ns: int) -> int | None:
+        """The index of the recent sample a command of this stamp answers, else None."""
+        return next((i for s, i in self._recent if s == stamp_ns), None)
+
+    def stamp_of(self, index: int) -> int | None:
+        return next((s for s, i in self._recent if i == index), None)
+
+    def answer(self, index: int) -> int | None:
+        """A fresh command answered ``index``; returns the sample 0 V applied from if
+        this ends a trip."""
+        self.answered = max(self.answered, index)
+        tripped, self.tripped_at = self.tripped_at, None
+        return tripped
+
+    def expired(self, index: int) -> bool:
+        """Whether the period of sample ``index`` gets 0 V (and the trip starts there)."""
+        if self.answered < 0 or index - self.answered < self.periods:
+            return False
+        if self.tripped_at is None:
+            self.tripped_at = index
+        return True
+
+
+# The chain a sample goes through before a voltage answers it: (stage, its output topic).
+CHAIN = (("estimator", STATE), ("supervisor", CART_FORCE))
 
 
 SECTIONS = {**PLANT_SECTIONS, "initial": InitialParams, "simulation": SimulationParams}
@@ -95,14 +170,32 @@ class PlantNode(PiscNode):
         # set-point: the plant is then driven by the force k_m i_d / r of the set-point
         # (4.2), and the voltage the current loop computes acts on nothing.
         self._force_per_amp = plant_config.motor.force_per_amp
+        self._command_topic: Topic = VOLTAGE
+        self._command_sub = self._sub
         if plant.force_input:
             self._setpoint_sub = self.subscription(CURRENT_SETPOINT, self._on_setpoint)
+            self._command_topic, self._command_sub = CURRENT_SETPOINT, self._setpoint_sub
+        self._watchdog = CommandWatchdog(self._sim_params.watchdog_periods)
+        # newest stamp out of each stage of the chain, to say which one stopped
+        self._upstream: dict[str, int] = {}
+        self._upstream_subs = [
+            self.subscription(topic, lambda msg, name=name: self._upstream.__setitem__(
+                name, stamp_from_msg(msg.header.stamp)))
+            for name, topic in CHAIN]
+        self._pinned: bytes | None = None  # GID of the graph's command publisher
+        self._matched = -1  # publishers matched on the command topic when last looked
+        self._intruders: list[str] = []  # other publishers' nodes, while there are any
         period = plant_config.loop.period_s
         self._timer = self.create_timer(0.01 if self._lockstep else period, self._on_timer)
 
     def build(self, flat: dict[str, Any]) -> tuple[PlantConfig, InitialParams, SimulationParams]:
         config = PlantConfig(**{n: self.section(flat, n) for n in PLANT_SECTIONS})
-        return config, self.section(flat, "initial"), self.section(flat, "simulation")
+        initial = self.section(flat, "initial")
+        if not config.track.min_m <= initial.x_m <= config.track.max_m:
+            raise ConfigError(f"initial.x_m = {initial.x_m} lies outside the track "
+                              f"(track.min_m .. track.max_m = {config.track.min_m} .. "
+                              f"{config.track.max_m} m)")
+        return config, initial, self.section(flat, "simulation")
 
     def on_config(self, config: Any) -> None:
         self.get_logger().warning("plant parameters are read at start-up; restart to apply")
@@ -120,6 +213,7 @@ class PlantNode(PiscNode):
             self._clock_pub.publish(Clock(clock=stamp_to_msg(self._stamp_ns)))
         else:
             self._stamp_ns = self._wall_ns()
+        self._watchdog.sample(sample.index, self._stamp_ns)
         self._joint_pub.publish(joint_sample_to_msg(
             JointSample(self._stamp_ns, sample.position_m, sample.angle_rad)))
         self._current_pub.publish(
@@ -133,6 +227,7 @@ class PlantNode(PiscNode):
                           resent_samples=self._resent)
 
     def _on_timer(self) -> None:
+        self._check_publishers()
         if self._lockstep:
             if not self._started:
                 need = self._sim_params.min_subscribers
@@ -155,14 +250,34 @@ class PlantNode(PiscNode):
                 waited_s = (self._wall_ns() - self._published_ns) * 1e-9
                 if waited_s > self._sim_params.resend_after_s:
                     self._resent += 1
+                    if self._watchdog.tripped_at is None:  # once per silence
+                        self._watchdog.tripped_at = self._sim.index
+                        self.diagnose(
+                            ERROR, f"command watchdog: no command answered sample "
+                            f"{self._sim.index} for {waited_s:.2f} s; simulated time stands "
+                            f"still, no voltage is held over it; {self._silent_stage()}",
+                            self._stamp_ns, sample=self._sim.index, applied_v=0.0,
+                            silent=self._silent_stage(node_only=True))
                     self.diagnose(WARN, f"lockstep: no voltage answered sample {self._sim.index} "
                                   f"for {waited_s:.2f} s; sending it again", self._stamp_ns,
                                   resent=self._resent)
                     self._publish_sample()
             return
         if self._started:
+            index = self._sim.index
             if not self._sim.answered:
                 self._missed += 1
+            if self._intruders:
+                self._sim.command(0.0)
+            elif not self._sim.answered and self._watchdog.expired(index):
+                self._sim.command(0.0)  # 0 V over this period
+                if self._watchdog.tripped_at == index:
+                    self.diagnose(
+                        ERROR, f"command watchdog: no command answered samples "
+                        f"{self._watchdog.answered + 1} .. {index}: 0 V from sample {index}; "
+                        f"{self._silent_stage()}", self._stamp_ns, sample=index,
+                        last_answered_sample=self._watchdog.answered, applied_v=0.0,
+                        silent=self._silent_stage(node_only=True))
             self._sim.advance()
         self._started = True
         self._publish_sample()
@@ -181,19 +296,86 @@ class PlantNode(PiscNode):
             self.diagnose(WARN, f"rejected {what}: {exc}")
             return
         command = MotorSample(command.stamp_ns, command.value * scale)
+        self._check_publishers()
         if not self._started:
             return
+        answers = self._watchdog.fresh(command.stamp_ns)
         if command.stamp_ns != self._stamp_ns:
             self._stale += 1
-            if self._lockstep:
-                return  # a repeat of an answered sample; lockstep only takes the awaited one
+            if self._lockstep or answers is None:
+                # lockstep only takes the awaited sample; on the wall clock a command older
+                # than the watchdog's window is not fresh and drives nothing
+                return
+        # while another publisher is there, nothing on the topic drives the motor
+        value = 0.0 if self._intruders else command.value
+        if not self._intruders:
+            resumed = self._watchdog.answer(answers)
+            if resumed is not None:
+                self.diagnose(OK, f"command watchdog: commands resumed at sample {answers} "
+                              f"(0 V from sample {resumed})", self._stamp_ns)
         if self._lockstep:
-            self._sim.command(command.value)
+            self._sim.command(value)
             self._sim.advance()
             self._publish_sample()
         else:
             delay_s = (self._wall_ns() - self._published_ns) * 1e-9
-            self._sim.command(command.value, delay_s)
+            self._sim.command(value, delay_s)
+
+    # -- who drives the motor, and who stopped ------------------------------------------
+
+    def _check_publishers(self) -> None:
+        """Pin the graph's command publisher; a fault while any other one is matched.
+
+        Cheap on every call (the subscription's matched count); the ROS graph is asked
+        who the publishers are only when that count changes or an intruder is there.
+        """
+        matched = self._command_sub.get_publisher_count()
+        if matched == self._matched and not self._intruders and (
+                self._pinned is not None or matched == 0):
+            return
+        self._matched = matched
+        infos = self.get_publishers_info_by_topic(self._command_topic.name)
+        if self._pinned is None:
+            ours = [i for i in infos if i.node_name == self._sim_params.command_node]
+            if len(ours) == 1:
+                self._pinned = bytes(ours[0].endpoint_gid)
+        others = [i for i in infos if bytes(i.endpoint_gid) != self._pinned]
+        intruders = [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in others]
+        if not intruders and matched > len(infos) - len(others) and self._pinned is not None:
+            intruders = ["a publisher the ROS graph does not list yet"]
+        if self._pinned is None and matched > 1:
+            intruders = intruders or ["publishers of unknown nodes"]
+        if intruders and intruders != self._intruders:
+            if self._started and not self._lockstep:
+                self._sim.command(0.0, (self._wall_ns() - self._published_ns) * 1e-9)
+            self.diagnose(
+                ERROR, f"another publisher on {self._command_topic.name}: "
+                f"{', '.join(intruders)}; the plant applies 0 V while it is there (only "
+                f"/{self._sim_params.command_node}, pinned at the start, drives the motor)",
+                self._stamp_ns, intruders=", ".join(intruders), sample=self._sim.index,
+                applied_v=0.0)
+        elif not intruders and self._intruders:
+            self.diagnose(OK, f"{', '.join(self._intruders)} left "
+                          f"{self._command_topic.name}: commands apply again", self._stamp_ns,
+                          sample=self._sim.index)
+        self._intruders = intruders
+
+    def _silent_stage(self, node_only: bool = False) -> str:
+        """The first stage of the chain with no output for the current sample (the newest
+        unanswered one: a stage that died is silent for it, one that answered the first
+        unanswered sample before dying is not)."""
+        first, stamp = self._sim.index, self._stamp_ns
+        silent, topic = "current_loop", self._command_topic
+        for name, out in CHAIN:
+            if self._upstream.get(name, -1) < stamp:
+                silent, topic = name, out
+                break
+        nodes = sorted({f"{i.node_namespace.rstrip('/')}/{i.node_name}"
+                        for i in self.get_publishers_info_by_topic(topic.name)})
+        who = ", ".join(nodes) if nodes else f"no publisher on {topic.name}"
+        if node_only:
+            return who
+        return f"the {silent} ({who}) stopped: nothing on {topic.name} answers sample {first}"
 
 
 def main(args: list[str] | None = None) -> int:
