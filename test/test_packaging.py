@@ -55,6 +55,9 @@ def test_installed_configuration_and_node_run_from_the_install(install, env_for_
         "default.yaml", "lyapunov-tuned.yaml", "thesis.yaml"]
     distributions = config.parent / "distributions"
     assert "thesis-rig.yaml" in [p.name for p in distributions.glob("*.yaml")]
+    launch = config.parent / "launch"  # ros2 launch pisc_bringup sim.launch.xml
+    assert sorted(p.name for p in launch.glob("*.launch.xml")) == [
+        "rig.launch.xml", "sim.launch.xml"]
     env = dict(env_for_domain)
     env["PYTHONPATH"] = os.pathsep.join(
         str(p) for p in install.glob("*/lib/python3*/site-packages"))

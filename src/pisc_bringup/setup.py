@@ -14,6 +14,7 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/scenes', glob('scenes/*.yaml')),
         ('share/' + package_name + '/distributions', glob('distributions/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.xml')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
