@@ -29,7 +29,7 @@ from pisc_msgs_py.base_node import message_class, qos_profile
 from pisc_msgs_py.convert import joint_sample_from_msg, mode_from_msg, motor_sample_to_msg
 from pisc_msgs_py.topics import DIAGNOSTICS, JOINT_STATES, MODE, VOLTAGE
 from pisc_msgs_py.types import Mode, MotorSample
-from pisc_plant.plant_node import CommandWatchdog, PlantNode
+from pisc_plant.plant_node import PlantNode
 
 OK = DiagnosticStatus.OK
 ERROR = DiagnosticStatus.ERROR
@@ -58,31 +58,6 @@ def test_a_run_refuses_bad_input_with_one_line_and_makes_no_bag(tmp_path, domain
     assert err.startswith(f"pisc_graph: invalid configuration: {message}")
     assert err.count("\n") == 1 and "Traceback" not in err
     assert not bag.exists()
-
-
-# -- the command watchdog, pure -------------------------------------------------------------
-
-def test_the_watchdog_holds_a_command_for_its_periods_then_zero_volts():
-    dog = CommandWatchdog(3)
-    stamps = {k: 1_000 + 5 * k for k in range(12)}
-    for k in range(2):
-        dog.sample(k, stamps[k])
-        assert not dog.expired(k)  # not armed before a first answer
-    assert dog.fresh(stamps[1]) == 1 and dog.answer(1) is None
-    for k in range(2, 4):
-        dog.sample(k, stamps[k])
-        assert not dog.expired(k)  # periods 2, 3 hold sample 1's command
-    dog.sample(4, stamps[4])
-    assert dog.expired(4) and dog.tripped_at == 4  # 3 unanswered in a row: 0 V from 4
-    dog.sample(5, stamps[5])
-    assert dog.expired(5) and dog.tripped_at == 4
-    # only the last 3 samples' stamps are fresh
-    assert dog.fresh(stamps[2]) is None and dog.fresh(stamps[3]) == 3
-    assert dog.answer(3) == 4 and dog.tripped_at is None  # commands resume
-    dog.sample(6, stamps[6])
-    assert not dog.expired(5)  # 5 - 3 < 3: sample 3's command holds through period 5
-    dog.sample(7, stamps[7])
-    assert not dog.expired(5 + 0) and dog.expired(6)  # 0 V again from sample 3 + 3
 
 
 # -- visitors on the command topic and silent controllers, launch-free --------------------

@@ -26,7 +26,6 @@ and asks the ROS graph who they are when that changes.
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,17 +44,22 @@ from pisc_msgs_py.convert import (
     true_state_to_msg,
 )
 from pisc_msgs_py.topics import (
-    CART_FORCE,
     CLOCK,
     CURRENT_SETPOINT,
     JOINT_STATES,
     MOTOR_CURRENT,
     SIM_STATE,
-    STATE,
     VOLTAGE,
     Topic,
 )
 from pisc_msgs_py.types import JointSample, MotorSample, TrueState
+from pisc_msgs_py.watchdog import (
+    CHAIN,
+    CommandWatchdog,
+    PublisherPin,
+    listed_publishers,
+    silent_stage_report,
+)
 from pisc_plant.params import (
     InitialParams,
 )
@@ -95,51 +99,6 @@ class SimulationParams:
                               "pins at the start; any other publisher on the command topic "
                               "is a fault, with 0 V while it is there", "",
                               lambda v: None if v else "must name a node")
-
-
-class CommandWatchdog:
-    """Which recent sample a command answers, and when the held voltage must end (pure).
-
-    A command is fresh when its stamp is that of one of the last ``periods`` samples.
-    Once armed by a first answer, :meth:`expired` holds when the ``periods`` samples up
-    to the current one all went unanswered: the voltage answering sample j is held
-    through periods j .. j + periods - 1 and 0 V applies from sample j + periods.
-    """
-
-    def __init__(self, periods: int) -> None:
-        self.periods = periods
-        self._recent: deque[tuple[int, int]] = deque(maxlen=periods)  # (stamp, index)
-        self.answered = -1  # index of the newest answered sample
-        self.tripped_at: int | None = None  # sample from which 0 V applies, while it does
-
-    def sample(self, index: int, stamp_ns: int) -> None:
-        self._recent.append((stamp_ns, index))
-
-    def fresh(self, stamp_ns: int) -> int | None:
-        """The index of the recent sample a command of this stamp answers, else None."""
-        return next((i for s, i in self._recent if s == stamp_ns), None)
-
-    def stamp_of(self, index: int) -> int | None:
-        return next((s for s, i in self._recent if i == index), None)
-
-    def answer(self, index: int) -> int | None:
-        """A fresh command answered ``index``; returns the sample 0 V applied from if
-        this ends a trip."""
-        self.answered = max(self.answered, index)
-        tripped, self.tripped_at = self.tripped_at, None
-        return tripped
-
-    def expired(self, index: int) -> bool:
-        """Whether the period of sample ``index`` gets 0 V (and the trip starts there)."""
-        if self.answered < 0 or index - self.answered < self.periods:
-            return False
-        if self.tripped_at is None:
-            self.tripped_at = index
-        return True
-
-
-# The chain a sample goes through before a voltage answers it: (stage, its output topic).
-CHAIN = (("estimator", STATE), ("supervisor", CART_FORCE))
 
 
 SECTIONS = {**PLANT_SECTIONS, "initial": InitialParams, "simulation": SimulationParams}
@@ -182,9 +141,7 @@ class PlantNode(PiscNode):
             self.subscription(topic, lambda msg, name=name: self._upstream.__setitem__(
                 name, stamp_from_msg(msg.header.stamp)))
             for name, topic in CHAIN]
-        self._pinned: bytes | None = None  # GID of the graph's command publisher
-        self._matched = -1  # publishers matched on the command topic when last looked
-        self._intruders: list[str] = []  # other publishers' nodes, while there are any
+        self._pin = PublisherPin(self._sim_params.command_node)
         period = plant_config.loop.period_s
         self._timer = self.create_timer(0.01 if self._lockstep else period, self._on_timer)
 
@@ -267,7 +224,7 @@ class PlantNode(PiscNode):
             index = self._sim.index
             if not self._sim.answered:
                 self._missed += 1
-            if self._intruders:
+            if self._pin.intruders:
                 self._sim.command(0.0)
             elif not self._sim.answered and self._watchdog.expired(index):
                 self._sim.command(0.0)  # 0 V over this period
@@ -307,8 +264,8 @@ class PlantNode(PiscNode):
                 # than the watchdog's window is not fresh and drives nothing
                 return
         # while another publisher is there, nothing on the topic drives the motor
-        value = 0.0 if self._intruders else command.value
-        if not self._intruders:
+        value = 0.0 if self._pin.intruders else command.value
+        if not self._pin.intruders:
             resumed = self._watchdog.answer(answers)
             if resumed is not None:
                 self.diagnose(OK, f"command watchdog: commands resumed at sample {answers} "
@@ -330,52 +287,32 @@ class PlantNode(PiscNode):
         who the publishers are only when that count changes or an intruder is there.
         """
         matched = self._command_sub.get_publisher_count()
-        if matched == self._matched and not self._intruders and (
-                self._pinned is not None or matched == 0):
+        if not self._pin.needs_look(matched):
             return
-        self._matched = matched
-        infos = self.get_publishers_info_by_topic(self._command_topic.name)
-        if self._pinned is None:
-            ours = [i for i in infos if i.node_name == self._sim_params.command_node]
-            if len(ours) == 1:
-                self._pinned = bytes(ours[0].endpoint_gid)
-        others = [i for i in infos if bytes(i.endpoint_gid) != self._pinned]
-        intruders = [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in others]
-        if not intruders and matched > len(infos) - len(others) and self._pinned is not None:
-            intruders = ["a publisher the ROS graph does not list yet"]
-        if self._pinned is None and matched > 1:
-            intruders = intruders or ["publishers of unknown nodes"]
-        if intruders and intruders != self._intruders:
+        change = self._pin.look(matched, listed_publishers(self, self._command_topic.name))
+        if change is None:
+            return
+        if change.intruders:
+            intruders = ", ".join(change.intruders)
             if self._started and not self._lockstep:
                 self._sim.command(0.0, (self._wall_ns() - self._published_ns) * 1e-9)
             self.diagnose(
                 ERROR, f"another publisher on {self._command_topic.name}: "
-                f"{', '.join(intruders)}; the plant applies 0 V while it is there (only "
+                f"{intruders}; the plant applies 0 V while it is there (only "
                 f"/{self._sim_params.command_node}, pinned at the start, drives the motor)",
-                self._stamp_ns, intruders=", ".join(intruders), sample=self._sim.index,
+                self._stamp_ns, intruders=intruders, sample=self._sim.index,
                 applied_v=0.0)
-        elif not intruders and self._intruders:
-            self.diagnose(OK, f"{', '.join(self._intruders)} left "
+        else:
+            self.diagnose(OK, f"{', '.join(change.left)} left "
                           f"{self._command_topic.name}: commands apply again", self._stamp_ns,
                           sample=self._sim.index)
-        self._intruders = intruders
 
     def _silent_stage(self, node_only: bool = False) -> str:
-        """The first stage of the chain with no output for the current sample (the newest
-        unanswered one: a stage that died is silent for it, one that answered the first
-        unanswered sample before dying is not)."""
-        first, stamp = self._sim.index, self._stamp_ns
-        silent, topic = "current_loop", self._command_topic
-        for name, out in CHAIN:
-            if self._upstream.get(name, -1) < stamp:
-                silent, topic = name, out
-                break
-        nodes = sorted({f"{i.node_namespace.rstrip('/')}/{i.node_name}"
-                        for i in self.get_publishers_info_by_topic(topic.name)})
-        who = ", ".join(nodes) if nodes else f"no publisher on {topic.name}"
-        if node_only:
-            return who
-        return f"the {silent} ({who}) stopped: nothing on {topic.name} answers sample {first}"
+        """The first stage of the chain with no output for the current sample, and who
+        publishes it (:func:`pisc_msgs_py.watchdog.silent_stage_report`)."""
+        sentence, who = silent_stage_report(self, self._stamp_ns, self._upstream,
+                                            self._sim.index, self._command_topic)
+        return who if node_only else sentence
 
 
 def main(args: list[str] | None = None) -> int:

@@ -1,0 +1,84 @@
+"""The command path's guards, pure: the command watchdog, the pinned publisher, the
+silent stage (docs/safety.md). No rclpy."""
+
+from __future__ import annotations
+
+from pisc_msgs_py.topics import CART_FORCE, STATE
+from pisc_msgs_py.watchdog import (
+    CommandWatchdog,
+    Endpoint,
+    PinChange,
+    PublisherPin,
+    first_silent_stage,
+)
+
+
+def test_the_watchdog_holds_a_command_for_its_periods_then_zero_volts():
+    dog = CommandWatchdog(3)
+    stamps = {k: 1_000 + 5 * k for k in range(12)}
+    for k in range(2):
+        dog.sample(k, stamps[k])
+        assert not dog.expired(k)  # not armed before a first answer
+    assert dog.fresh(stamps[1]) == 1 and dog.answer(1) is None
+    for k in range(2, 4):
+        dog.sample(k, stamps[k])
+        assert not dog.expired(k)  # periods 2, 3 hold sample 1's command
+    dog.sample(4, stamps[4])
+    assert dog.expired(4) and dog.tripped_at == 4  # 3 unanswered in a row: 0 V from 4
+    dog.sample(5, stamps[5])
+    assert dog.expired(5) and dog.tripped_at == 4
+    # only the last 3 samples' stamps are fresh
+    assert dog.fresh(stamps[2]) is None and dog.fresh(stamps[3]) == 3
+    assert dog.answer(3) == 4 and dog.tripped_at is None  # commands resume
+    dog.sample(6, stamps[6])
+    assert not dog.expired(5)  # 5 - 3 < 3: sample 3's command holds through period 5
+    dog.sample(7, stamps[7])
+    assert not dog.expired(5 + 0) and dog.expired(6)  # 0 V again from sample 3 + 3
+
+
+LOOP = Endpoint("current_loop", "/", b"\x01" * 16)
+VISITOR = Endpoint("visitor", "/lab", b"\x02" * 16)
+
+
+def test_the_pin_takes_the_owner_and_names_every_other_publisher_while_it_is_there():
+    pin = PublisherPin("current_loop")
+    assert pin.needs_look(0) and pin.look(0, []) is None and not pin.needs_look(0)
+    assert pin.needs_look(1)
+    assert pin.look(1, [LOOP]) is None and pin.pinned == LOOP.gid and pin.intruders == ()
+    assert not pin.needs_look(1)  # pinned, count unchanged: no look at the graph
+    assert pin.needs_look(2)
+    assert pin.look(2, [LOOP, VISITOR]) == PinChange(intruders=("/lab/visitor",))
+    assert pin.needs_look(2)  # looked at every time while an intruder is there
+    assert pin.look(2, [LOOP, VISITOR]) is None  # said once
+    assert pin.look(1, [LOOP]) == PinChange(left=("/lab/visitor",))
+    assert pin.intruders == () and pin.pinned == LOOP.gid
+
+
+def test_a_second_publisher_of_the_owners_name_is_an_intruder_and_so_is_an_unlisted_one():
+    pin = PublisherPin("current_loop")
+    pin.look(1, [LOOP])
+    forged = Endpoint("current_loop", "/", b"\x03" * 16)  # a copy of the name
+    assert pin.look(2, [LOOP, forged]) == PinChange(intruders=("/current_loop",))
+    assert pin.look(1, [LOOP]).left == ("/current_loop",)
+    # matched by the subscription before the graph lists it
+    assert pin.look(2, [LOOP]) == PinChange(intruders=(PublisherPin.UNLISTED,))
+
+
+def test_without_the_owner_every_publisher_is_an_intruder():
+    pin = PublisherPin("current_loop")
+    assert pin.look(1, [VISITOR]) == PinChange(intruders=("/lab/visitor",))
+    assert pin.pinned is None
+    pin = PublisherPin("current_loop")
+    assert pin.look(2, []) == PinChange(intruders=(PublisherPin.UNKNOWN,))
+    # the owner and another one seen together: the owner is pinned, the other named
+    pin = PublisherPin("current_loop")
+    assert pin.look(2, [VISITOR, LOOP]) == PinChange(intruders=("/lab/visitor",))
+    assert pin.pinned == LOOP.gid
+
+
+def test_the_first_stage_without_output_for_the_sample_is_named():
+    assert first_silent_stage(100, {}) == ("estimator", STATE)
+    assert first_silent_stage(100, {"estimator": 100, "supervisor": 95}) == (
+        "supervisor", CART_FORCE)
+    assert first_silent_stage(100, {"estimator": 100, "supervisor": 100}) == (
+        "current_loop", None)
