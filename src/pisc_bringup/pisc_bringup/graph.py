@@ -16,7 +16,8 @@ and the processes it starts under SCHED_FIFO, as a control computer runs its loo
 real device does not wait for a loaded machine (README, "Serial driver"). ``--scene``
 takes a scene's configuration, overrides, duration and the topics it records
 (:mod:`pisc_bringup.scene`; ``--record`` replaces that list, and :data:`RUN_TOPICS` are
-recorded whatever it says).
+recorded whatever it says). ``--markers`` also runs the markers node (the rig drawn on
+``/pisc/markers`` for RViz and Foxglove, docs/markers.md) and records its topic.
 
 **Model error.** ``--plant-config`` and ``--plant-set`` (and a scene's ``plant:`` block)
 give the simulated plant other physical parameters than the controllers assume
@@ -78,6 +79,7 @@ from pisc_msgs_py.topics import (
     DIAGNOSTICS,
     GRAPH_TOPICS,
     JOINT_STATES,
+    MARKERS,
     MODE,
     MOTOR_CURRENT,
     SIM_STATE,
@@ -117,6 +119,9 @@ PLANT = GRAPH[-1]
 CONTROLLERS = GRAPH[:-1]
 DRIVER = NodeSpec("driver", "driver_node", "pisc_driver.driver_node", "DriverNode",
                   (VOLTAGE,), (JOINT_STATES, MOTOR_CURRENT, DIAGNOSTICS))
+# on request (--markers): draws the rig for RViz and Foxglove, read by no other node
+MARKERS_NODE = NodeSpec("markers", "markers_node", "pisc_bringup.markers_node", "MarkersNode",
+                        (SIM_STATE, JOINT_STATES, CART_FORCE, MODE), (MARKERS, DIAGNOSTICS))
 
 
 # The bag's parameter files: the controllers' (replay and analysis read it) and the plant's.
@@ -178,6 +183,7 @@ class RunOptions:
     # applied to the plant only, after ``overrides`` (sections the plant reads)
     plant_config: str | None = None
     plant_overrides: dict[str, Any] = field(default_factory=dict)
+    markers: bool = False  # also run the markers node and record /pisc/markers
 
     @property
     def initial_x_m(self) -> Any:
@@ -334,7 +340,7 @@ def run_graph(options: RunOptions) -> RunResult:
         raise ConfigError("--driver runs against the wall clock (the device paces the "
                           "samples): use --clock wall")
     source = PLANT if options.driver_port is None else DRIVER
-    recorded = recorded_topics(options.record)
+    recorded = recorded_topics(options.record) + ((MARKERS,) if options.markers else ())
     bag_dir = options.bag_dir or _default_bag_dir(options)
     if bag_dir.exists() and any(bag_dir.iterdir()):
         raise BagError(f"{bag_dir}: exists and is not empty; not overwriting a bag")
@@ -355,12 +361,12 @@ def run_graph(options: RunOptions) -> RunResult:
 
     started = time.monotonic()
     # the recorder never runs under --realtime: it must not take the CPU from the loop
-    topic_args = [] if options.record is None else [
+    topic_args = [] if options.record is None and not options.markers else [
         arg for t in recorded for arg in ("--topic", t.name)]
     # the recorder announces in this file that it has matched every publisher of the run
     ready_dir = tempfile.TemporaryDirectory(prefix="pisc_graph-")
     ready = Path(ready_dir.name) / "recorder-ready"
-    publishers = [*CONTROLLERS, source]
+    publishers = [*CONTROLLERS, source, *([MARKERS_NODE] if options.markers else [])]
     topic_args += ["--ready-file", str(ready), *(
         arg for t in recorded
         for arg in ("--expect", f"{t.name}={expected_publishers(t, publishers, lockstep)}"))]
@@ -386,6 +392,10 @@ def run_graph(options: RunOptions) -> RunResult:
         if options.processes:
             children = _start_processes(bag_dir, plant_run, watcher, env, lockstep,
                                         source, recorded)
+            if options.markers:  # the lockstep plant starts once the recorder matched it
+                children.insert(0, _spawn([
+                    *_command(MARKERS_NODE.executable, MARKERS_NODE.module), "--ros-args",
+                    "--params-file", str(bag_dir / CONTROLLERS_PARAMS)], env, subprocess.DEVNULL))
             # a node process that dies ends the run at once; the plant's watchdog has
             # zeroed the motor, and _stop below names the process
             died: list[float] = []
@@ -402,6 +412,9 @@ def run_graph(options: RunOptions) -> RunResult:
             for spec in CONTROLLERS:
                 cls = getattr(importlib.import_module(spec.module), spec.cls)
                 nodes.append(cls(context=context, parameter_overrides=params + sim))
+            if options.markers:  # before the plant, which stays last: it is stopped first
+                cls = getattr(importlib.import_module(MARKERS_NODE.module), MARKERS_NODE.cls)
+                nodes.append(cls(context=context, parameter_overrides=params))  # stamps only
             # DDS matches in its own threads: no spinning is needed to wait for it.
             _wait(lambda: _matched(nodes, recorded), 30.0, "the graph to connect")
             plant_cls = getattr(importlib.import_module(source.module), source.cls)
@@ -617,6 +630,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--record", action="append", metavar="TOPIC",
                         help="record this topic (repeatable; default: the scene's list, else "
                         "every topic); the run's own topics are always recorded")
+    parser.add_argument("--markers", action="store_true",
+                        help="also run the markers node (the rig on /pisc/markers for RViz "
+                        "and Foxglove, docs/markers.md) and record its topic")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="override a parameter, e.g. --set swing_up.k_v=0.1")
     parser.add_argument("--plant-config", metavar="CONFIG",
@@ -674,7 +690,8 @@ def main(argv: list[str] | None = None) -> int:
                          clock=clock, processes=args.processes,
                          executor=args.executor, bag_dir=args.bag,
                          domain_id=args.domain_id, driver_port=args.driver, record=record,
-                         plant_config=args.plant_config, plant_overrides=plant_overrides)
+                         plant_config=args.plant_config, plant_overrides=plant_overrides,
+                         markers=args.markers)
     try:
         result = run_graph(options)
     except ConfigError as exc:

@@ -42,9 +42,11 @@ __all__ = [
     "JOINT_NAMES",
     "JOINT_STATES",
     "LATCHED_QOS",
+    "MARKERS",
     "MODE",
     "MOTOR_CURRENT",
     "MOTOR_JOINT",
+    "OPTIONAL_TOPICS",
     "QosSpec",
     "SIM_STATE",
     "STATE",
@@ -130,15 +132,27 @@ GRAPH_TOPICS = (
     JOINT_STATES, MOTOR_CURRENT, STATE, CART_FORCE, MODE, CURRENT_SETPOINT, VOLTAGE,
     SIM_STATE, DIAGNOSTICS, CLOCK,
 )
+# The rig drawn for RViz and Foxglove (pisc_bringup markers_node), on request only
+# (``pisc_graph --markers``). Each array holds the whole picture; the last few are kept
+# for a viewer that joins late, or after the run has stopped.
+MARKERS = Topic(
+    "/pisc/markers", "visualization_msgs/msg/MarkerArray",
+    QosSpec(depth=10, reliable=True, transient_local=True),
+    "the rig as markers (track, end stops, safe range, cart, pendulum coloured by mode, "
+    "force arrow, mode and time), frame world, at most markers.rate_hz per second of stamps",
+)
+#: Topics of nodes the graph runs only on request: recordable, not recorded by default.
+OPTIONAL_TOPICS = (MARKERS,)
 
 
 def graph_topics_named(names: Iterable[str]) -> tuple[Topic, ...]:
-    """The graph's topics of these names, in the graph's order; :class:`ConfigError` for a
-    name that is not one of them (it names the topics there are)."""
-    known = {t.name: t for t in GRAPH_TOPICS}
+    """The graph's topics of these names, in the graph's order, then the optional ones
+    (:data:`OPTIONAL_TOPICS`); :class:`ConfigError` for a name that is not one of them (it
+    names the graph's topics)."""
+    known = {t.name: t for t in (*GRAPH_TOPICS, *OPTIONAL_TOPICS)}
     names = list(names)
     unknown = [n for n in names if n not in known]
     if unknown:
         raise ConfigError(f"{unknown[0]} is not a topic of the graph (topics: "
-                          f"{', '.join(known)})")
-    return tuple(t for t in GRAPH_TOPICS if t.name in names)
+                          f"{', '.join(t.name for t in GRAPH_TOPICS)})")
+    return tuple(t for t in (*GRAPH_TOPICS, *OPTIONAL_TOPICS) if t.name in names)
