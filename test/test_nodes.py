@@ -194,12 +194,13 @@ def test_a_shared_file_may_hold_other_nodes_sections_but_no_unknown_section(doma
 
 
 def test_the_known_sections_are_those_the_nodes_read():
+    from pisc_bringup.markers_node import SECTIONS as MARKERS_SECTIONS
+    from pisc_control.supervisor_node import SECTIONS as SUPERVISOR_SECTIONS
     from pisc_driver.driver_node import SECTIONS as DRIVER_SECTIONS
     from pisc_plant.plant_node import SECTIONS as PLANT_SECTIONS
-    from pisc_control.supervisor_node import SECTIONS as SUPERVISOR_SECTIONS
 
-    read = {*PLANT_SECTIONS, *SUPERVISOR_SECTIONS, *DRIVER_SECTIONS, "loop", "estimator",
-            "motor", "current_loop"}
+    read = {*PLANT_SECTIONS, *SUPERVISOR_SECTIONS, *DRIVER_SECTIONS, *MARKERS_SECTIONS,
+            "loop", "estimator", "motor", "current_loop"}
     assert PISC_SECTIONS == read
 
 

@@ -39,12 +39,14 @@ def test_parameters_doc_is_generated_from_the_descriptors():
 
 def test_every_parameter_is_in_the_parameters_doc():
     from pisc_bringup.configuration import SECTIONS
+    from pisc_bringup.markers import MarkersParams
     from pisc_driver.driver import DriverParams
     from pisc_msgs_py.config import describe
     from pisc_plant.plant_node import SimulationParams
 
     text = PARAMETERS.read_text()
-    sections = {**SECTIONS, "simulation": SimulationParams, "driver": DriverParams}
+    sections = {**SECTIONS, "simulation": SimulationParams, "driver": DriverParams,
+                "markers": MarkersParams}
     missing = [name for s, cls in sections.items() for name, *_ in describe(cls, s)
                if f"| `{name}` |" not in text]
     assert not missing

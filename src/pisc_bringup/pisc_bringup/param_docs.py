@@ -22,6 +22,7 @@ CONFIGS = ("default", "thesis")
 
 def _node_sections() -> dict[str, tuple[str, ...]]:
     """Which node reads which section, from the nodes' own section lists."""
+    from pisc_bringup.markers_node import SECTIONS as MARKERS
     from pisc_control.supervisor_node import SECTIONS as SUPERVISOR
     from pisc_driver.driver_node import SECTIONS as DRIVER
     from pisc_plant.plant_node import SECTIONS as PLANT
@@ -30,7 +31,8 @@ def _node_sections() -> dict[str, tuple[str, ...]]:
     estimator = ("loop", "estimator")
     current_loop = ("loop", "motor", "current_loop")
     readers = {"plant": tuple(PLANT), "estimator": estimator, "supervisor": tuple(SUPERVISOR),
-               "current loop": current_loop, "driver": tuple(DRIVER)}
+               "current loop": current_loop, "driver": tuple(DRIVER),
+               "markers": tuple(MARKERS)}
     out: dict[str, list[str]] = {}
     for node, sections in readers.items():
         for section in sections:
@@ -40,10 +42,12 @@ def _node_sections() -> dict[str, tuple[str, ...]]:
 
 def _sections() -> dict[str, type]:
     from pisc_bringup.configuration import SECTIONS
+    from pisc_bringup.markers import MarkersParams
     from pisc_driver.driver import DriverParams
     from pisc_plant.plant_node import SimulationParams
 
-    return {**SECTIONS, "simulation": SimulationParams, "driver": DriverParams}
+    return {**SECTIONS, "simulation": SimulationParams, "driver": DriverParams,
+            "markers": MarkersParams}
 
 
 def _value(value: Any) -> str:

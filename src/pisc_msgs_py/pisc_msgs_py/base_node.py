@@ -75,12 +75,12 @@ def _ros_value(value: Any) -> Any:
     return list(value) if isinstance(value, tuple) else value
 
 
-#: The sections some PISC node reads (plant, estimator, supervisor, current loop, driver);
-#: test_nodes checks this against the nodes' own lists.
+#: The sections some PISC node reads (plant, estimator, supervisor, current loop, driver,
+#: markers); test_nodes checks this against the nodes' own lists.
 PISC_SECTIONS = frozenset({
     "actuator", "catch", "current_loop", "driver", "estimator", "experiment", "friction",
-    "initial", "integrator", "loop", "models", "motor", "noise", "rig", "safety", "sensors",
-    "simulation", "startup", "swing_up", "switching", "track"})
+    "initial", "integrator", "loop", "markers", "models", "motor", "noise", "rig", "safety",
+    "sensors", "simulation", "startup", "swing_up", "switching", "track"})
 
 # parameter file sections every node of the graph reads
 _SHARED_KEYS = ("/**", "/*")
