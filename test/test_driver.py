@@ -12,6 +12,7 @@ Unix time the frame was sent (the driver stamps samples with that clock on arriv
 from __future__ import annotations
 
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -33,9 +34,14 @@ from pisc_driver.driver_node import DriverNode
 from pisc_driver.link import SerialLink
 from pisc_driver.protocol import command_voltage, encode_command
 from pisc_msgs_py.base_node import message_class, qos_profile
-from pisc_msgs_py.convert import joint_sample_from_msg, motor_sample_to_msg, stamp_from_msg
-from pisc_msgs_py.topics import DIAGNOSTICS, JOINT_STATES, VOLTAGE
-from pisc_msgs_py.types import MotorSample
+from pisc_msgs_py.convert import (
+    joint_sample_from_msg,
+    mode_from_msg,
+    motor_sample_to_msg,
+    stamp_from_msg,
+)
+from pisc_msgs_py.topics import DIAGNOSTICS, JOINT_STATES, MODE, VOLTAGE
+from pisc_msgs_py.types import Mode, MotorSample
 from pisc_plant.virtual_rig import RigProcess
 
 pytestmark = pytest.mark.integration
@@ -238,7 +244,7 @@ def test_killing_the_driver_leaves_zero_volts_as_the_last_byte(tmp_path, env_for
         [sys.executable, "-m", "pisc_driver.driver_node", "--ros-args", "-p",
          f"driver.port:={rig.device}"], env=env_for_domain, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True)
-    node = Node("answer", context=ros_context)
+    node = Node("current_loop", context=ros_context)  # the publisher the driver pins
     publisher = node.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
                                       qos_profile(VOLTAGE.qos))
 
@@ -269,23 +275,27 @@ def test_killing_the_driver_leaves_zero_volts_as_the_last_byte(tmp_path, env_for
 
 
 class Answerer:
-    """A stand-in for the current loop: answers every sample with ``volts`` while
-    ``answering`` is true."""
+    """A stand-in for the current loop (the node the driver pins, ``current_loop``), or,
+    named otherwise, a visitor: answers every sample with ``volts`` while ``answering``
+    is true; ``sent`` holds the stamps of the samples it answered."""
 
-    def __init__(self, ros_context, volts: float) -> None:
-        self.node = Node("answer", context=ros_context)
+    def __init__(self, ros_context, volts: float, name: str = "current_loop",
+                 executor=None) -> None:
+        self.node = Node(name, context=ros_context)
         self.answering = True
+        self.sent: list[int] = []
         publisher = self.node.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
                                                qos_profile(VOLTAGE.qos))
 
         def answer(msg) -> None:
             if self.answering:
                 sample = joint_sample_from_msg(msg)
+                self.sent.append(sample.stamp_ns)
                 publisher.publish(motor_sample_to_msg(MotorSample(sample.stamp_ns, volts)))
 
         self.node.create_subscription(message_class(JOINT_STATES.type), JOINT_STATES.name,
                                       answer, qos_profile(JOINT_STATES.qos))
-        self.executor = SingleThreadedExecutor(context=ros_context)
+        self.executor = executor or SingleThreadedExecutor(context=ros_context)
         self.executor.add_node(self.node)
 
     def spin_until(self, predicate, timeout_s: float) -> bool:
@@ -401,7 +411,8 @@ def test_parameter_change_sends_zero_and_a_vanished_port_is_reported_and_retried
     rig = start_rig(tmp_path)
     node = DriverNode(context=ros_context, parameter_overrides=[
         Parameter("driver.port", value=rig.device),
-        Parameter("driver.reopen_interval_s", value=0.05)])
+        Parameter("driver.reopen_interval_s", value=0.05),
+        Parameter("driver.command_node", value="probe")])  # the probe's commands drive
     probe = Node("probe", context=ros_context)
     errors: list[str] = []
     probe.create_subscription(
@@ -445,3 +456,196 @@ def test_the_driver_runs_on_the_wall_clock_only(tmp_path):
     assert completed.returncode == 2
     assert "--driver runs against the wall clock (the device paces the samples)" in (
         completed.stderr)
+
+
+# -- issue 15 at the driver: only the graph drives the motor; the crash matrix ------------
+
+VISITOR_V = 11.47
+
+
+def _level(status) -> int:
+    return status.level if isinstance(status.level, int) else status.level[0]
+
+
+def _values(status) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+class DriverWatch:
+    """The driver's statuses on /diagnostics, each with its stamp (ns), and the modes."""
+
+    def __init__(self, node: Node) -> None:
+        self.statuses: list[tuple[int, object]] = []
+        self.modes: list = []
+        node.create_subscription(
+            message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
+            lambda m: self.statuses.extend((stamp_from_msg(m.header.stamp), s)
+                                           for s in m.status if s.name == "pisc/driver"),
+            qos_profile(DIAGNOSTICS.qos))
+        node.create_subscription(message_class(MODE.type), MODE.name,
+                                 lambda m: self.modes.append(mode_from_msg(m).mode),
+                                 qos_profile(MODE.qos))
+
+    def errors(self, text: str) -> list[tuple[int, object]]:
+        return [(t, s) for t, s in self.statuses if _level(s) == 2 and text in s.message]
+
+
+def test_a_visitor_answering_every_sample_drives_nothing_through_the_driver(
+        tmp_path, env_for_domain, ros_context):
+    """Issue 15: the driver took commands from anyone on /pisc/motor/voltage. Now none of
+    a visitor's commands reaches the rig: 0 V from its arrival, a fault naming it, and
+    the current loop's commands apply again once it has gone."""
+    rig = start_rig(tmp_path)
+    driver = start_driver(env_for_domain, rig.device)
+    loop = Answerer(ros_context, 3.0)
+    watch = DriverWatch(loop.node)
+    three_v = command_voltage(encode_command(3.0))
+    visitor = None
+    try:
+        assert loop.spin_until(lambda: rig.status()["applied_v"] == pytest.approx(three_v),
+                               30.0), rig.status()
+        loop.spin_until(lambda: False, 0.2)
+        visitor = Answerer(ros_context, VISITOR_V, "visitor", loop.executor)
+        assert loop.spin_until(lambda: len(visitor.sent) >= 40 and watch.errors("/visitor"),
+                               30.0), watch.statuses[-3:]
+        fault_ns, fault = watch.errors("/visitor")[0]
+        assert fault.message.startswith(f"another publisher on {VOLTAGE.name}: /visitor; "
+                                        "the driver sends 0 V while it is there")
+        assert _values(fault)["intruders"] == "/visitor"
+        first_ns = visitor.sent[0]
+        print(f"fault {(fault_ns - first_ns) * 1e-6:.1f} ms after the sample the visitor's "
+              "first command answered (driver clock)")
+        # the fault is raised at the latest when its first command arrives
+        assert fault_ns <= first_ns + 20_000_000
+        during_until = time.time()
+        visitor.answering = False
+        loop.executor.remove_node(visitor.node)
+        visitor.node.destroy_node()
+        visitor = None
+        assert loop.spin_until(lambda: any(
+            _level(s) == 0 and "/visitor left" in s.message for _, s in watch.statuses), 20.0)
+        assert loop.spin_until(lambda: rig.status()["applied_v"] == pytest.approx(three_v),
+                               20.0), rig.status()
+    finally:
+        if visitor is not None:
+            visitor.node.destroy_node()
+        driver.send_signal(signal.SIGTERM)
+        driver.communicate(timeout=20)
+        loop.node.destroy_node()
+        rig.stop()
+    log = true_log(tmp_path)
+    # by the rig's own log (the voltage applied at each tick, with its clock): the visitor's
+    # 11.47 V never; 0 V from a period after the fault until the visitor had gone
+    assert not np.any(np.isclose(log["applied_v"], VISITOR_V, atol=0.05))
+    held = log[(log["unix_s"] > fault_ns * 1e-9 + 0.005) & (log["unix_s"] < during_until)]
+    assert len(held) >= 30 and np.all(held["applied_v"] == 0.0), held["applied_v"]
+    assert np.any(np.isclose(log["applied_v"][log["unix_s"] > during_until], three_v))
+
+
+def _start_balancing(tmp_path, env, ros_context, processes: bool):
+    rig = start_rig(tmp_path, "--x0", "0.0")
+    graph = subprocess.Popen(
+        [sys.executable, "-m", "pisc_bringup.graph", "--driver", rig.device, "--duration",
+         "60", "--bag", str(tmp_path / "bag"), "--realtime", RT_GRAPH,
+         *(["--processes"] if processes else [])],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    probe = Node("crash_probe", context=ros_context)
+    watch = DriverWatch(probe)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(probe)
+    # balancing (or, on a slow day, still swinging up: the chain answers every sample
+    # either way, which is what the crash cuts)
+    caught = spin_until(executor, lambda: Mode.CATCH in watch.modes or graph.poll() is not None,
+                        30.0)
+    assert graph.poll() is None, graph.communicate()
+    spin_until(executor, lambda: False, 1.0)
+    assert rig.status()["applied_v"] != 0.0 or caught
+    return rig, graph, probe, watch, executor, caught
+
+
+@pytest.mark.parametrize("stage", ["estimator", "supervisor", "current_loop"])
+def test_sigkill_of_a_controller_through_the_driver_zeroes_the_rig_and_names_it(
+        tmp_path, env_for_domain, ros_context, stage):
+    """Issue 15's crash matrix through the driver and the virtual rig (``--driver
+    --processes``): the driver sends 0 V at the latest 3 frames after the last answered
+    one (its age rule sooner), and /diagnostics names the stage that died."""
+    from test_faults import _child_pid
+
+    rig, graph, probe, watch, executor, caught = _start_balancing(
+        tmp_path, env_for_domain, ros_context, processes=True)
+    try:
+        pid = _child_pid(graph.pid, f"{stage}_node")
+        assert pid is not None
+        killed_ns = time.time_ns()
+        os.kill(pid, signal.SIGKILL)
+        _, err = graph.communicate(timeout=120)
+        spin_until(executor, lambda: False, 0.3)
+    finally:
+        if graph.poll() is None:
+            graph.kill()
+            graph.communicate()
+        probe.destroy_node()
+        rig.stop()
+    assert graph.returncode == 2 and f"{stage}_node exited with status -9" in err, err
+    for _, s in watch.errors("another publisher"):
+        print(f"(before the kill) {s.message}")
+    trips = watch.errors("command watchdog")
+    assert trips, [s.message for _, s in watch.statuses]
+    trip_ns, trip = trips[-1]
+    values = _values(trip)
+    assert values["applied_v"] == "0.0"
+    assert int(values["sample"]) - int(values["last_answered_sample"]) == 3
+    answered_ns = int(values["last_answered_stamp_ns"])
+    print(f"SIGKILL {stage} ({'balancing' if caught else 'swinging up'}): watchdog trip "
+          f"{(trip_ns - killed_ns) * 1e-6:.1f} ms after the kill (driver clock), last answered "
+          f"sample {(killed_ns - answered_ns) * 1e-6:.1f} ms before it")
+    if trip_ns > killed_ns - 15_000_000:  # (a stall before the kill trips it too)
+        assert f"the {stage} (/{stage}) stopped" in trip.message, trip.message
+        assert values["silent"] == f"/{stage}"
+    # the rig's own log: 0 V from 20 ms after the last answered sample, to the end
+    log = true_log(tmp_path)
+    after = log[log["unix_s"] >= answered_ns * 1e-9 + 0.020]
+    assert len(after) > 20 and np.all(after["applied_v"] == 0.0), after["applied_v"][:10]
+    late = log[log["unix_s"] > killed_ns * 1e-9]
+    zero = late["unix_s"][np.flatnonzero(late["applied_v"] == 0.0)[0]]
+    print(f"0 V at the rig's tick {(zero - killed_ns * 1e-9) * 1e3:.1f} ms after the kill")
+
+
+def test_sigkill_of_the_controllers_process_leaves_the_driver_to_zero_the_rig(
+        tmp_path, env_for_domain, ros_context):
+    """Issue 15: SIGKILL of ``pisc_graph --driver`` left the last byte's voltage applied.
+    The driver runs in a process of its own: the rig gets 0 V from it, before its own
+    firmware watchdog would trip (50 ms after the last byte)."""
+    from test_faults import _child_pid
+
+    rig, graph, probe, watch, executor, caught = _start_balancing(
+        tmp_path, env_for_domain, ros_context, processes=False)
+    driver = _child_pid(graph.pid, "driver_node")
+    try:
+        assert driver is not None  # its own process
+        driving = rig.status()
+        killed = time.monotonic()
+        graph.kill()
+        graph.communicate(timeout=20)
+        deadline = time.monotonic() + 20.0
+        while Path(f"/proc/{driver}").exists() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not Path(f"/proc/{driver}").exists()  # it stopped with its parent
+        time.sleep(0.1)
+        status = rig.status()
+    finally:
+        if driver is not None and Path(f"/proc/{driver}").exists():
+            os.kill(driver, signal.SIGKILL)
+        probe.destroy_node()
+        rig.stop()
+    print(f"driving {driving['applied_v']:.2f} V; last byte {status['last_byte']:#04x}, "
+          f"{(status['last_byte_time'] - killed) * 1e3:.1f} ms after the kill")
+    assert status["last_byte"] == 0x00 and status["applied_v"] == 0.0  # the driver's 0 V
+    log = true_log(tmp_path)
+    after = log[log["monotonic_s"] > killed]
+    zero = after["monotonic_s"][np.flatnonzero(after["applied_v"] == 0.0)[0]]
+    # the zero came from a byte, not from the rig's watchdog, which trips only after it
+    trip = status["watchdog_trip_time"]
+    assert trip is None or zero < trip, (zero, trip)
+    assert np.all(log["applied_v"][log["monotonic_s"] >= zero] == 0.0)
+    print(f"0 V at the rig {(zero - killed) * 1e3:.1f} ms after the kill (rig's clock)")

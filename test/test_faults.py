@@ -26,8 +26,13 @@ from pisc_control.current_loop_node import CurrentLoopNode
 from pisc_control.estimator_node import EstimatorNode
 from pisc_control.supervisor_node import SupervisorNode
 from pisc_msgs_py.base_node import message_class, qos_profile
-from pisc_msgs_py.convert import joint_sample_from_msg, mode_from_msg, motor_sample_to_msg
-from pisc_msgs_py.topics import DIAGNOSTICS, JOINT_STATES, MODE, VOLTAGE
+from pisc_msgs_py.convert import (
+    joint_sample_from_msg,
+    mode_from_msg,
+    motor_sample_to_msg,
+    stamp_from_msg,
+)
+from pisc_msgs_py.topics import DIAGNOSTICS, JOINT_STATES, MODE, SIM_STATE, VOLTAGE
 from pisc_msgs_py.types import Mode, MotorSample
 from pisc_plant.plant_node import PlantNode
 
@@ -264,3 +269,83 @@ def test_sigkill_of_a_controller_while_balancing_zeroes_the_motor_and_fails_the_
             graph.communicate()
         probe.destroy_node()
         context.try_shutdown()
+
+
+# -- a clean stop: SIGTERM inside a cycle finishes the cycle, and a run ends at its duration -
+
+# plant_node, with SIGTERM arriving inside _publish_sample at sample 40 (after its
+# joint_states, before its true state) and the rest of the cycle published 50 ms later,
+# when the signal has been handled: issue 15's race, made certain
+_SIGTERM_INSIDE_A_CYCLE = """
+import os, signal, sys, time
+from pisc_plant import plant_node
+publish_sample = plant_node.PlantNode._publish_sample
+def cut(self):
+    if self._sim.index == 40:
+        publish = self._joint_pub.publish
+        def then_sigterm(msg):
+            publish(msg)
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+        self._joint_pub.publish = then_sigterm
+    elif self._sim.index == 41:
+        self._joint_pub.publish = type(self._joint_pub).publish.__get__(self._joint_pub)
+    publish_sample(self)
+plant_node.PlantNode._publish_sample = cut
+sys.exit(plant_node.main())
+"""
+
+
+def test_sigterm_inside_a_cycle_finishes_the_cycle_and_stops_cleanly(ros_context, domain_id):
+    """Issue 15: SIGTERM inside _publish_sample made the rest of the cycle fail ("Failed to
+    publish: publisher's context is invalid", a FATAL log, exit 0): the bag lacked the
+    last sample's true state. Now the plant finishes the cycle and stops before the next."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
+    probe = rclpy.node.Node("stop_probe", context=ros_context)
+    seen: dict[str, list[int]] = {JOINT_STATES.name: [], SIM_STATE.name: []}
+    for topic in (JOINT_STATES, SIM_STATE):
+        probe.create_subscription(
+            message_class(topic.type), topic.name,
+            lambda m, name=topic.name: seen[name].append(stamp_from_msg(m.header.stamp)),
+            qos_profile(topic.qos))
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(probe)
+    plant = subprocess.Popen(
+        [sys.executable, "-c", _SIGTERM_INSIDE_A_CYCLE, "--ros-args", "-p",
+         "simulation.clock:=wall"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    try:
+        assert spin_until(executor, lambda: plant.poll() is not None, 60.0)
+        spin_until(executor, lambda: False, 0.3)
+        _, err = plant.communicate(timeout=20)
+    finally:
+        if plant.poll() is None:
+            plant.kill()
+        probe.destroy_node()
+    assert plant.returncode == 0, err
+    assert "Exception" not in err and "FATAL" not in err, err
+    joints, true = seen[JOINT_STATES.name], seen[SIM_STATE.name]
+    assert len(joints) > 10, (len(joints), err)
+    # the cycle the signal cut is whole, and it is the last one
+    assert joints[-1] == true[-1], (joints[-3:], true[-3:])
+    assert set(joints[-30:]) <= set(true)
+
+
+def test_a_run_in_separate_processes_ends_at_its_duration_exactly(tmp_path, domain_id):
+    """Issue 15: `--processes` runs went on 1-4 cycles past --duration (the plant ran on
+    until its SIGTERM). The plant now stops at the duration itself: 1 s at 5 ms is the
+    201 samples 0 .. 1 s, each answered, and no sample after them."""
+    from pisc_bringup.bag import read_bag
+    from pisc_bringup.graph import RunOptions, run_graph
+
+    bag = tmp_path / "bag"
+    result = run_graph(RunOptions(duration_s=1.0, processes=True, bag_dir=bag,
+                                  domain_id=domain_id, overrides={"initial.x_m": 0.05}))
+    stamps = {topic.name: {stamp_from_msg(m.message.header.stamp)
+                           for m in read_bag(bag, [topic.name])}
+              for topic in (JOINT_STATES, SIM_STATE, VOLTAGE)}
+    assert result.summary.cycles == 201, result.summary.format()
+    assert len(stamps[VOLTAGE.name]) == 201
+    assert stamps[JOINT_STATES.name] == stamps[SIM_STATE.name] == stamps[VOLTAGE.name]
+    assert max(stamps[VOLTAGE.name]) - min(stamps[VOLTAGE.name]) == 1_000_000_000
+    assert result.summary.state_source == "true"

@@ -11,8 +11,9 @@ plant, estimator, supervisor and current loop run in this process on one
 as its own process through its console entry point, with the merged parameter file,
 as ``ros2 run`` would. ``--driver PORT`` puts the serial driver (``pisc_driver
 driver_node``) in the plant's place, on the rig's port or on the pseudo-terminal of
-``pisc_virtual_rig``, against the wall clock. ``--realtime PRIORITY`` runs this process
-and the processes it starts under SCHED_FIFO, as a control computer runs its loop: a
+``pisc_virtual_rig``, against the wall clock, always in a process of its own (a crash of
+the controllers' process leaves it to zero the motor). ``--realtime PRIORITY`` runs this
+process and the processes it starts under SCHED_FIFO, as a control computer runs its loop: a
 real device does not wait for a loaded machine (README, "Serial driver"). ``--scene``
 takes a scene's configuration, overrides, duration and the topics it records
 (:mod:`pisc_bringup.scene`; ``--record`` replaces that list, and :data:`RUN_TOPICS` are
@@ -350,7 +351,9 @@ def run_graph(options: RunOptions) -> RunResult:
         "simulation.clock": options.clock,
         "simulation.min_subscribers": expected_subscribers(JOINT_STATES, True),
         "simulation.min_true_state_subscribers": 1,
-        "simulation.min_clock_subscribers": _clock_subscribers(options.processes)}
+        "simulation.min_clock_subscribers": _clock_subscribers(options.processes),
+        # the plant stops at the duration itself: a node process is stopped later
+        "simulation.duration_s": options.duration_s}
     if source is DRIVER:
         plant_run = {"driver.port": options.driver_port}
     env = dict(os.environ)
@@ -417,11 +420,17 @@ def run_graph(options: RunOptions) -> RunResult:
                 nodes.append(cls(context=context, parameter_overrides=params))  # stamps only
             # DDS matches in its own threads: no spinning is needed to wait for it.
             _wait(lambda: _matched(nodes, recorded), 30.0, "the graph to connect")
-            plant_cls = getattr(importlib.import_module(source.module), source.cls)
-            # the driver reads the controllers' file (calibrations); the plant its own
-            source_params = params if source is DRIVER else _parameters(plant_params)
-            nodes.append(plant_cls(context=context,
-                                   parameter_overrides=source_params + _parameters(plant_run)))
+            if source is DRIVER:
+                # the driver in a process of its own: a crash of this one (the
+                # controllers') leaves it to zero the motor (docs/safety.md)
+                children = [_start_node(DRIVER, bag_dir, plant_run, env)]
+                died_driver: list[float] = []
+                watcher.create_timer(
+                    0.02, lambda: _end_if_a_node_died(children, progress, died_driver))
+            else:
+                plant_cls = getattr(importlib.import_module(source.module), source.cls)
+                nodes.append(plant_cls(context=context, parameter_overrides=_parameters(
+                    plant_params) + _parameters(plant_run)))
             # nothing is sent before the executor spins: by then the recorder takes it all
             _wait(lambda: _recorder_matched(recorder, ready), 30.0,
                   "pisc_record to match every publisher")
@@ -563,6 +572,18 @@ def _command(executable: str, module: str) -> list[str]:
     return [path] if path else [sys.executable, "-m", module]
 
 
+def _start_node(spec: NodeSpec, bag_dir: Path, extra: dict[str, Any],
+                env: dict[str, str]) -> subprocess.Popen:
+    """Start one node through its console entry point with the bag's parameter file (the
+    plant's :data:`PLANT_PARAMS`, the others' :data:`CONTROLLERS_PARAMS`) and ``extra``."""
+    params_file = bag_dir / (PLANT_PARAMS if spec is PLANT else CONTROLLERS_PARAMS)
+    args = [*_command(spec.executable, spec.module), "--ros-args",
+            "--params-file", str(params_file)]
+    for name, value in extra.items():
+        args += ["-p", f"{name}:={str(value).lower() if isinstance(value, bool) else value}"]
+    return _spawn(args, env, subprocess.DEVNULL)
+
+
 def _start_processes(bag_dir: Path, plant_run: dict[str, Any],
                      watcher: Node, env: dict[str, str], lockstep: bool,
                      source: NodeSpec = PLANT,
@@ -572,12 +593,7 @@ def _start_processes(bag_dir: Path, plant_run: dict[str, Any],
     children = []
 
     def start(spec: NodeSpec, extra: dict[str, Any]) -> None:
-        params_file = bag_dir / (PLANT_PARAMS if spec is PLANT else CONTROLLERS_PARAMS)
-        args = [*_command(spec.executable, spec.module), "--ros-args",
-                "--params-file", str(params_file)]
-        for name, value in extra.items():
-            args += ["-p", f"{name}:={str(value).lower() if isinstance(value, bool) else value}"]
-        children.append(_spawn(args, env, subprocess.DEVNULL))
+        children.append(_start_node(spec, bag_dir, extra, env))
 
     for spec in CONTROLLERS:
         start(spec, {"use_sim_time": lockstep})

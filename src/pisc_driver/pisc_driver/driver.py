@@ -16,7 +16,17 @@ commands it received and the time (ROS time, integer nanoseconds) of each event:
   command is older than the allowed age), so that the firmware's command watchdog
   (docs/driver-protocol.md) never trips while the driver is alive;
 * ``end_run()``: the run is over (the driver stops): no more bytes of its own, so that
-  once the driver is gone the firmware's watchdog zeroes the motor.
+  once the driver is gone the firmware's watchdog zeroes the motor;
+* ``hold_off(intruders)``: another publisher is on the command topic (the node pins the
+  graph's own, :class:`pisc_msgs_py.watchdog.PublisherPin`): every command is 0 V while
+  it is there.
+
+The command watchdog shared with the plant (:class:`pisc_msgs_py.watchdog.CommandWatchdog`,
+``driver.watchdog_periods``) counts the frames: when ``watchdog_periods`` frames in a row
+went unanswered the driver sends 0 V at the next frame's arrival and ``tick`` says so
+(``new_trip``: the node names the stage that stopped). The age rule above is the
+stricter (0 V 10 ms after the newest command's sample, by the clock); the watchdog holds
+0 V until a command answers one of the last ``watchdog_periods`` frames.
 
 A run is active from the first command sent until ``end_run()``.
 """
@@ -33,9 +43,10 @@ from pisc_driver.protocol import (
     unwrap_count,
 )
 from pisc_msgs_py.config import any_value, in_range, param
+from pisc_msgs_py.watchdog import CommandWatchdog
 from pisc_plant.params import ActuatorParams, SensorParams
 
-__all__ = ["DriverCore", "DriverParams", "Measurement", "ZERO"]
+__all__ = ["DriverCore", "DriverParams", "Measurement", "Trip", "ZERO"]
 
 ZERO = 0x00  # the command byte of zero voltage
 
@@ -59,10 +70,30 @@ class DriverParams(ParserParams):
         in_range(0.0005, 0.1))
     reopen_interval_s: float = param(0.5, "wait between attempts to reopen a port that went "
                                      "away", "s", in_range(0.01, 60.0))
+    watchdog_periods: int = param(3, "frames in a row left unanswered after which the driver "
+                                  "sends 0 V at the next frame and names the stage of the "
+                                  "chain that stopped (the plant's simulation.watchdog_periods)",
+                                  "", in_range(1, 1000))
+    command_node: str = param("current_loop", "the node whose command publisher the driver "
+                              "pins; any other publisher on the command topic is a fault, "
+                              "with 0 V while it is there", "",
+                              lambda v: None if v else "must name a node")
 
     @property
     def parser(self) -> ParserParams:
         return ParserParams(max_rate_radps=self.max_rate_radps, frame_gap_s=self.frame_gap_s)
+
+
+@dataclass(frozen=True)
+class Trip:
+    """The command watchdog tripped at frame ``sample`` (stamp ``stamp_ns``): the newest
+    answered one was ``last_answered``; ``judged_stamp_ns`` is the stamp of the frame
+    before, on which the stage that stopped is named."""
+
+    sample: int
+    last_answered: int
+    stamp_ns: int
+    judged_stamp_ns: int
 
 
 @dataclass(frozen=True)
@@ -99,6 +130,13 @@ class DriverCore:
         self.zeroed = 0  # zero bytes sent because the commands stopped
         self.keepalives = 0  # bytes sent for a frame the controllers did not answer
         self.silences = 0
+        self.watchdog = CommandWatchdog(params.watchdog_periods)
+        self.new_trip: Trip | None = None  # the trip the last tick reported
+        self._trip: Trip | None = None  # a trip to report at the next tick
+        self.resumed_from: int | None = None  # a trip the last command ended (its sample)
+        self.answered_stamp_ns: int | None = None  # stamp of the newest answered frame
+        self.intruders: tuple[str, ...] = ()
+        self.refused_commands = 0  # commands sent as 0 V while another publisher was there
 
     def receive(self, data: bytes, now_ns: int) -> list[Measurement]:
         """Bytes read at ``now_ns`` -> the samples they completed, stamped ``now_ns``.
@@ -114,6 +152,14 @@ class DriverCore:
             x, theta, current = frame_to_si(self.sensors, frame, self._count)
             stamp = now_ns if self._stamp_ns is None else max(now_ns, self._stamp_ns + 1000)
             self._stamp_ns = stamp
+            index = self._frames + len(out)
+            self.watchdog.sample(index, stamp)
+            if (self.watchdog.expired(index) and self.watchdog.tripped_at == index
+                    and not self.intruders):  # (while they are there all is 0 V anyway)
+                # the stage that stopped is judged on the sample before this one, which
+                # had its period to be answered; this one has only just arrived
+                self._trip = Trip(index, self.watchdog.answered, stamp,
+                                  self.watchdog.stamp_of(index - 1) or stamp)
             out.append(Measurement(stamp, x, theta, current))
         if out:
             self.last_frame_ns = now_ns
@@ -128,11 +174,30 @@ class DriverCore:
             self.stale_commands += 1
             return None
         self.sent_stamp_ns = stamp_ns
-        self.sent_byte = encode_command(voltage_v, self.actuator)
+        if self.intruders:
+            self.refused_commands += 1
+            self.sent_byte = ZERO
+        else:
+            self.sent_byte = encode_command(voltage_v, self.actuator)
+            answers = self.watchdog.fresh(stamp_ns)
+            if answers is not None:
+                self.resumed_from = self.watchdog.answer(answers)
+                self.answered_stamp_ns = stamp_ns
         self.commands += 1
         self.active = True
         self._answered = self._frames
         return self.sent_byte
+
+    def hold_off(self, intruders: tuple[str, ...]) -> int | None:
+        """Other publishers on the command topic (``()``: they have gone). While there
+        are any, every command is sent as 0 V; returns the byte to send now (0 V when
+        they appear)."""
+        self.intruders = intruders
+        if not intruders:
+            return None
+        self.sent_byte = ZERO
+        self._answered = self._frames
+        return ZERO
 
     def command_age_ns(self, now_ns: int) -> int | None:
         return None if self.sent_stamp_ns is None else now_ns - self.sent_stamp_ns
@@ -150,6 +215,13 @@ class DriverCore:
             byte = self.sent_byte = ZERO
             self.zeroed += 1
         fault = None
+        self.new_trip, trip, self._trip = self._trip, self._trip, None
+        if trip is not None:
+            index, answered = trip.sample, trip.last_answered
+            if self.sent_byte != ZERO:  # (the age rule has mostly zeroed it already)
+                byte = self.sent_byte = ZERO
+            fault = (f"command watchdog: no command answered samples {answered + 1} .. "
+                     f"{index}: 0 V from sample {index}")
         if (not self.silent and self.last_frame_ns is not None
                 and now_ns - self.last_frame_ns > self.silence_ns):
             self.silent = True

@@ -11,6 +11,14 @@ controllers leave unanswered gets the byte held (0 V once the newest command is 
 when the next frame arrives, so the firmware's command watchdog trips only when this
 process is gone or stalled (docs/driver-protocol.md). On stopping (SIGINT, SIGTERM, a
 parameter change) it sends 0 V and then nothing.
+
+The same guards as the plant (docs/safety.md, :mod:`pisc_msgs_py.watchdog`): the command
+publisher of ``driver.command_node`` is pinned when first seen, and while any other
+publisher is matched on the command topic every command is sent as 0 V and
+``/diagnostics`` names it (checked on every command and every period); when
+``driver.watchdog_periods`` frames in a row went unanswered the driver sends 0 V and names
+the stage of the chain that stopped (it watches the estimator's and the supervisor's
+outputs for that).
 """
 
 from __future__ import annotations
@@ -27,9 +35,11 @@ from pisc_msgs_py.convert import (
     joint_sample_to_msg,
     motor_sample_from_msg,
     motor_sample_to_msg,
+    stamp_from_msg,
 )
 from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE
 from pisc_msgs_py.types import JointSample, MotorSample
+from pisc_msgs_py.watchdog import CHAIN, PublisherPin, listed_publishers, silent_stage_report
 from pisc_plant.params import ActuatorParams, LoopParams, SensorParams
 
 SECTIONS = {"driver": DriverParams, "sensors": SensorParams, "actuator": ActuatorParams,
@@ -44,6 +54,15 @@ class DriverNode(PiscNode):
         self._joint_pub = self.publisher(JOINT_STATES)
         self._current_pub = self.publisher(MOTOR_CURRENT)
         self._sub = self.subscription(VOLTAGE, self._on_voltage)
+        # newest stamp out of each stage of the chain, to say which one stopped
+        self._upstream: dict[str, int] = {}
+        self._upstream_subs = [
+            self.subscription(topic, lambda msg, name=name: self._upstream.__setitem__(
+                name, stamp_from_msg(msg.header.stamp)))
+            for name, topic in CHAIN]
+        self._pin = PublisherPin(self.config.params.command_node)
+        self._pin_timer = self.create_timer(self.config.period_ns * 1e-9,
+                                            self._check_publishers)
         self._reader: threading.Thread | None = None
         self._running = False
         self._unwritten = 0  # command bytes the port did not take
@@ -59,6 +78,9 @@ class DriverNode(PiscNode):
         """Open the port and start the reader; ``must_open=False`` leaves a port that
         cannot be opened to the reader, which retries it."""
         p = core.params
+        if p.command_node != self._pin.owner:
+            self._pin = PublisherPin(p.command_node)
+        core.intruders = self._pin.intruders  # (after a parameter change: still there)
         self._core = core
         self._link = SerialLink(p.port, p.baud, p.read_timeout_s)
         try:
@@ -116,10 +138,41 @@ class DriverNode(PiscNode):
         except MessageError as exc:
             self.diagnose(WARN, f"rejected voltage command: {exc}")
             return
+        self._check_publishers()
         with self._lock:
-            byte = self._core.command(command.stamp_ns, command.value, self._now_ns())
+            core = self._core
+            byte = core.command(command.stamp_ns, command.value, self._now_ns())
             if byte is not None:
                 self._send(byte)
+            resumed, core.resumed_from = core.resumed_from, None
+        if resumed is not None:
+            self.diagnose(OK, f"command watchdog: commands resumed at sample "
+                          f"{core.watchdog.answered} (0 V from sample {resumed})",
+                          command.stamp_ns)
+
+    def _check_publishers(self) -> None:
+        """Pin the graph's command publisher; 0 V and a fault while any other one is
+        matched (on every command and every period, in the executor's thread)."""
+        matched = self._sub.get_publisher_count()
+        if not self._pin.needs_look(matched):
+            return
+        change = self._pin.look(matched, listed_publishers(self, VOLTAGE.name))
+        if change is None:
+            return
+        now = self._now_ns()
+        with self._lock:
+            byte = self._core.hold_off(self._pin.intruders)
+            if byte is not None:
+                self._send(byte)
+        if change.intruders:
+            intruders = ", ".join(change.intruders)
+            self._report(ERROR, f"another publisher on {VOLTAGE.name}: {intruders}; the "
+                         f"driver sends 0 V while it is there (only "
+                         f"/{self._pin.owner}, pinned at the start, drives the motor)", now,
+                         intruders=intruders, applied_v=0.0)
+        else:
+            self._report(OK, f"{', '.join(change.left)} left {VOLTAGE.name}: commands "
+                         "apply again", now)
 
     def _read_loop(self) -> None:
         core = self._core
@@ -137,6 +190,7 @@ class DriverNode(PiscNode):
                     byte, fault = core.tick(now)
                     if byte is not None:
                         self._send(byte)
+                    trip = core.new_trip
                 for s in samples:
                     self._joint_pub.publish(joint_sample_to_msg(
                         JointSample(s.stamp_ns, s.position_m, s.angle_rad)))
@@ -144,7 +198,14 @@ class DriverNode(PiscNode):
                         MotorSample(s.stamp_ns, s.current_a)))
                     if core.parser.frames % DIAGNOSTIC_EVERY == 1:
                         self._report(OK, "link up", now)
-                if fault:
+                if trip is not None:
+                    sentence, who = silent_stage_report(
+                        self, trip.judged_stamp_ns, self._upstream, trip.sample - 1, VOLTAGE)
+                    self._report(ERROR, f"{fault}; {sentence}", trip.stamp_ns,
+                                 sample=trip.sample, last_answered_sample=trip.last_answered,
+                                 applied_v=0.0, silent=who,
+                                 last_answered_stamp_ns=core.answered_stamp_ns)
+                elif fault:
                     self._report(ERROR, fault, now)
             except LinkError as exc:
                 with self._lock:
@@ -160,15 +221,15 @@ class DriverNode(PiscNode):
                 self._report(ERROR, f"driver fault: {exc!r}; sent 0 V", self._now_ns())
                 time.sleep(core.params.reopen_interval_s)
 
-    def _report(self, level: int, message: str, now_ns: int) -> None:
+    def _report(self, level: int, message: str, now_ns: int, **values: Any) -> None:
         core = self._core
         age = core.command_age_ns(now_ns)
-        self.diagnose(level, message, now_ns, frames_accepted=core.parser.frames,
+        self.diagnose(level, message, now_ns, **values, frames_accepted=core.parser.frames,
                       bytes_discarded=core.parser.discarded, rehunts=core.parser.rehunts,
                       command_age_ms="none" if age is None else f"{age * 1e-6:.2f}",
                       commands_sent=core.commands, stale_commands=core.stale_commands,
                       zeroed_for_age=core.zeroed, keepalives_sent=core.keepalives,
-                      silences=core.silences,
+                      silences=core.silences, refused_commands=core.refused_commands,
                       bytes_not_written=self._unwritten)
 
 

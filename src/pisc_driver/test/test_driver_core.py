@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from pisc_driver.driver import ZERO, DriverCore, DriverParams
+from pisc_driver.driver import ZERO, DriverCore, DriverParams, Trip
 from pisc_plant.params import ActuatorParams, SensorParams
 from pisc_plant.sensors import decode
 
@@ -150,3 +150,55 @@ def test_no_byte_of_its_own_once_the_run_ends():
     sent = [(t, b) for t, b in run_frames(c, 200)]
     assert all(b == ZERO for _, b in sent) and len(sent) <= 1  # at most the stale zero
     assert not c.active
+
+
+def test_the_shared_watchdog_trips_at_the_third_unanswered_frame_and_resumes():
+    """Issue 15's crash matrix at the driver: the plant's CommandWatchdog counts the frames;
+    with the age rule out of the way (command_max_age_periods 10) it alone zeroes."""
+    c = core(command_max_age_periods=10.0)
+    sent = run_frames(c, 60, answer=lambda k: 3.0 if k < 4 else None)
+    assert c.watchdog.answered >= 0
+    first = c.watchdog.answered - 3  # the index of the frame at 0 ms
+    # frames 0..3 answered, 4 and 5 not: at frame 6 (30 ms) 0 V, said once
+    assert (30, ZERO) in sent and all(b == 0x21 for t, b in sent if t < 30)
+    assert c.watchdog.tripped_at == first + 6
+    assert all(b == ZERO for t, b in sent if t >= 30)
+    # a command answering one of the last 3 frames resumes
+    stamp = c.watchdog.stamp_of(c.watchdog.tripped_at + 4)
+    assert c.command(stamp, 3.0, stamp + MS) == 0x21
+    assert c.resumed_from == first + 6 and c.watchdog.tripped_at is None
+
+
+def test_the_watchdog_trip_is_reported_with_its_samples():
+    c = core(command_max_age_periods=10.0)
+    reports = []
+    c.receive(frame(400, 780, 0) * 2, -5 * MS)
+    for k in range(8):
+        c.receive(frame(400, 780, 0), k * 5 * MS)
+        if k < 2:
+            c.command(k * 5 * MS, 1.0, k * 5 * MS + MS)
+        byte, fault = c.tick(k * 5 * MS)
+        if fault:
+            reports.append((k, byte, fault, c.new_trip))
+    [(k, byte, fault, trip)] = reports  # once
+    last = c.watchdog.answered
+    assert k == 4 and byte == ZERO and trip == Trip(last + 3, last, 20 * MS, 15 * MS)
+    assert fault == f"command watchdog: no command answered samples {last + 1} .. " \
+                   f"{last + 3}: 0 V from sample {last + 3}"
+
+
+def test_while_another_publisher_is_there_every_command_is_zero_volts():
+    c = core()
+    assert c.command(100 * MS, 11.47, 101 * MS) == 0x7F
+    assert c.hold_off(("/visitor",)) == ZERO  # at once
+    assert c.command(105 * MS, 11.47, 106 * MS) == ZERO  # anyone's: sent as 0 V
+    assert c.command(110 * MS, -3.0, 111 * MS) == ZERO
+    assert c.refused_commands == 2 and c.sent_byte == ZERO
+    assert c.hold_off(()) is None  # gone: the next command applies
+    assert c.command(115 * MS, 3.0, 116 * MS) == 0x21
+    # frames left unanswered while it is there are answered with 0 V, not the held byte
+    c = core()
+    sent = run_frames(c, 10, answer=lambda k: 3.0)
+    c.hold_off(("/visitor",))
+    sent = run_frames(c, 40)
+    assert sent and all(b == ZERO for _, b in sent)

@@ -67,6 +67,9 @@ class CommandWatchdog:
         return True
 
 
+UNNAMED = "_NODE_NAME_UNKNOWN_"  # rmw's node name of an endpoint not yet fully discovered
+
+
 @dataclass(frozen=True)
 class Endpoint:
     """A publisher the ROS graph lists on a topic (``get_publishers_info_by_topic``)."""
@@ -77,6 +80,8 @@ class Endpoint:
 
     @property
     def fully_qualified(self) -> str:
+        if self.node == UNNAMED:  # discovery has not told the node's name yet
+            return "a publisher whose node the ROS graph does not name yet"
         return f"{self.namespace.rstrip('/')}/{self.node}"
 
 

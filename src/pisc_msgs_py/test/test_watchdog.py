@@ -82,3 +82,12 @@ def test_the_first_stage_without_output_for_the_sample_is_named():
         "supervisor", CART_FORCE)
     assert first_silent_stage(100, {"estimator": 100, "supervisor": 100}) == (
         "current_loop", None)
+
+
+def test_a_publisher_not_yet_named_by_discovery_is_held_off_and_said_so():
+    pin = PublisherPin("current_loop")
+    early = Endpoint("_NODE_NAME_UNKNOWN_", "_NODE_NAMESPACE_UNKNOWN_", LOOP.gid)
+    assert pin.look(1, [early]) == PinChange(
+        intruders=("a publisher whose node the ROS graph does not name yet",))
+    assert pin.pinned is None and pin.needs_look(1)
+    assert pin.look(1, [LOOP]).left and pin.pinned == LOOP.gid and pin.intruders == ()

@@ -22,13 +22,22 @@ and the plant applies 0 V while it is there. rclpy on Jazzy gives no publisher G
 a message (ros2/rclpy#1466 came after), so the plant cannot sort messages by sender: it
 watches how many publishers its subscription has matched (on every command and sample)
 and asks the ROS graph who they are when that changes.
+
+**A clean stop.** Run as a process (``main``), SIGTERM and SIGINT ask the plant to stop:
+the cycle in progress is finished (its joint_states, motor current and true state all
+published) and the node shuts down at its next callback, before publishing another
+sample. rclpy's own handler shut the context down at once, so a signal inside
+``_publish_sample`` made the rest of the cycle fail (issue 15). With
+``simulation.duration_s`` the plant publishes no sample after the one that ends the run.
 """
 
 from __future__ import annotations
 
+import signal
 from dataclasses import dataclass
 from typing import Any
 
+import rclpy
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
 
@@ -95,6 +104,11 @@ class SimulationParams:
                                   "answered sample at 5 ms, inside the 20 ms a controller's "
                                   "death allows; 2 missed answers in a row are tolerated)", "",
                                   in_range(1, 1000))
+    duration_s: float = param(0.0, "the run's length: once a voltage answers the sample this "
+                              "long after the first voltage's, the plant publishes no more "
+                              "samples (0 = until stopped; pisc_graph sets its --duration, so "
+                              "a run in separate processes ends at its duration exactly)",
+                              "s", in_range(0.0, 1e9))
     command_node: str = param("current_loop", "the node whose command publisher the plant "
                               "pins at the start; any other publisher on the command topic "
                               "is a fault, with 0 V while it is there", "",
@@ -142,6 +156,9 @@ class PlantNode(PiscNode):
                 name, stamp_from_msg(msg.header.stamp)))
             for name, topic in CHAIN]
         self._pin = PublisherPin(self._sim_params.command_node)
+        self._first_voltage_ns: int | None = None  # stamp of the first voltage seen
+        self._finished = False  # the voltage ending the run (duration_s) has come
+        self._stop_requested = False  # a signal asked the process to stop
         period = plant_config.loop.period_s
         self._timer = self.create_timer(0.01 if self._lockstep else period, self._on_timer)
 
@@ -183,7 +200,24 @@ class PlantNode(PiscNode):
                           deadline_misses=self._missed, stale_commands=self._stale,
                           resent_samples=self._resent)
 
+    def request_stop(self) -> None:
+        """Stop at the next callback (a signal handler's whole work: it may run in the
+        middle of a cycle, which is then finished)."""
+        self._stop_requested = True
+
+    def _stopping(self) -> bool:
+        """Whether to do nothing more: the run ended (``duration_s``) or a stop was
+        asked for, in which case the node's context is shut down here, between cycles."""
+        if self._stop_requested:
+            if self.context.ok():
+                self.get_logger().info(f"stopping after sample {self._sim.index}")
+                rclpy.try_shutdown(context=self.context)
+            return True
+        return self._finished
+
     def _on_timer(self) -> None:
+        if self._stopping():
+            return
         self._check_publishers()
         if self._lockstep:
             if not self._started:
@@ -240,11 +274,30 @@ class PlantNode(PiscNode):
         self._publish_sample()
 
     def _on_voltage(self, msg: Any) -> None:
+        if self._stopping():
+            return
+        self._watch_duration(msg)
         if not self._sim.plant.force_input:
             self._on_command(msg, "voltage command", 1.0)
 
     def _on_setpoint(self, msg: Any) -> None:
+        if self._stopping():
+            return
         self._on_command(msg, "current set-point", self._force_per_amp)
+
+    def _watch_duration(self, msg: Any) -> None:
+        """The run's end, by pisc_graph's own rule (a voltage stamped ``duration_s`` after
+        the first voltage, whatever answered): the plant publishes no sample after it."""
+        duration_ns = round(self._sim_params.duration_s * 1e9)
+        if not duration_ns:
+            return
+        stamp = stamp_from_msg(msg.header.stamp)
+        if self._first_voltage_ns is None:
+            self._first_voltage_ns = stamp
+        if stamp - self._first_voltage_ns >= duration_ns and not self._finished:
+            self._finished = True
+            self.get_logger().info(f"the run's {self._sim_params.duration_s} s are over at "
+                                   f"sample {self._sim.index}: no more samples")
 
     def _on_command(self, msg: Any, what: str, scale: float) -> None:
         try:
@@ -272,6 +325,8 @@ class PlantNode(PiscNode):
                               f"(0 V from sample {resumed})", self._stamp_ns)
         if self._lockstep:
             self._sim.command(value)
+            if self._finished:
+                return  # the run is over: no sample after it
             self._sim.advance()
             self._publish_sample()
         else:
@@ -316,7 +371,15 @@ class PlantNode(PiscNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(PlantNode, args)
+    def stop_between_cycles(**kwargs: Any) -> PlantNode:
+        node = PlantNode(**kwargs)
+        # after rclpy.init: these replace rclpy's handlers, which shut the context down at
+        # once, in the middle of a cycle (module docstring, "A clean stop")
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(signum, lambda *_: node.request_stop())
+        return node
+
+    return run_node(stop_between_cycles, args)
 
 
 if __name__ == "__main__":
