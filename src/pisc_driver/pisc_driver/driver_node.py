@@ -197,7 +197,9 @@ class DriverNode(PiscNode):
                     self._current_pub.publish(motor_sample_to_msg(
                         MotorSample(s.stamp_ns, s.current_a)))
                     if core.parser.frames % DIAGNOSTIC_EVERY == 1:
-                        self._report(OK, "link up", now)
+                        # (names the port: a recorder started with this process may
+                        # have missed the "opened" status of its start)
+                        self._report(OK, f"link up on {link.port}", now)
                 if trip is not None:
                     sentence, who = silent_stage_report(
                         self, trip.judged_stamp_ns, self._upstream, trip.sample - 1, VOLTAGE)
