@@ -1,0 +1,339 @@
+"""pisc_soak (issue 15 item 6, issue 16 item 3): its pure parts in the default suite,
+the command itself behind ``bench`` (``pytest test/test_soak.py -m bench -s``)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pisc_bringup.soak import (
+    DROP_RATE,
+    SILENCE_S,
+    Recovery,
+    Sample,
+    Targets,
+    children_of,
+    fault_schedule,
+    latency_figures,
+    main,
+    missed_targets,
+    observer_check,
+    read_proc,
+    recoveries,
+    usage_over,
+)
+from pisc_plant.virtual_rig import check_request
+
+# -- statistics --------------------------------------------------------------------------
+
+
+def test_latency_figures_are_numpys_linear_percentiles_and_count_cycles_over_the_period():
+    latencies = [0.5] * 997 + [5.0, 6.0, 10.0]
+    figures = latency_figures(latencies, 0.005)
+    assert figures["median_ms"] == 0.5
+    assert figures["p99_ms"] == 0.5  # position 0.99 * 999 = 989.01: both neighbours 0.5
+    # position 0.999 * 999 = 998.001, between 6.0 and 10.0
+    assert figures["p999_ms"] == pytest.approx(6.0 + 0.001 * 4.0)
+    assert figures["max_ms"] == 10.0
+    assert figures["over_period"] == 2  # 5.0 ms is on time, as in the run summary
+    assert figures["cycles"] == 1000
+
+
+def test_latency_figures_refuse_an_empty_run():
+    with pytest.raises(ValueError, match="no complete cycle"):
+        latency_figures([], 0.005)
+
+
+# -- the fault schedule ------------------------------------------------------------------
+
+
+def test_the_fault_schedule_is_the_seeds_and_has_one_silence_a_minute():
+    schedule = fault_schedule(7, 600.0)
+    assert schedule == fault_schedule(7, 600.0)
+    assert schedule != fault_schedule(8, 600.0)
+    assert schedule.drop_rate == DROP_RATE == 1e-3
+    assert len(schedule.silences_s) == 10
+    for minute, t in enumerate(schedule.silences_s):
+        assert 12.0 + 60.0 * minute <= t < 16.0 + 60.0 * minute
+    times = [t for t, _ in schedule.garbage]
+    assert times == sorted(times) and 5.0 < times[0] and times[-1] < 600.0
+    assert all(1 <= n <= 64 for _, n in schedule.garbage)
+    assert len({n for _, n in schedule.garbage}) > 5  # sizes vary
+
+
+def test_a_silence_is_left_out_when_its_recovery_could_not_be_seen():
+    assert len(fault_schedule(0, 20.0).silences_s) == 1  # 12-16 s, 3.8 s or more to recover
+    assert fault_schedule(0, 15.0).silences_s == ()  # 12 s + 0.2 s + 3 s > 15 s
+    for seed in range(20):
+        for t in fault_schedule(seed, 75.0).silences_s:
+            assert t + SILENCE_S + 3.0 <= 75.0
+
+
+def test_every_request_of_the_schedule_is_one_the_virtual_rig_accepts():
+    requests = fault_schedule(3, 600.0).requests()
+    assert [t for t, _ in requests] == sorted(t for t, _ in requests)
+    assert sum("silence_s" in r for _, r in requests) == 10
+    for _, request in requests:
+        assert check_request(json.loads(json.dumps(request))) == request
+
+
+# -- recoveries --------------------------------------------------------------------------
+
+
+def trace(theta_after, gap=(10.0, 10.2), end_s=14.0, period=0.005):
+    """Samples every 5 ms but none strictly inside ``gap``; theta 0.01 before the gap and
+    ``theta_after(t)`` from its end."""
+    t = np.arange(0.0, end_s + period / 2, period)
+    t = t[(t <= gap[0] + 1e-9) | (t >= gap[1] - 1e-9)]
+    theta = np.where(t <= gap[0] + 1e-9, 0.01, [theta_after(x) for x in t])
+    return t, theta
+
+
+def test_a_pendulum_that_stays_in_the_band_recovers_at_once():
+    t, theta = trace(lambda x: 0.02)
+    (r,) = recoveries(t, theta, [9.99])
+    assert r.silent_s == pytest.approx(0.2)
+    assert r.ended_s == pytest.approx(10.2)
+    assert r.recovery_s == 0.0 and r.peak_theta_rad == pytest.approx(0.02)
+    assert not r.lost
+
+
+def test_recovery_is_the_first_sample_back_in_the_band_for_a_second():
+    # 0.2 rad at the end of the silence, linearly to 0 at 10.71 s: |theta| < 0.05 from
+    # 10.5825 s on, so from the sample of 10.585 s
+    t, theta = trace(lambda x: max(0.0, 0.2 * (1.0 - (x - 10.2) / 0.51)))
+    (r,) = recoveries(t, theta, [9.99])
+    assert r.recovery_s == pytest.approx(0.385, abs=1e-6)
+    assert r.peak_theta_rad == pytest.approx(0.2)
+
+
+def test_swinging_through_the_band_is_not_a_recovery():
+    # a 2 Hz swing of 0.2 rad for a second after the silence, then still: each pass
+    # through upright is < 0.05 rad for 40 ms; it stays only from the last one, 20 ms
+    # before 11.2 s (arcsin(0.25) / (4 pi) = 20.1 ms)
+    def swing(x):
+        return 0.2 * math.sin(4.0 * math.pi * (x - 10.2)) if x < 11.2 else 0.001
+
+    t, theta = trace(swing)
+    (r,) = recoveries(t, theta, [9.99])
+    assert r.recovery_s == pytest.approx(1.0 - 0.0201, abs=0.006)
+
+
+def test_a_pendulum_that_never_comes_back_is_lost_and_a_missing_gap_is_said():
+    t, theta = trace(lambda x: 0.3)
+    (r,) = recoveries(t, theta, [9.99])
+    assert r.lost and r.peak_theta_rad == pytest.approx(0.3)
+    assert "lost (peak |theta| 0.300 rad)" in r.format()
+    (none,) = recoveries(t, theta, [5.0])  # nothing was silent near 5 s
+    assert none.silent_s is None and none.lost
+    assert none.format() == "silence asked at 5.000 s: no gap between frames seen"
+
+
+def test_a_recovery_must_come_before_the_next_silence():
+    # back in the band only at 12.5 s: lost if the next silence is asked at 13.0 s (no
+    # whole second before it), recovered when it is asked at 14.0 s
+    t, theta = trace(lambda x: 0.3 if x < 12.5 else 0.0, end_s=16.0)
+    first, _ = recoveries(t, theta, [9.99, 13.0])
+    assert first.lost
+    first, _ = recoveries(t, theta, [9.99, 14.0])
+    assert first.recovery_s == pytest.approx(2.3)
+
+
+# -- processes and the observer ----------------------------------------------------------
+
+
+def test_usage_over_takes_the_first_and_last_samples_inside_the_window():
+    samples = [Sample(100.0 + k, 0.5 * k, 100_000_000 + 10_000 * k) for k in range(21)]
+    usage = usage_over(samples, 104.5, 115.2)  # samples 105 .. 115
+    assert usage["window_s"] == 10.0
+    assert usage["cpu_s"] == 5.0 and usage["cpu_percent"] == 50.0
+    assert usage["rss_start_mb"] == pytest.approx(100.05)
+    assert usage["growth_mb"] == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="1 sample"):
+        usage_over(samples, 104.5, 105.5)
+
+
+def test_read_proc_gives_this_process_cpu_and_resident_memory_and_none_once_gone():
+    cpu, rss = read_proc(os.getpid())
+    assert cpu > 0.0
+    pages = int(Path("/proc/self/statm").read_text().split()[1])
+    assert abs(rss - pages * os.sysconf("SC_PAGE_SIZE")) < 5_000_000
+    child = subprocess.Popen(["sleep", "30"])
+    try:
+        assert "sleep 30" in children_of(os.getpid())[child.pid]
+    finally:
+        child.kill()
+        child.wait()
+    assert read_proc(child.pid) is None
+
+
+def test_the_observer_check_counts_what_the_bag_misses_repeats_included():
+    checked = observer_check({"/a": [1, 2, 2, 3], "/b": [5]},
+                             {"/a": [1, 2, 3, 4], "/b": [5, 6], "/c": [7]})
+    assert checked == {"/a": {"observed": 4, "in_bag": 4, "missing_from_bag": 1},
+                       "/b": {"observed": 1, "in_bag": 2, "missing_from_bag": 0},
+                       "/c": {"observed": 0, "in_bag": 1, "missing_from_bag": 0}}
+
+
+# -- targets -----------------------------------------------------------------------------
+
+
+def good_report(**changes):
+    usage = {"cpu_s": 1.0, "cpu_percent": 10.0, "rss_start_mb": 100.0, "rss_end_mb": 101.0,
+             "growth_mb": 1.0, "window_s": 590.0}
+    report = {"latency": {"median_ms": 0.5, "p99_ms": 0.9, "p999_ms": 1.5, "max_ms": 3.0,
+                          "over_period": 0, "cycles": 120001},
+              "period_s": 0.005, "faults": False,
+              "cycles": {"completed": 120001, "expected": 120001},
+              "nodes_cpu_percent": 12.0,
+              "processes": {"graph": dict(usage), "recorder": dict(usage)},
+              "held": True}
+    report.update(changes)
+    return report
+
+
+def test_a_run_that_meets_every_target_misses_none():
+    assert missed_targets(good_report(), Targets()) == []
+
+
+def test_each_missed_target_is_named_with_its_figure():
+    report = good_report(nodes_cpu_percent=36.2, held=False,
+                         cycles={"completed": 2775, "expected": 3002})
+    report["latency"].update(p99_ms=1.2, over_period=3)
+    report["processes"]["recorder"]["growth_mb"] = 2.5
+    assert missed_targets(report, Targets()) == [
+        "sample-to-voltage p99 1.200 ms > 1.0 ms",
+        "3 cycles over the 5 ms period (target 0)",
+        "2775 cycles completed of 3002 expected",
+        "the four nodes' CPU 36.2 % of one core > 15 %",
+        "recorder: resident memory grew 2.50 MB > 2 MB",
+        "the pendulum was not held"]
+    # through the driver p99 may reach 2.0 ms
+    report = good_report()
+    report["latency"]["p99_ms"] = 1.2
+    assert missed_targets(report, Targets.for_run(driver=True)) == []
+
+
+def test_a_faults_run_misses_a_lost_silence_and_a_message_the_bag_lacks():
+    report = good_report(faults=True, cycles={"completed": 100, "expected": 120001},
+                         recoveries=[{"requested_s": 13.2, "recovery_s": 0.4},
+                                     {"requested_s": 74.0, "recovery_s": None}],
+                         observer={"/pisc/joint_states": {"observed": 10, "in_bag": 9,
+                                                          "missing_from_bag": 1},
+                                   "/diagnostics": {"observed": 0, "in_bag": 3,
+                                                    "missing_from_bag": 0}})
+    assert missed_targets(report, Targets.for_run(driver=True)) == [
+        "1 of 2 silences not recovered (74.0 s)",
+        "/pisc/joint_states: 1 messages the observer received are not in the bag",
+        "/diagnostics: the observer received nothing"]
+
+
+# -- arguments ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--duration", "nan"], "--duration nan: must be a finite number of seconds >= 15"),
+    (["--duration", "14"], "--duration 14: must be a finite number of seconds >= 15"),
+    (["--faults"], "--faults needs --driver"),
+    (["--driver", "--realtime", "95"], "--realtime 95: must be a SCHED_FIFO priority from 1 "
+                                       "to 89"),
+    (["--seed", "-1"], "--seed -1: must be >= 0"),
+])
+def test_bad_arguments_exit_2_naming_the_rule_and_write_nothing(tmp_path, capsys, args,
+                                                                 message):
+    out = tmp_path / "soak"
+    assert main([*args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pisc_soak: ") and message in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_an_output_directory_that_holds_something_is_refused(tmp_path, capsys):
+    (tmp_path / "report.json").write_text("{}")
+    assert main(["--out", str(tmp_path)]) == 2
+    assert "exists and is not an empty directory; not overwriting" in capsys.readouterr().err
+    assert [p.name for p in tmp_path.iterdir()] == ["report.json"]
+
+
+def test_a_value_that_is_not_a_number_is_argparses_usage_error(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--duration", "ten"])
+    assert exc.value.code == 2
+    assert "argument --duration: invalid float value: 'ten'" in capsys.readouterr().err
+
+
+# -- the command (bench) -----------------------------------------------------------------
+
+
+def soak(tmp_path, *args: str) -> tuple[int, str, dict]:
+    beside = Path(sys.executable).parent / "pisc_soak"
+    command = [str(beside)] if beside.exists() else [sys.executable, "-m", "pisc_bringup.soak"]
+    out = tmp_path / "soak"
+    started = time.monotonic()
+    done = subprocess.run([*command, *args, "--out", str(out)], capture_output=True,
+                          text=True, timeout=600)
+    print(done.stdout, done.stderr, f"({time.monotonic() - started:.0f} s)")
+    assert done.returncode in (0, 1), done.stderr
+    report = json.loads((out / "report.json").read_text())
+    assert (done.returncode == 0) == (report["missed_targets"] == [])
+    for line in report["missed_targets"]:
+        assert f"target missed          {line}" in done.stdout
+    return done.returncode, done.stdout, report
+
+
+def check_common(report: dict, duration_s: float, processes: set[str]) -> None:
+    lat = report["latency"]
+    assert 0 < lat["median_ms"] <= lat["p99_ms"] <= lat["p999_ms"] <= lat["max_ms"]
+    assert lat["cycles"] == report["cycles"]["completed"]
+    assert report["cycles"]["completed"] <= report["cycles"]["expected"]
+    # the span is the run: --duration of 5 ms cycles, one more for both ends
+    assert abs(report["cycles"]["expected"] - (duration_s / 0.005 + 1)) < 40
+    assert set(report["processes"]) == processes
+    for usage in report["processes"].values():
+        assert usage["window_s"] == pytest.approx(duration_s - 10.0, abs=2.5)
+        assert 0.0 < usage["cpu_percent"] < 200.0 and usage["rss_start_mb"] > 10.0
+    assert report["caught_at_s"] is not None
+
+
+@pytest.mark.bench
+def test_soak_of_the_simulated_plant_prints_its_figures(tmp_path):
+    rc, output, report = soak(tmp_path, "--duration", "20")
+    check_common(report, 20.0, {"graph", "recorder"})
+    assert report["nodes_cpu_percent"] == report["processes"]["graph"]["cpu_percent"]
+    assert "sample-to-voltage      median" in output and "p99.9" in output
+
+
+@pytest.mark.bench
+def test_soak_through_the_driver_with_faults_loses_nothing_the_observer_saw(tmp_path):
+    realtime = ["--realtime", "40"] if _fifo_allowed() else []
+    rc, output, report = soak(tmp_path, "--driver", "--faults", "--duration", "20",
+                              *realtime)
+    check_common(report, 20.0, {"graph", "recorder", "driver", "virtual rig"})
+    observer = report["observer"]
+    samples = observer["/pisc/joint_states"]
+    # the observer received (nearly) every sample of the run, and the bag holds each
+    assert samples["observed"] >= 0.9 * report["cycles"]["expected"]
+    assert all(seen["missing_from_bag"] == 0 for seen in observer.values()), observer
+    assert observer["/pisc/motor/current"]["observed"] == samples["observed"]
+    assert observer["/diagnostics"]["observed"] >= 10  # the driver's, at least 1 per second
+    (silence,) = report["recoveries"]  # one minute's silence, 12-16 s into the run
+    assert 12.0 <= silence["requested_s"] < 16.0
+    assert 0.19 <= silence["silent_s"] <= 0.30
+    assert report["rig"]["dropped"] > 0 and report["garbage_bursts"]
+
+
+def _fifo_allowed() -> bool:
+    try:
+        done = subprocess.run([sys.executable, "-c", "import os; os.sched_setscheduler(0, "
+                               "os.SCHED_FIFO, os.sched_param(40))"], capture_output=True)
+    except OSError:
+        return False
+    return done.returncode == 0
