@@ -610,7 +610,7 @@ def run(options: SoakOptions, out: Path, domain_id: int,
                     _, request = pending.pop(0)
                     rig.request(**request)
                     record.sent.append((time.time(), request))
-            time.sleep(0.005)
+            time.sleep(0.005 if pending else 0.05)  # a fault due, else only the samples
         record.graph_status = graph.returncode
         if observer is not None:
             time.sleep(1.0)  # what is still in flight reaches the observer
