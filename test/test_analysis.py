@@ -15,7 +15,7 @@ from pisc_bringup.analysis import CSV_COLUMNS, PLOTS, UPRIGHT_RAD, analyse_bag
 from pisc_bringup.bag import read_bag
 from pisc_msgs_py.convert import motor_sample_from_msg
 from pisc_msgs_py.topics import VOLTAGE
-from pisc_plant.dynamics import wrap_to_upright
+from pisc_model.dynamics import wrap_to_upright
 
 pytestmark = pytest.mark.bag
 

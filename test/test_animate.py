@@ -22,7 +22,7 @@ from pisc_bringup.animate import (
 )
 from pisc_bringup.bag_cli import main as pisc_bag
 from pisc_msgs_py.types import Mode
-from pisc_plant.dynamics import wrap_to_upright
+from pisc_model.dynamics import wrap_to_upright
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "default-swingup"
 

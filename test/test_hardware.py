@@ -15,7 +15,7 @@ import pytest
 
 from pisc_driver.driver import ZERO, DriverCore, DriverParams
 from pisc_driver.link import SerialLink
-from pisc_plant.params import ActuatorParams, SensorParams
+from pisc_model.params import ActuatorParams, SensorParams
 
 PORT = os.environ.get("PISC_SERIAL_PORT")
 

@@ -23,7 +23,7 @@ from pisc_bringup.markers import (
 from pisc_control.supervisor import SafetyParams
 from pisc_msgs_py.config import ConfigError, from_flat
 from pisc_msgs_py.types import Mode
-from pisc_plant.params import RigParams, TrackParams
+from pisc_model.params import RigParams, TrackParams
 
 L = 0.0865  # Table 6.1's l (RigParams' default); the drawn rod is 2 l long
 SCENE = MarkerScene.of(RigParams(), TrackParams(), SafetyParams())

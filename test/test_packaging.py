@@ -18,9 +18,10 @@ EXECUTABLES = {
     "pisc_control": ["estimator_node", "supervisor_node", "current_loop_node"],
     "pisc_bringup": ["pisc_graph", "pisc_record", "pisc_bag", "pisc_scene",
                      "pisc_integrators", "pisc_batch_bench", "pisc_robustness", "pisc_tune",
-                     "markers_node"],
+                     "markers_node", "pisc_parser_bench"],
     "pisc_msgs_py": [],
-    "pisc_driver": ["driver_node", "pisc_parser_bench"],
+    "pisc_driver": ["driver_node"],
+    "pisc_model": [],
     "pisc_analysis": ["pisc_analysis"],
 }
 

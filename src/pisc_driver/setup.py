@@ -21,7 +21,6 @@ setup(
     entry_points={
         'console_scripts': [
             'driver_node = pisc_driver.driver_node:main',
-            'pisc_parser_bench = pisc_driver.bench:main',
         ],
     },
 )

@@ -8,7 +8,7 @@
 * Seed 001 section 5: M = 2 kg, m = 0.1 kg, l = 0.5 m, g = 9.81 with the gain placed
   at -1 +- sqrt(3) j, -5, -5, from x(0) = 0.2 m, theta(0) = 0.1 rad.
 
-Both integrate the nonlinear model (SPEC section 2, :func:`pisc_plant.dynamics.
+Both integrate the nonlinear model (SPEC section 2, :func:`pisc_model.dynamics.
 accelerations`, equal to the symbolic model) and its linearisation about upright
 (3.41)-(3.42) with SciPy's DOP853 at tight tolerances, and report the largest
 difference per state and when it occurs.
@@ -24,8 +24,8 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from pisc_analysis.linear import bass_gura_gain
-from pisc_plant.dynamics import accelerations, linearise_upright
-from pisc_plant.params import RigParams
+from pisc_model.dynamics import accelerations, linearise_upright
+from pisc_model.params import RigParams
 
 __all__ = [
     "Comparison",

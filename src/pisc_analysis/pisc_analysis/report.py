@@ -34,8 +34,8 @@ from pisc_bringup.configuration import GraphConfig, load_graph_config
 from pisc_control.catch import catch_gain
 from pisc_control.swing_up import SwingUpParams, gain_condition
 from pisc_msgs_py.config import ConfigError, parse_overrides
-from pisc_plant.dynamics import linearise_upright
-from pisc_plant.params import RigParams
+from pisc_model.dynamics import linearise_upright
+from pisc_model.params import RigParams
 
 __all__ = ["Report", "SpecCheck", "build_report", "main", "spec_section6_checks"]
 

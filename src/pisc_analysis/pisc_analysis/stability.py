@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike
 
 from pisc_analysis.symbolic import MechanicalSystem
 from pisc_control.current_loop import CurrentLoopParams
-from pisc_plant.params import MotorParams
+from pisc_model.params import MotorParams
 
 __all__ = [
     "KrasovskiiResult",

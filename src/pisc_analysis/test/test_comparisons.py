@@ -11,7 +11,7 @@ from pisc_analysis.comparisons import (
     seed000_comparison,
     seed001_comparison,
 )
-from pisc_plant.dynamics import linearise_upright
+from pisc_model.dynamics import linearise_upright
 
 
 @pytest.fixture(scope="module")

@@ -18,8 +18,8 @@ from pisc_analysis.linear import (
     place_gain,
 )
 from pisc_analysis.symbolic import cart_pole
-from pisc_plant.dynamics import linearise_upright
-from pisc_plant.params import RigParams
+from pisc_model.dynamics import linearise_upright
+from pisc_model.params import RigParams
 
 THESIS_POLES = [-15.0, -11.0, -2.0, -1.5]
 SEED001_POLES = [-1 + math.sqrt(3) * 1j, -1 - math.sqrt(3) * 1j, -5.0, -5.0]

@@ -21,7 +21,7 @@ from pisc_analysis.stability import (
 )
 from pisc_analysis.symbolic import cart_pole
 from pisc_control.current_loop import CurrentLoopParams, CurrentLoopState, current_loop_update
-from pisc_plant.params import MotorParams
+from pisc_model.params import MotorParams
 from pisc_plant.plant import Plant, PlantConfig
 
 MOTOR = MotorParams()

@@ -10,8 +10,8 @@ from pisc_analysis.symbolic import (
     cart_pole_hand_accelerations,
     numeric_state_space,
 )
-from pisc_plant.dynamics import accelerations
-from pisc_plant.params import RigParams
+from pisc_model.dynamics import accelerations
+from pisc_model.params import RigParams
 
 
 @pytest.fixture(scope="module", params=[True, False], ids=["with_I", "point_mass"])

@@ -58,8 +58,8 @@ from pisc_msgs_py.topics import (
     VOLTAGE,
 )
 from pisc_msgs_py.types import Mode
-from pisc_plant.dynamics import wrap_to_upright
-from pisc_plant.params import LoopParams
+from pisc_model.dynamics import wrap_to_upright
+from pisc_model.params import LoopParams
 
 __all__ = [
     "CSV_COLUMNS",

@@ -39,7 +39,7 @@ from pisc_msgs_py.config import ConfigError, from_flat, load_params_file
 from pisc_msgs_py.convert import MessageError, cart_force_from_msg
 from pisc_msgs_py.topics import CART_FORCE
 from pisc_msgs_py.types import Mode
-from pisc_plant.params import RigParams, TrackParams
+from pisc_model.params import RigParams, TrackParams
 
 __all__ = ["MODE_COLOURS", "Animator", "RunFrames", "frame_cycles", "load_run", "rod_end"]
 

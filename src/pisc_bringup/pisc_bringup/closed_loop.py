@@ -21,7 +21,7 @@ from pisc_control.current_loop import CurrentLoopState, current_loop_update, cur
 from pisc_control.estimator import EstimatorState, estimator_update
 from pisc_control.supervisor import Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
-from pisc_plant.dynamics import wrap_to_upright
+from pisc_model.dynamics import wrap_to_upright
 from pisc_plant.plant import THETA, Plant, PlantConfig, X
 from pisc_plant.sampled import SampledPlant
 

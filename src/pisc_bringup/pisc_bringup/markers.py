@@ -46,7 +46,7 @@ from pisc_bringup.animate import (
 from pisc_control.supervisor import SafetyParams
 from pisc_msgs_py.config import one_of, param, positive
 from pisc_msgs_py.types import Mode
-from pisc_plant.params import RigParams, TrackParams
+from pisc_model.params import RigParams, TrackParams
 
 __all__ = ["MARKER_IDS", "SOURCES", "MarkerFeed", "MarkerScene", "MarkerSpec", "MarkersParams",
            "RigFrame", "rig_markers"]

@@ -29,7 +29,7 @@ from pisc_msgs_py.convert import (
     true_state_from_msg,
 )
 from pisc_msgs_py.topics import CART_FORCE, JOINT_STATES, MARKERS, MODE, SIM_STATE
-from pisc_plant.params import RigParams, TrackParams
+from pisc_model.params import RigParams, TrackParams
 
 SECTIONS = {"markers": MarkersParams, "rig": RigParams, "track": TrackParams,
             "safety": SafetyParams}

@@ -26,7 +26,7 @@ from pisc_bringup.closed_loop import simulate_batch
 from pisc_bringup.configuration import SECTIONS, GraphConfig
 from pisc_bringup.uncertainty import LATENCY, Distribution, Draws
 from pisc_msgs_py.config import from_flat, to_flat
-from pisc_plant.params import InitialParams
+from pisc_model.params import InitialParams
 from pisc_plant.plant import PlantConfig, plant_set
 
 __all__ = ["CHUNK_DRAWS", "FAILURES", "Criteria", "Outcomes", "base_plant",

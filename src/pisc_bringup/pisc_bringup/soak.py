@@ -656,7 +656,7 @@ def analyse(options: SoakOptions, out: Path, record: RunRecord) -> dict[str, Any
     from pisc_msgs_py.topics import (
         CURRENT_SETPOINT, DIAGNOSTICS, JOINT_STATES, MODE, MOTOR_CURRENT, SIM_STATE,
         VOLTAGE)
-    from pisc_plant.dynamics import wrap_to_upright
+    from pisc_model.dynamics import wrap_to_upright
 
     bag = out / "bag"
     joints: dict[int, tuple[int | None, float, float]] = {}

@@ -35,7 +35,7 @@ from pisc_msgs_py.topics import (
     VOLTAGE,
 )
 from pisc_msgs_py.types import Mode
-from pisc_plant.dynamics import wrap_to_upright
+from pisc_model.dynamics import wrap_to_upright
 
 __all__ = ["HoldCriteria", "RunSummary", "summarise", "summarise_bag"]
 

@@ -42,7 +42,7 @@ import yaml
 
 from pisc_bringup.configuration import CONFIG_DIR, SECTIONS, GraphConfig, check_plant_overrides
 from pisc_msgs_py.config import ConfigError, find_file, flatten, from_flat, load_keyed_yaml
-from pisc_plant.params import (
+from pisc_model.params import (
     ActuatorParams,
     FrictionParams,
     InitialParams,

@@ -10,7 +10,7 @@ from pisc_bringup.closed_loop import simulate, simulate_batch
 from pisc_bringup.scene import DEFAULT_SCENE, load_scene, scene_names
 from pisc_bringup.scene_cli import main as scene_main
 from pisc_msgs_py.config import ConfigError
-from pisc_plant.dynamics import wrap_to_upright
+from pisc_model.dynamics import wrap_to_upright
 from pisc_plant.plant import Plant
 
 

@@ -9,8 +9,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_msgs_py.config import ConfigError, finite, nonnegative, one_of, param, positive
-from pisc_plant.dynamics import linearise_upright, wrap_to_upright
-from pisc_plant.params import RigParams
+from pisc_model.dynamics import linearise_upright, wrap_to_upright
+from pisc_model.params import RigParams
 
 __all__ = ["CatchParams", "catch_force", "catch_gain"]
 

@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_msgs_py.config import in_range, nonnegative, param, positive
-from pisc_plant.params import MotorParams
+from pisc_model.params import MotorParams
 
 __all__ = [
     "CurrentLoopParams",

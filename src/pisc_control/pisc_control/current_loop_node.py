@@ -21,7 +21,7 @@ from pisc_msgs_py.convert import (
 from pisc_msgs_py.sync import StampPairer
 from pisc_msgs_py.topics import CART_FORCE, CURRENT_SETPOINT, MODE, MOTOR_CURRENT, VOLTAGE
 from pisc_msgs_py.types import CartForce, Mode, MotorSample
-from pisc_plant.params import LoopParams, MotorParams
+from pisc_model.params import LoopParams, MotorParams
 
 DIAGNOSTIC_EVERY = 200
 

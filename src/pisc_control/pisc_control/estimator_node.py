@@ -9,7 +9,7 @@ from pisc_msgs_py.base_node import ERROR, OK, PiscNode, run_node
 from pisc_msgs_py.convert import MessageError, joint_sample_from_msg, state_to_msg
 from pisc_msgs_py.topics import JOINT_STATES, STATE
 from pisc_msgs_py.types import StateEstimate
-from pisc_plant.params import LoopParams
+from pisc_model.params import LoopParams
 
 DIAGNOSTIC_EVERY = 200  # samples between routine diagnostics (1 s at 5 ms)
 

@@ -20,8 +20,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_msgs_py.config import ConfigError, finite, nonnegative, one_of, param, positive
-from pisc_plant.dynamics import energy
-from pisc_plant.params import RigParams
+from pisc_model.dynamics import energy
+from pisc_model.params import RigParams
 
 __all__ = ["LAWS", "SwingUpParams", "check_gain_condition", "energy_pump_force", "gain_condition",
            "pendulum_energy", "swing_up_force"]
@@ -109,7 +109,7 @@ def swing_up_force(
     E_ref = 0 this is the thesis's law; the Lyapunov function (2.52) with (E - E_ref)^2
     gives the same derivation because dE/dt = x_dot f (2.57) does not depend on E_ref.
     Under (3.29) the denominator is positive for every state, because E >= -2 m g l
-    for any velocities (see :func:`pisc_plant.dynamics.energy`) and
+    for any velocities (see :func:`pisc_model.dynamics.energy`) and
     a2 - a1 cos^2 <= a2.
     """
     if target_m is None:

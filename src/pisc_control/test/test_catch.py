@@ -8,8 +8,8 @@ from scipy.linalg import solve_continuous_are
 
 from pisc_control.catch import CatchParams, catch_force, catch_gain
 from pisc_msgs_py.config import ConfigError
-from pisc_plant.dynamics import linearise_upright
-from pisc_plant.params import RigParams
+from pisc_model.dynamics import linearise_upright
+from pisc_model.params import RigParams
 
 RIG = RigParams()
 

@@ -9,7 +9,7 @@ from pisc_control.current_loop import (
     current_loop_update,
     current_setpoint,
 )
-from pisc_plant.params import MotorParams
+from pisc_model.params import MotorParams
 
 P = CurrentLoopParams()
 TS = 0.005

@@ -124,7 +124,7 @@ def test_the_energy_band_catches_only_a_pendulum_that_can_coast_up():
     towards upright it is +0.07 mJ. A 0.2 mJ band catches the second only; once
     catching, only (4.1)'s exit threshold lets go."""
     from pisc_control.swing_up import pendulum_energy
-    from pisc_plant.params import RigParams
+    from pisc_model.params import RigParams
 
     rig = RigParams()
     assert float(pendulum_energy(rig, 0.3, 0.0)) == pytest.approx(-4.0e-4, rel=0.01)

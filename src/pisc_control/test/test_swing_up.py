@@ -14,8 +14,8 @@ from pisc_control.swing_up import (
     swing_up_force,
 )
 from pisc_msgs_py.config import ConfigError
-from pisc_plant.dynamics import accelerations, energy
-from pisc_plant.params import RigParams
+from pisc_model.dynamics import accelerations, energy
+from pisc_model.params import RigParams
 
 RIG = RigParams()
 THESIS = SwingUpParams()

@@ -44,7 +44,7 @@ from pisc_driver.protocol import (
 )
 from pisc_msgs_py.config import any_value, in_range, param
 from pisc_msgs_py.watchdog import CommandWatchdog
-from pisc_plant.params import ActuatorParams, SensorParams
+from pisc_model.params import ActuatorParams, SensorParams
 
 __all__ = ["DriverCore", "DriverParams", "Measurement", "Trip", "ZERO"]
 

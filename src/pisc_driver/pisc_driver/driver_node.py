@@ -40,7 +40,7 @@ from pisc_msgs_py.convert import (
 from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE
 from pisc_msgs_py.types import JointSample, MotorSample
 from pisc_msgs_py.watchdog import CHAIN, PublisherPin, listed_publishers, silent_stage_report
-from pisc_plant.params import ActuatorParams, LoopParams, SensorParams
+from pisc_model.params import ActuatorParams, LoopParams, SensorParams
 
 SECTIONS = {"driver": DriverParams, "sensors": SensorParams, "actuator": ActuatorParams,
             "loop": LoopParams}

@@ -29,8 +29,8 @@ import struct
 from dataclasses import dataclass, field
 
 from pisc_msgs_py.config import in_range, param, positive
-from pisc_plant import sensors
-from pisc_plant.params import ActuatorParams, SensorParams
+from pisc_model import sensors
+from pisc_model.params import ActuatorParams, SensorParams
 
 __all__ = [
     "FRAME_LENGTH",

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from pisc_driver.driver import ZERO, DriverCore, DriverParams, Trip
-from pisc_plant.params import ActuatorParams, SensorParams
-from pisc_plant.sensors import decode
+from pisc_model.params import ActuatorParams, SensorParams
+from pisc_model.sensors import decode
 
 MS = 1_000_000
 

@@ -22,7 +22,7 @@ from pisc_driver.protocol import (
     unwrap_count,
     wrap_count,
 )
-from pisc_plant.params import ActuatorParams, SensorParams
+from pisc_model.params import ActuatorParams, SensorParams
 
 STEP_V = 11.47 / 127  # one magnitude step, 0.0903 V
 

@@ -5,7 +5,7 @@ import math
 import pytest
 
 from pisc_msgs_py.config import ConfigError, describe, from_flat, load_params_file, to_flat
-from pisc_plant.params import RigParams, TrackParams
+from pisc_model.params import RigParams, TrackParams
 
 
 def test_round_trip_through_dotted_names():

@@ -1,9 +1,8 @@
-"""The PISC rig simulator: cart-pole with pendulum inertia, DC motor, sensors, end stops.
-
-Pure numpy cores (:mod:`.dynamics`, :mod:`.motor`, :mod:`.sensors`,
-:mod:`.integrators`, :mod:`.plant`), the rclpy shell :mod:`.plant_node`, and the
-virtual rig :mod:`.virtual_rig` (the plant behind a pseudo-terminal, speaking the PIC's
-serial protocol).
+"""The PISC rig simulator: the compiled plant kernel (:mod:`.kernel`), the plant and plant
+sets (:mod:`.plant`), sampling (:mod:`.sampled`), the rclpy shell :mod:`.plant_node`, and
+the virtual rig :mod:`.virtual_rig` (the plant behind a pseudo-terminal, speaking the
+PIC's serial protocol). The model it simulates (parameters, dynamics, motor, sensors) is
+the package ``pisc_model``.
 """
 
-__all__ = ["dynamics", "integrators", "motor", "params", "plant", "sensors"]
+__all__ = ["kernel", "plant", "sampled"]

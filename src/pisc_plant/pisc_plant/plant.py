@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike
 
 from pisc_msgs_py.config import ConfigError, in_range, one_of, param
 from pisc_plant import kernel, sensors
-from pisc_plant.params import (
+from pisc_model.params import (
     ActuatorParams,
     FrictionParams,
     LoopParams,

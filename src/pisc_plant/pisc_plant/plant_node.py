@@ -69,7 +69,7 @@ from pisc_msgs_py.watchdog import (
     listed_publishers,
     silent_stage_report,
 )
-from pisc_plant.params import (
+from pisc_model.params import (
     InitialParams,
 )
 from pisc_plant.plant import PLANT_SECTIONS, Plant, PlantConfig

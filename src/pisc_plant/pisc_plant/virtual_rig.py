@@ -7,7 +7,7 @@
 It prints ``device /dev/pts/N``: give that path to the driver (``driver.port``). Every
 5 ms it sends the frame ``0xAA, IR_hi, IR_lo, CUR_hi, CUR_lo, CNT_hi, CNT_lo`` of the
 simulated state, encoded through the inverse calibrations and quantised like the real
-converters (:mod:`pisc_plant.sensors`); each command byte is applied the moment it
+converters (:mod:`pisc_model.sensors`); each command byte is applied the moment it
 arrives, as the firmware does: PWM duty ``magnitude << 1``, bit 7 the direction, the
 duty 254 giving the full-scale voltage (SPEC section 4).
 
@@ -64,7 +64,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from pisc_msgs_py.config import ConfigError, from_flat, load_params_file, parse_overrides
-from pisc_plant.params import (
+from pisc_model.params import (
     InitialParams,
 )
 from pisc_plant.plant import (

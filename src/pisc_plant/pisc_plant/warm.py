@@ -23,7 +23,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from pisc_plant.params import ModelParams
+from pisc_model.params import ModelParams
 
 __all__ = ["LAYOUTS", "SCOPES", "layout_models", "steps", "warm_up"]
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from pisc_plant.dynamics import energy
+from pisc_model.dynamics import energy
 from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
 
 __all__ = [

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from pisc_plant.dynamics import energy, wrap_to_upright
-from pisc_plant.params import ModelParams, MotorParams, NoiseParams, TrackParams
+from pisc_model.dynamics import energy, wrap_to_upright
+from pisc_model.params import ModelParams, MotorParams, NoiseParams, TrackParams
 from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
 
 CONSERVATIVE = ModelParams(armature="ideal_force", current_loop="ideal", sensors="ideal",

@@ -12,8 +12,8 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
 from pisc_plant import kernel
-from pisc_plant.dynamics import accelerations
-from pisc_plant.params import FrictionParams, ModelParams
+from pisc_model.dynamics import accelerations
+from pisc_model.params import FrictionParams, ModelParams
 from pisc_plant.plant import IntegratorParams, Plant, PlantConfig, pack_constants
 
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from pisc_msgs_py.config import ConfigError
-from pisc_plant import motor as motor_model
-from pisc_plant.dynamics import energy
-from pisc_plant.params import MotorParams, RigParams, TrackParams
+from pisc_model import motor as motor_model
+from pisc_model.dynamics import energy
+from pisc_model.params import MotorParams, RigParams, TrackParams
 from pisc_plant.plant import (
     THETA,
     THETA_DOT,
@@ -155,7 +155,7 @@ def test_a_simulated_command_latency_applies_the_voltage_that_long_into_the_peri
     period on a plant without it, and unlike a command applied at once."""
     import dataclasses
 
-    from pisc_plant.params import ActuatorParams
+    from pisc_model.params import ActuatorParams
 
     plain = Plant(PlantConfig())
     late = Plant(dataclasses.replace(PlantConfig(),

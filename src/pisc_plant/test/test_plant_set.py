@@ -9,7 +9,7 @@ import pytest
 
 from pisc_msgs_py.config import ConfigError
 from pisc_plant import kernel
-from pisc_plant.params import FrictionParams, ModelParams, NoiseParams
+from pisc_model.params import FrictionParams, ModelParams, NoiseParams
 from pisc_plant.plant import IntegratorParams, Plant, PlantConfig, plant_set, rigs_of
 
 PERIOD = 0.005

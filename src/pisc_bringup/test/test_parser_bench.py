@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pisc_driver.bench import (
+from pisc_bringup.parser_bench import (
     ADVERSARIAL_COUNTS,
     adversarial_frames,
     damage,

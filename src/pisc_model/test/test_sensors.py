@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from pisc_plant import sensors
-from pisc_plant.params import ActuatorParams, SensorParams
+from pisc_model import sensors
+from pisc_model.params import ActuatorParams, SensorParams
 
 S = SensorParams()
 

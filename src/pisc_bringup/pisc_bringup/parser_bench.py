@@ -51,7 +51,7 @@ from pisc_driver.protocol import (
     encode_frame,
     wrap_count,
 )
-from pisc_plant.params import LoopParams
+from pisc_model.params import LoopParams
 from pisc_plant.plant import Plant, PlantConfig
 
 __all__ = ["ADVERSARIAL_COUNTS", "ParserScore", "adversarial_frames", "damage", "main",

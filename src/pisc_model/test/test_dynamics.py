@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from pisc_plant.dynamics import accelerations, energy, linearise_upright, wrap_to_upright
-from pisc_plant.params import RigParams
+from pisc_model.dynamics import accelerations, energy, linearise_upright, wrap_to_upright
+from pisc_model.params import RigParams
 
 RIG = RigParams()
 SEED001 = RigParams(cart_mass_kg=2.0, pendulum_mass_kg=0.1, pendulum_com_m=0.5,
