@@ -33,6 +33,7 @@ setup(
             'pisc_bag = pisc_bringup.bag_cli:main',
             'pisc_robustness = pisc_bringup.robustness_cli:main',
             'pisc_tune = pisc_bringup.tune_cli:main',
+            'pisc_identify = pisc_bringup.identify_cli:main',
             'pisc_soak = pisc_bringup.soak:main',
             'pisc_parser_bench = pisc_bringup.parser_bench:main',
         ],

@@ -25,6 +25,7 @@ import yaml
 from pisc_control.catch import CatchParams
 from pisc_control.current_loop import CurrentLoopParams
 from pisc_control.estimator import EstimatorParams
+from pisc_control.excitation import ExperimentParams
 from pisc_control.supervisor import (
     SafetyParams,
     StartupParams,
@@ -75,6 +76,7 @@ SECTIONS: dict[str, type] = {
     "noise": NoiseParams, "initial": InitialParams, "estimator": EstimatorParams,
     "swing_up": SwingUpParams, "catch": CatchParams, "switching": SwitchingParams,
     "startup": StartupParams, "safety": SafetyParams, "current_loop": CurrentLoopParams,
+    "experiment": ExperimentParams,
 }
 
 
@@ -148,7 +150,8 @@ def load_graph_config(
         estimator=s["estimator"],
         supervisor=SupervisorConfig(rig=s["rig"], swing_up=s["swing_up"], catch=s["catch"],
                                     switching=s["switching"], startup=s["startup"],
-                                    safety=s["safety"], loop=s["loop"]),
+                                    safety=s["safety"], loop=s["loop"],
+                                    experiment=s["experiment"]),
         current_loop=s["current_loop"],
     )
     return config, flat

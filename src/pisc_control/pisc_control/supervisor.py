@@ -14,6 +14,11 @@ Each sample the supervisor decides the mode and the force on the cart:
 * **fault** when the state is not finite or the cart leaves the safe range: the force
   is zero, the mode latches, and downstream the current loop commands zero volts.
 
+With ``experiment.kind`` set (:mod:`pisc_control.excitation`) the supervisor runs an
+identification experiment instead of swinging up and catching: the mode stays
+``swing_up`` (its report's reason names the experiment), the force is the
+experiment's, and the fault rules above still apply.
+
 Start-up: (3.30) gives f = 0 for a pendulum hanging at rest with the cart at the
 target, so a rig started there never moves; and from rest the thesis's own convergence
 argument does not apply (it needs V(0) < k_e (2 m g l)^2 / 2, section 3.2, which a
@@ -35,6 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_control.catch import CatchParams, catch_force, catch_gain
+from pisc_control.excitation import ExperimentParams, experiment_force
 from pisc_control.swing_up import (
     SwingUpParams,
     check_gain_condition,
@@ -42,10 +48,10 @@ from pisc_control.swing_up import (
     pendulum_energy,
     swing_up_force,
 )
+from pisc_model.dynamics import wrap_to_upright
+from pisc_model.params import LoopParams, RigParams
 from pisc_msgs_py.config import ConfigError, nonnegative, param, positive
 from pisc_msgs_py.types import Mode
-from pisc_plant.dynamics import wrap_to_upright
-from pisc_plant.params import LoopParams, RigParams
 
 __all__ = [
     "FAULT_NONE",
@@ -117,6 +123,7 @@ class SupervisorConfig:
     startup: StartupParams = field(default_factory=StartupParams)
     safety: SafetyParams = field(default_factory=SafetyParams)
     loop: LoopParams = field(default_factory=LoopParams)
+    experiment: ExperimentParams = field(default_factory=ExperimentParams)
 
 
 @dataclass(frozen=True)
@@ -128,6 +135,8 @@ class SupervisorState:
     startup_target_m: np.ndarray | None = None
     caught: np.ndarray | None = None  # has caught at least once
     catch_reference_m: np.ndarray | None = None  # the catch's cart reference (settling)
+    sample: np.ndarray | None = None  # experiments: index of the sample (their clock)
+    origin_m: np.ndarray | None = None  # experiments: the first measured position
 
 
 def switching_criterion(k_va: float, theta: ArrayLike, theta_dot: ArrayLike) -> np.ndarray:
@@ -183,6 +192,9 @@ class Supervisor:
                              np.where(~finite, FAULT_NOT_FINITE,
                                       np.where(~in_range, FAULT_OUT_OF_RANGE, FAULT_NONE)))
 
+        if c.experiment.kind != "none":
+            return self._experiment(state, new_fault, startup_target, caught, x, x_dot, shape)
+
         criterion = switching_criterion(c.switching.k_va, theta, theta_dot)
         catching = mode == Mode.CATCH.code
         threshold = np.where(catching, c.switching.delta_exit, c.switching.delta_s)
@@ -211,6 +223,29 @@ class Supervisor:
         force = np.where(np.isfinite(force), force, 0.0)
         return (SupervisorState(new_mode, new_fault, startup_target, caught, reference), force,
                 new_mode)
+
+    def _experiment(self, state: SupervisorState, fault: np.ndarray, startup_target: np.ndarray,
+                    caught: np.ndarray, x: np.ndarray, x_dot: np.ndarray, shape: tuple
+                    ) -> tuple[SupervisorState, np.ndarray, np.ndarray]:
+        """:meth:`update` during an experiment: its force, or none after a fault."""
+        c = self.config
+        sample = (np.zeros(shape, dtype=np.int64) if state.sample is None
+                  else state.sample + 1)
+        origin = np.broadcast_to(x, shape).copy() if state.origin_m is None else state.origin_m
+        with np.errstate(invalid="ignore", over="ignore"):
+            force = experiment_force(c.experiment, c.rig, (c.safety.x_min_m, c.safety.x_max_m),
+                                     sample * c.loop.period_s, x, x_dot, origin)
+        mode = np.where(fault != FAULT_NONE, Mode.FAULT.code, Mode.SWING_UP.code)
+        force = np.where((mode == Mode.FAULT.code) | ~np.isfinite(force), 0.0, force)
+        return (SupervisorState(mode, fault, startup_target, caught, state.catch_reference_m,
+                                sample, origin), force, mode)
+
+    def experiment_reason(self) -> str:
+        """What the mode report says during an experiment ("" without one)."""
+        e = self.config.experiment
+        if e.kind == "none":
+            return ""
+        return f"experiment: {e.kind}" + (f" ({e.signal})" if e.kind == "excitation" else "")
 
     def _catch_reference(self, state: SupervisorState, mode: np.ndarray, new_mode: np.ndarray,
                          x: np.ndarray) -> np.ndarray:

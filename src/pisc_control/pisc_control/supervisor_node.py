@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from pisc_control.catch import CatchParams
+from pisc_control.excitation import ExperimentParams
 from pisc_control.supervisor import (
     SafetyParams,
     StartupParams,
@@ -16,11 +17,11 @@ from pisc_control.supervisor import (
     SwitchingParams,
 )
 from pisc_control.swing_up import SwingUpParams
+from pisc_model.params import LoopParams, RigParams
 from pisc_msgs_py.base_node import ERROR, OK, PiscNode, run_node
 from pisc_msgs_py.convert import MessageError, cart_force_to_msg, mode_to_msg, state_from_msg
 from pisc_msgs_py.topics import CART_FORCE, MODE, STATE
 from pisc_msgs_py.types import CartForce, Mode, ModeReport
-from pisc_plant.params import LoopParams, RigParams
 
 SECTIONS = {
     "rig": RigParams,
@@ -30,6 +31,7 @@ SECTIONS = {
     "startup": StartupParams,
     "safety": SafetyParams,
     "loop": LoopParams,
+    "experiment": ExperimentParams,
 }
 
 
@@ -68,7 +70,9 @@ class SupervisorNode(PiscNode):
                 reason = supervisor.fault_reason(int(self._state.fault), state.position_m)
                 self.diagnose(ERROR, f"fault: {reason}; force set to 0", state.stamp_ns)
             else:
-                self.diagnose(OK, mode.value, state.stamp_ns)
+                reason = supervisor.experiment_reason()
+                self.diagnose(OK, mode.value + (f" ({reason})" if reason else ""),
+                              state.stamp_ns)
             self._mode_pub.publish(mode_to_msg(ModeReport(state.stamp_ns, mode, reason)))
             self._mode = mode
         out = cart_force_to_msg(CartForce(state.stamp_ns, float(force)))

@@ -1,0 +1,282 @@
+"""Identification (issue 14): the experiments' cores, the fit on simulated recordings,
+and pisc_identify on bags: what it writes, and how it refuses bad input."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from pisc_bringup import identify as idf
+from pisc_bringup.bag import BagWriter
+from pisc_bringup.closed_loop import simulate
+from pisc_bringup.configuration import load_graph_config, load_run_config
+from pisc_control.excitation import ExperimentParams, excitation_signal, experiment_force, prbs_bits
+from pisc_control.supervisor import Supervisor, SupervisorConfig, SupervisorState
+from pisc_model.params import RigParams
+from pisc_msgs_py.config import ConfigError, from_flat
+from pisc_msgs_py.topics import CLOCK, GRAPH_TOPICS, JOINT_STATES, MOTOR_CURRENT, VOLTAGE
+from pisc_msgs_py.types import Mode
+
+TS = get_typestore(Stores.ROS2_JAZZY)
+
+# a plant the controllers do not assume: the unknowns the excitation identifies
+TRUTH = {"models.friction": "coulomb", "motor.resistance_ohm": 16.1,
+         "motor.rotor_inertia_kgm2": 2.9e-6, "friction.cart_coulomb_n": 0.06,
+         "friction.cart_viscous_ns_per_m": 0.3, "friction.pivot_viscous_nms": 3e-5}
+
+
+# -- the experiments -----------------------------------------------------------------------
+
+
+def test_prbs_is_the_order_9_maximum_length_sequence():
+    bits = prbs_bits(1)
+    assert len(bits) == 511 and int(bits.sum()) == 256  # 2^(n-1) ones in a period
+    assert not np.array_equal(bits, prbs_bits(2))
+    # a maximum-length sequence visits every non-zero 9-bit window once a period
+    windows = {tuple(np.roll(bits, -k)[:9]) for k in range(511)}
+    assert len(windows) == 511
+
+
+def test_excitation_signals_are_bounded_and_start_late():
+    t = np.arange(0.0, 30.0, 0.005)
+    for signal in ("prbs", "chirp", "steps"):
+        p = ExperimentParams(kind="excitation", signal=signal, amplitude_n=1.5, start_s=0.5)
+        u = excitation_signal(p, t)
+        assert np.all(u[t < 0.5] == 0.0) and np.abs(u).max() <= 1.5 + 1e-12
+        assert np.abs(u[t >= 0.5]).max() > 1.4
+    prbs = excitation_signal(ExperimentParams(kind="excitation", amplitude_n=1.0, bit_s=0.05), t)
+    held = prbs[(t >= 0.5)].reshape(-1, 10)  # 50 ms bits of 10 samples
+    assert np.all(held == held[:, :1]) and set(np.unique(prbs[t >= 0.5])) == {-1.0, 1.0}
+    assert np.all(excitation_signal(ExperimentParams(kind="free_swing"), t) == 0.0)
+    with pytest.raises(ConfigError, match="experiment.chirp_end_hz"):
+        ExperimentParams(kind="excitation", signal="chirp", chirp_start_hz=5.0,
+                         chirp_end_hz=1.0)
+
+
+def test_the_guard_brakes_a_cart_that_would_stop_beyond_the_safe_range():
+    p = ExperimentParams(kind="excitation", amplitude_n=1.0, margin_m=0.05,
+                         position_k_x=0.0, position_k_v=0.0, start_s=0.0)
+    rig = RigParams()
+    limits = (-0.225, 0.125)
+    # moving fast towards the far end: braked whatever the sequence says
+    f = experiment_force(p, rig, limits, np.arange(0.0, 1.0, 0.005), -0.12, -0.6, 0.0)
+    assert np.all(f == 1.0)
+    f = experiment_force(p, rig, limits, np.arange(0.0, 1.0, 0.005), 0.05, 0.6, 0.0)
+    assert np.all(f == -1.0)
+    # free swing: the position loop holds the cart where the run began
+    hold = ExperimentParams(kind="free_swing", position_k_x=4.0, position_k_v=2.0)
+    assert experiment_force(hold, rig, limits, 1.0, 0.03, 0.0, 0.01) == pytest.approx(
+        -rig.a2 * 4.0 * 0.02)
+
+
+def test_the_supervisor_runs_the_experiment_and_keeps_its_fault_rules():
+    flat = {"experiment.kind": "excitation", "experiment.start_s": 0.0}
+    cfg = SupervisorConfig(experiment=from_flat(ExperimentParams, flat, "experiment"))
+    sup = Supervisor(cfg)
+    state = SupervisorState()
+    forces = []
+    for _ in range(40):  # hanging at rest: never a catch, the sequence's forces
+        state, force, mode = sup.update(state, 0.0, 0.0, math.pi, 0.0)
+        assert mode == Mode.SWING_UP.code
+        forces.append(float(force))
+    assert int(state.sample) == 39 and len(set(np.round(forces, 9))) > 1
+    assert sup.experiment_reason() == "experiment: excitation (prbs)"
+    # upright and still: a swing-up supervisor would catch, the experiment does not
+    _, _, mode = sup.update(state, 0.0, 0.0, 0.0, 0.0)
+    assert mode == Mode.SWING_UP.code
+    # out of the safe range: fault, no force, latched
+    state, force, mode = sup.update(state, 0.2, 0.0, math.pi, 0.0)
+    assert mode == Mode.FAULT.code and force == 0.0
+    state, force, mode = sup.update(state, 0.0, 0.0, math.pi, 0.0)
+    assert mode == Mode.FAULT.code and force == 0.0
+
+
+def test_the_excitation_scene_stays_inside_the_safe_range():
+    config, _, _ = load_run_config("default", {"experiment.kind": "excitation",
+                                               "experiment.amplitude_n": 1.5},
+                                   plant_overrides=TRUTH)
+    log = simulate(config, 20.0)
+    assert not np.any(log["mode"] == Mode.FAULT.code)
+    assert -0.225 < log["true_x"].min() and log["true_x"].max() < 0.125
+    assert np.abs(log["u"]).max() > 8.0  # the motor is driven hard
+
+
+# -- the fit ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def excitation_log():
+    config, _, _ = load_run_config("default", {"experiment.kind": "excitation",
+                                               "experiment.amplitude_n": 1.5},
+                                   plant_overrides=TRUTH)
+    return config, simulate(config, 20.0)
+
+
+def recording_of(log, **kwargs) -> idf.Recording:
+    return idf.recording_from_arrays("sim", 0.005, log["x"], log["theta"], log["i"], log["u"],
+                                     experiment="excitation", **kwargs)
+
+
+def test_identify_recovers_the_plant_of_a_simulated_excitation(excitation_log):
+    config, log = excitation_log
+    fit = idf.parse_fit("R,J_m,cart_coulomb,cart_viscous,pivot_viscous")
+    result = idf.identify([recording_of(log)], fit, config.plant)  # the nominal model's start
+    print(idf.format_report(result))
+    got = {e.unknown.name: e for e in result.estimates}
+    assert set(got) == {u.name for u in fit}
+    for name, tolerance in (("motor.resistance_ohm", 0.01), ("motor.rotor_inertia_kgm2", 0.05),
+                            ("friction.cart_coulomb_n", 0.05),
+                            ("friction.cart_viscous_ns_per_m", 0.05),
+                            ("friction.pivot_viscous_nms", 0.05)):
+        e = got[name]
+        assert abs(e.value - TRUTH[name]) <= tolerance * TRUTH[name], (name, e)
+        assert e.low < e.value < e.high
+    # the residual is the sensors' quantisation: nothing else is left
+    assert np.all(result.residual_rms < 0.35)
+    assert not result.segments.left_out
+
+
+def test_l_with_an_unknown_delay_is_reported_not_identifiable(excitation_log):
+    config, log = excitation_log
+    result = idf.identify([recording_of(log)], idf.parse_fit("R,L,delay"), config.plant)
+    assert "L" in [e.unknown.key for e in result.not_identifiable]
+    assert "L" not in [e.unknown.key for e in result.estimates]
+    assert "acts only as a delay" in idf.format_report(result)
+
+
+def test_segments_at_an_end_stop_or_after_a_gap_are_left_out_and_said_so(excitation_log):
+    config, log = excitation_log
+    x = log["x"].copy()
+    s = config.plant.sensors
+    from pisc_model import sensors
+
+    # the IR code saturated at the sensor's end for 50 ms: the cart at the stop
+    x[1000:1010] = sensors.ir_position(s, sensors.adc_voltage(s, s.adc_levels - 1))
+    stamps_ok = recording_of({**{k: log[k] for k in ("theta", "i", "u")}, "x": x})
+    segments = idf.make_segments([stamps_ok], s, 0.005)
+    reasons = {reason for *_, reason in segments.left_out}
+    assert reasons == {"the cart at an end stop (IR reading saturated)"}
+    # a missing sample breaks the run: no segment spans it
+    rec = recording_of(log)
+    keep = np.ones(len(rec.stamps_ns), dtype=bool)
+    keep[2000] = False
+    gap = idf.Recording(rec.name, rec.stamps_ns[keep], rec.x[keep], rec.theta[keep],
+                        rec.current[keep], rec.voltage[keep], rec.latency_s[keep], False)
+    segments = idf.make_segments([gap], s, 0.005)
+    assert any(r == "a sample missing or out of time" for *_, r in segments.left_out)
+    assert all(not (f < 2000 < f + n) for f, n in zip(segments.first, segments.size,
+                                                      strict=True))
+
+
+def test_a_fit_without_voltage_or_with_an_unknown_name_is_refused(excitation_log):
+    config, log = excitation_log
+    zero = recording_of({"x": log["x"], "theta": log["theta"], "i": log["i"],
+                         "u": np.zeros_like(log["u"])})
+    with pytest.raises(idf.IdentifyError, match="the recorded voltage is zero throughout"):
+        idf.identify([zero], idf.parse_fit("R"), config.plant)
+    with pytest.raises(idf.IdentifyError, match="--fit Rm: no such parameter"):
+        idf.parse_fit("R,Rm")
+
+
+# -- pisc_identify on bags -------------------------------------------------------------
+
+
+def _cdr(type_name: str, stamp_ns: int, names: list[str], **fields) -> bytes:
+    msg = TS.types[type_name]
+    header = TS.types["std_msgs/msg/Header"](
+        stamp=TS.types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9,
+                                                      nanosec=stamp_ns % 10**9), frame_id="")
+    empty = np.array([], dtype=float)
+    values = {"position": empty, "velocity": empty, "effort": empty}
+    values.update({k: np.asarray(v, dtype=float) for k, v in fields.items()})
+    return bytes(TS.serialize_cdr(msg(header=header, name=names, **values), type_name))
+
+
+def write_bag(path, log, topics=(JOINT_STATES, MOTOR_CURRENT, VOLTAGE), voltage=None):
+    """A bag of a simulated run's measurements and voltages (lockstep stamps)."""
+    writer = BagWriter(path, list(topics) + [CLOCK])
+    js = "sensor_msgs/msg/JointState"
+    u = log["u"] if voltage is None else voltage
+    for k in range(len(log["x"])):
+        stamp = k * 5_000_000
+        wall = 1_800_000_000_000_000_000 + k * 2_000_000
+        if JOINT_STATES in topics:
+            writer.write(JOINT_STATES.name, _cdr(js, stamp, ["cart", "pendulum"],
+                                                 position=[log["x"][k], log["theta"][k]]),
+                         wall, wall)
+        if MOTOR_CURRENT in topics:
+            writer.write(MOTOR_CURRENT.name, _cdr(js, stamp, ["motor"], effort=[log["i"][k]]),
+                         wall, wall)
+        if VOLTAGE in topics:
+            writer.write(VOLTAGE.name, _cdr(js, stamp, ["motor"], effort=[u[k]]), wall + 500,
+                         wall + 500)
+    writer.close()
+    return path
+
+
+def run_identify(*args):
+    return subprocess.run([sys.executable, "-m", "pisc_bringup.identify_cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_pisc_identify_writes_a_parameter_file_the_tools_accept(tmp_path, excitation_log):
+    config, log = excitation_log
+    bag = write_bag(tmp_path / "run", {k: log[k][:3001] for k in ("x", "theta", "i", "u")})
+    out = tmp_path / "identified.yaml"
+    done = run_identify(bag, "--config", "default", "--out", out, "--fit",
+                        "R,J_m,cart_coulomb,cart_viscous,pivot_viscous")
+    assert done.returncode == 0, done.stderr
+    print(done.stdout)
+    assert "95 % interval" in done.stdout and "residual RMS" in done.stdout
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    graph, flat = load_graph_config(str(out))  # pisc_robustness and pisc_tune read it so
+    assert graph.supervisor.experiment.kind == "none"  # a configuration that swings up
+    assert graph.plant.models.friction == "coulomb"
+    assert graph.plant.motor.resistance_ohm == pytest.approx(16.1, rel=0.01)
+    run, _, _ = load_run_config("default", plant=str(out))  # ./pisc run --plant-config
+    assert run.true_plant.friction.cart_coulomb_n == pytest.approx(0.06, rel=0.1)
+
+
+@pytest.mark.parametrize("case", ["no measured topics", "zero voltage", "unknown parameter",
+                                  "no convergence", "not a bag"])
+def test_pisc_identify_refuses_bad_input_without_a_traceback_and_writes_nothing(
+        tmp_path, excitation_log, case):
+    config, log = excitation_log
+    short = {k: log[k][:1001] for k in ("x", "theta", "i", "u")}
+    args: list = ["--config", "default"]
+    if case == "no measured topics":
+        bag = write_bag(tmp_path / "run", short, topics=(VOLTAGE,))
+        expect, status = "the bag has no /pisc/joint_states and no /pisc/motor/current", 2
+    elif case == "zero voltage":
+        bag = write_bag(tmp_path / "run", short, voltage=np.zeros(1001))
+        expect, status = "the recorded voltage is zero throughout", 2
+    elif case == "unknown parameter":
+        bag = write_bag(tmp_path / "run", short)
+        args += ["--fit", "R,inertia"]
+        expect, status = "--fit inertia: no such parameter", 2
+    elif case == "no convergence":
+        bag = write_bag(tmp_path / "run", short)
+        args += ["--fit", "R,J_m", "--max-evaluations", "1"]
+        expect, status = "the fit did not converge within 1 evaluations", 1
+    else:
+        bag = tmp_path / "nothing"
+        bag.mkdir()
+        expect, status = "not a rosbag2 directory", 2
+    out = tmp_path / "out" / "identified.yaml"
+    done = run_identify(bag, *args, "--out", out)
+    assert done.returncode == status, done.stdout + done.stderr
+    assert expect in done.stderr and "nothing written" in done.stderr
+    assert "Traceback" not in done.stderr + done.stdout
+    assert not out.exists() and not out.with_suffix(".png").exists()
+
+
+def test_graph_topics_carry_what_identification_reads():
+    # the recorded topics pisc_identify needs are among what every run records
+    from pisc_bringup.graph import RUN_TOPICS
+
+    assert {JOINT_STATES, MOTOR_CURRENT, VOLTAGE} <= set(RUN_TOPICS) <= set(GRAPH_TOPICS)
