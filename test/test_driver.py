@@ -28,7 +28,7 @@ from rclpy.parameter import Parameter
 
 from conftest import spin_until
 from pisc_bringup.bag import read_bag
-from pisc_bringup.configuration import config_path
+from pisc_sim.configuration import config_path
 from pisc_bringup.summary import summarise_bag
 from pisc_driver.driver_node import DriverNode
 from pisc_driver.link import SerialLink

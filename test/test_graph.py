@@ -10,8 +10,8 @@ import pytest
 
 from conftest import DomainClaim
 from pisc_bringup.bag import read_bag
-from pisc_bringup.closed_loop import simulate
-from pisc_bringup.configuration import load_graph_config, load_run_config
+from pisc_sim.closed_loop import simulate
+from pisc_sim.configuration import load_graph_config, load_run_config
 from pisc_bringup.graph import RunOptions, main, run_graph
 from pisc_msgs_py.config import ConfigError, load_params_file
 from pisc_msgs_py.convert import mode_from_msg, motor_sample_from_msg
@@ -207,7 +207,7 @@ def test_a_scene_runs_through_the_graph_with_an_ideal_force_source(tmp_path, env
     """pisc_graph --scene: the ideal cart-pole scene through ROS 2 topics; the plant node
     takes the force of the current set-point (the ideal current loop) and the lockstep run
     reproduces the pure closed loop of the same scene, set-point for set-point."""
-    from pisc_bringup.scene import load_scene
+    from pisc_sim.scene import load_scene
 
     bag = tmp_path / "ideal"
     completed = subprocess.run(

@@ -16,7 +16,7 @@ import pytest
 
 from pisc_bringup import identify as idf
 from pisc_bringup import identify_bench as bench
-from pisc_bringup.configuration import load_run_config
+from pisc_sim.configuration import load_run_config
 
 # three real-time runs of 30 s and their identification: about 3 minutes, so behind bench
 # (./pisc test -m bench -s test/test_identify_driver.py prints every figure)

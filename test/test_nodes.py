@@ -182,7 +182,7 @@ def test_a_name_aimed_at_a_node_that_it_does_not_declare_is_refused(domain_id, n
 def test_a_shared_file_may_hold_other_nodes_sections_but_no_unknown_section(domain_id,
                                                                             tmp_path):
     shipped = str(Path(__file__).resolve().parent.parent
-                  / "src/pisc_bringup/config/default.yaml")
+                  / "src/pisc_sim/config/default.yaml")
     for cls in NODES.values():  # every node reads its sections of the one file
         _node_from_command_line(cls, domain_id, ["--params-file", shipped])
     typo = tmp_path / "typo.yaml"

@@ -22,6 +22,7 @@ EXECUTABLES = {
     "pisc_msgs_py": [],
     "pisc_driver": ["driver_node"],
     "pisc_model": [],
+    "pisc_sim": [],
     "pisc_analysis": ["pisc_analysis"],
 }
 
@@ -52,12 +53,13 @@ def test_every_node_executable_lands_where_ros2_run_looks(install, package):
 
 
 def test_installed_configuration_and_node_run_from_the_install(install, env_for_domain):
-    config = install / "pisc_bringup" / "share" / "pisc_bringup" / "config"
+    config = install / "pisc_sim" / "share" / "pisc_sim" / "config"
     assert sorted(p.name for p in config.glob("*.yaml")) == [
         "default.yaml", "lyapunov-tuned.yaml", "thesis.yaml"]
-    distributions = config.parent / "distributions"
+    bringup = install / "pisc_bringup" / "share" / "pisc_bringup"
+    distributions = bringup / "distributions"
     assert "thesis-rig.yaml" in [p.name for p in distributions.glob("*.yaml")]
-    launch = config.parent / "launch"  # ros2 launch pisc_bringup sim.launch.xml
+    launch = bringup / "launch"  # ros2 launch pisc_bringup sim.launch.xml
     assert sorted(p.name for p in launch.glob("*.launch.xml")) == [
         "rig.launch.xml", "sim.launch.xml"]
     env = dict(env_for_domain)

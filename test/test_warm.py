@@ -3,7 +3,7 @@ for one rig and nothing else; ``./pisc test`` every layout."""
 
 import pytest
 
-from pisc_bringup.configuration import load_graph_config
+from pisc_sim.configuration import load_graph_config
 from pisc_plant.plant import Plant, PlantConfig
 from pisc_plant.warm import LAYOUTS, layout_models, steps
 

@@ -11,8 +11,6 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/pisc_bringup']),
         ('share/pisc_bringup', ['package.xml']),
-        ('share/' + package_name + '/config', glob('config/*.yaml')),
-        ('share/' + package_name + '/scenes', glob('scenes/*.yaml')),
         ('share/' + package_name + '/distributions', glob('distributions/*.yaml')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.xml')),
     ],

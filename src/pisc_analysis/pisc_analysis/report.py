@@ -30,7 +30,7 @@ import numpy as np
 import sympy as sp
 
 from pisc_analysis import comparisons, linear, roa, stability, symbolic
-from pisc_bringup.configuration import GraphConfig, load_graph_config
+from pisc_sim.configuration import GraphConfig, load_graph_config
 from pisc_control.catch import catch_gain
 from pisc_control.swing_up import SwingUpParams, gain_condition
 from pisc_msgs_py.config import ConfigError, parse_overrides

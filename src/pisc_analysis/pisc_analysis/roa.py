@@ -1,7 +1,7 @@
 """Region of attraction of the catch in the loop as it runs: sampled, quantised, saturated.
 
 For a grid of initial angles and rates (and a cart position) near upright, the whole
-closed loop of the graph runs in one batch (:func:`pisc_bringup.closed_loop.
+closed loop of the graph runs in one batch (:func:`pisc_sim.closed_loop.
 simulate_batch`: the plant with its armature, sensor filters, ADC and encoder
 quantisation, 7-bit bridge and end stops; the estimator's differences; the supervisor
 with the switching rule (4.1); the PI current loop with its saturations). The rig
@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pisc_bringup.closed_loop import simulate_batch
-from pisc_bringup.configuration import GraphConfig
+from pisc_sim.closed_loop import simulate_batch
+from pisc_sim.configuration import GraphConfig
 from pisc_control.supervisor import switching_criterion
 
 __all__ = [

@@ -12,7 +12,7 @@ from pisc_analysis.roa import (
     plot_roa,
     region_of_attraction,
 )
-from pisc_bringup.configuration import load_graph_config
+from pisc_sim.configuration import load_graph_config
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,7 @@
 """pisc_batch_bench: how many simulated seconds per wall second the batch mode reaches.
 
 Runs a scene's closed loop (default: the thesis rig at full fidelity, its own
-integrator) for many rigs at once through :func:`pisc_bringup.closed_loop.simulate_batch`
+integrator) for many rigs at once through :func:`pisc_sim.closed_loop.simulate_batch`
 (the controllers' numpy cores over arrays, the plant's compiled kernel over rows in
 parallel) and prints the rate, with the plant's share measured apart.
 """
@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from pisc_bringup.closed_loop import simulate_batch
-from pisc_bringup.scene import DEFAULT_SCENE, load_scene
+from pisc_sim.closed_loop import simulate_batch
+from pisc_sim.scene import DEFAULT_SCENE, load_scene
 from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_plant.plant import Plant
 

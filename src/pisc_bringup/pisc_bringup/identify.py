@@ -59,7 +59,7 @@ from scipy import sparse, stats
 from scipy.optimize import least_squares
 
 from pisc_bringup.bag import BagError, bag_topics, read_bag
-from pisc_bringup.configuration import load_graph_config, params_file_text
+from pisc_sim.configuration import load_graph_config, params_file_text
 from pisc_msgs_py.config import ConfigError
 from pisc_msgs_py.convert import MessageError, joint_sample_from_msg, motor_sample_from_msg
 from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE

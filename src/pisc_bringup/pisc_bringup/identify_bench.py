@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from pisc_bringup import identify as idf
-from pisc_bringup.configuration import config_path, load_run_config, params_file_text
+from pisc_sim.configuration import config_path, load_run_config, params_file_text
 from pisc_msgs_py.config import ConfigError, load_params_file, parse_overrides
 
 #: The parameters each draw hides (from the distribution), and the rest kept nominal.
@@ -109,7 +109,7 @@ def judge(outcome: Outcome, base: Any) -> None:
 
 def record_lockstep(truth: dict[str, float], duration_s: float, overrides: dict[str, Any],
                     seed: int) -> idf.Recording:
-    from pisc_bringup.closed_loop import simulate
+    from pisc_sim.closed_loop import simulate
 
     plant = {"models.friction": "coulomb", "noise.seed": seed, **truth}
     config, _, _ = load_run_config("default", {"experiment.kind": "excitation", **overrides},

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pisc_bringup.closed_loop import simulate
-from pisc_bringup.scene import Scene, load_scene
+from pisc_sim.closed_loop import simulate
+from pisc_sim.scene import Scene, load_scene
 from pisc_msgs_py.config import ConfigError
 from pisc_plant import work_precision as wp
 from pisc_plant.plant import Plant

@@ -26,12 +26,11 @@ from typing import Any
 
 import yaml
 
-from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.config import ConfigError, package_dir
 
 __all__ = ["LaunchArg", "LaunchError", "LaunchNode", "find_package_share", "launch_path",
            "read_launch"]
 
-SOURCE = Path(__file__).resolve().parents[2]  # src/ in a checkout
 SUBSTITUTION = re.compile(r"\$\((\S+)(?:\s+([^)]*))?\)")
 
 
@@ -56,24 +55,13 @@ class LaunchNode:
 
 
 def find_package_share(package: str) -> Path:
-    """``share/PACKAGE`` of an installed package, else its source directory."""
-    try:
-        from ament_index_python.packages import (
-            PackageNotFoundError,
-            get_package_share_directory,
-        )
-
-        try:
-            return Path(get_package_share_directory(package))
-        except (PackageNotFoundError, ValueError, LookupError, OSError):
-            pass
-    except ImportError:
-        pass
-    source = SOURCE / package
-    if (source / "package.xml").is_file():
-        return source
-    raise LaunchError(f"$(find-pkg-share {package}): no package {package!r} installed or "
-                      f"in {SOURCE}")
+    """``share/PACKAGE`` of an installed package, else its source directory
+    (:func:`pisc_msgs_py.config.package_dir`)."""
+    path = package_dir(package, ".").resolve()
+    if not (path / "package.xml").is_file():
+        raise LaunchError(f"$(find-pkg-share {package}): no package {package!r} installed or "
+                          "in the source tree")
+    return path
 
 
 def launch_path(name: str) -> Path:

@@ -41,7 +41,7 @@ def _node_sections() -> dict[str, tuple[str, ...]]:
 
 
 def _sections() -> dict[str, type]:
-    from pisc_bringup.configuration import SECTIONS
+    from pisc_sim.configuration import SECTIONS
     from pisc_bringup.markers import MarkersParams
     from pisc_driver.driver import DriverParams
     from pisc_plant.plant_node import SimulationParams
@@ -68,7 +68,7 @@ def _cell(text: str) -> str:
 
 def render() -> str:
     """The whole of docs/parameters.md."""
-    from pisc_bringup.configuration import config_path
+    from pisc_sim.configuration import config_path
     from pisc_msgs_py.config import describe, load_params_file
 
     files: dict[str, Mapping[str, Any]] = {c: load_params_file(config_path(c)) for c in CONFIGS}
@@ -87,7 +87,7 @@ def render() -> str:
         "`acker` for repeated poles) or from LQR weights, never typed in.",
         "",
         "Columns: the node's own default (what a node started without a parameter file",
-        "uses), then the value each shipped configuration sets (`src/pisc_bringup/config/`;",
+        "uses), then the value each shipped configuration sets (`src/pisc_sim/config/`;",
         "blank: the file leaves the node's default).",
         "",
     ]

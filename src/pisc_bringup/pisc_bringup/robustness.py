@@ -2,7 +2,7 @@
 
 :func:`evaluate` draws plants, starts and latencies from a
 :class:`~pisc_bringup.uncertainty.Distribution`, runs each draw through the pure closed
-loop (:func:`pisc_bringup.closed_loop.simulate_batch`: the controllers' cores with the
+loop (:func:`pisc_sim.closed_loop.simulate_batch`: the controllers' cores with the
 configuration's nominal model, each plant with its own parameters, on the compiled
 kernel) and scores it against :class:`Criteria`.
 
@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from pisc_bringup.closed_loop import simulate_batch
-from pisc_bringup.configuration import SECTIONS, GraphConfig
+from pisc_sim.closed_loop import simulate_batch
+from pisc_sim.configuration import SECTIONS, GraphConfig
 from pisc_bringup.uncertainty import LATENCY, Distribution, Draws
 from pisc_msgs_py.config import from_flat, to_flat
 from pisc_model.params import InitialParams

@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--worst {args.worst}: 0 or more")
 
     from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
-    from pisc_bringup.configuration import config_path, load_graph_config
+    from pisc_sim.configuration import config_path, load_graph_config
     from pisc_bringup.robustness import CHUNK_DRAWS, Criteria, evaluate, prepare
     from pisc_bringup.uncertainty import load_distribution
     from pisc_control.supervisor import Supervisor

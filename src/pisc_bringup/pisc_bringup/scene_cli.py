@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pisc_bringup.closed_loop import simulate
-from pisc_bringup.configuration import params_file_text
-from pisc_bringup.scene import load_scene, scene_names, write_scene_params
+from pisc_sim.closed_loop import simulate
+from pisc_sim.configuration import params_file_text
+from pisc_sim.scene import load_scene, scene_names, write_scene_params
 from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_model.dynamics import energy, wrap_to_upright
 from pisc_plant.plant import Plant

@@ -549,7 +549,7 @@ class RunRecord:
 def run(options: SoakOptions, out: Path, domain_id: int,
         say: Callable[[str], None]) -> RunRecord:
     """Start the rig (and observer), run pisc_graph, sample, inject faults; stop all."""
-    from pisc_bringup.configuration import config_path
+    from pisc_sim.configuration import config_path
     from pisc_plant.virtual_rig import RigProcess
 
     env = dict(os.environ)

@@ -42,16 +42,23 @@ from typing import Any
 import numpy as np
 import yaml
 
-from pisc_bringup.configuration import CONFIG_DIR, SECTIONS, load_graph_config
+from pisc_sim.configuration import SECTIONS, load_graph_config
 from pisc_bringup.robustness import Criteria, MapChunks, evaluate, prepare
 from pisc_bringup.uncertainty import Distribution, file_kind
 from pisc_control.supervisor import Supervisor
-from pisc_msgs_py.config import ConfigError, find_file, from_flat, load_keyed_yaml, to_flat
+from pisc_msgs_py.config import (
+    ConfigError,
+    find_file,
+    from_flat,
+    load_keyed_yaml,
+    package_dir,
+    to_flat,
+)
 
 __all__ = ["SAMPLERS", "SPACE_DIR", "TUNABLE_SECTIONS", "Dimension", "Space", "StudyMismatch",
            "TuneResult", "Tuning", "load_space", "space_names", "tune", "tuned_file_text"]
 
-SPACE_DIR = CONFIG_DIR.parent / "distributions"
+SPACE_DIR = package_dir("pisc_bringup", "distributions")
 DEFAULT_SPACE = "tuning-space"
 SAMPLERS = ("tpe", "cmaes")
 SCALES = ("linear", "log")
@@ -218,7 +225,7 @@ class Tuning:
             raise ConfigError(f"draws = {self.draws}: at least one draw")
 
     def key(self) -> dict[str, Any]:
-        from pisc_bringup.configuration import config_path
+        from pisc_sim.configuration import config_path
 
         text = config_path(self.config).read_text()
         return {
@@ -397,7 +404,7 @@ def tuned_file_text(result: TuneResult, tuning: Tuning, command: str, date: str,
                     storage: str) -> str:
     """A ROS 2 parameter file of the whole configuration with the best values, headed by
     comment lines that record its provenance."""
-    from pisc_bringup.configuration import params_file_text
+    from pisc_sim.configuration import params_file_text
 
     head = ["pisc_tune: the configuration with the best values the search found"]
     head += provenance(result, tuning, command, date, storage)

@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     command = shlex.join([PROG, *(sys.argv[1:] if argv is None else argv)])
 
     from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
-    from pisc_bringup.configuration import load_graph_config
+    from pisc_sim.configuration import load_graph_config
     from pisc_bringup.robustness import CHUNK_DRAWS
     from pisc_bringup.robustness_cli import describe_distribution, progress_bar
     from pisc_bringup.tune import Tuning, load_space, provenance, tune, tuned_file_text

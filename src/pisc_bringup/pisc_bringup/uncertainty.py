@@ -40,8 +40,15 @@ from typing import Any
 import numpy as np
 import yaml
 
-from pisc_bringup.configuration import CONFIG_DIR, SECTIONS, GraphConfig, check_plant_overrides
-from pisc_msgs_py.config import ConfigError, find_file, flatten, from_flat, load_keyed_yaml
+from pisc_sim.configuration import SECTIONS, GraphConfig, check_plant_overrides
+from pisc_msgs_py.config import (
+    ConfigError,
+    find_file,
+    flatten,
+    from_flat,
+    load_keyed_yaml,
+    package_dir,
+)
 from pisc_model.params import (
     ActuatorParams,
     FrictionParams,
@@ -54,7 +61,7 @@ from pisc_model.params import (
 __all__ = ["DISTRIBUTION_DIR", "Distribution", "Draws", "Range", "distribution_names",
            "load_distribution", "unit_of", "VARIABLE_SECTIONS"]
 
-DISTRIBUTION_DIR = CONFIG_DIR.parent / "distributions"
+DISTRIBUTION_DIR = package_dir("pisc_bringup", "distributions")
 KINDS = ("uniform", "offset", "relative", "factor")
 KEYS = ("description", "plant", "parameters")
 

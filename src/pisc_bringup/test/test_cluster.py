@@ -9,7 +9,7 @@ import pytest
 
 from pisc_bringup import robustness
 from pisc_bringup.cluster import WORKER_ENV, chunk_runner, core_count, default_workers
-from pisc_bringup.configuration import load_graph_config
+from pisc_sim.configuration import load_graph_config
 from pisc_bringup.robustness import Criteria, evaluate, prepare
 from pisc_bringup.uncertainty import load_distribution
 

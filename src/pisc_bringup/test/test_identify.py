@@ -13,8 +13,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from pisc_bringup import identify as idf
 from pisc_bringup.bag import BagWriter
-from pisc_bringup.closed_loop import simulate
-from pisc_bringup.configuration import load_graph_config, load_run_config
+from pisc_sim.closed_loop import simulate
+from pisc_sim.configuration import load_graph_config, load_run_config
 from pisc_control.excitation import ExperimentParams, excitation_signal, experiment_force, prbs_bits
 from pisc_control.supervisor import Supervisor, SupervisorConfig, SupervisorState
 from pisc_model.params import RigParams

@@ -9,7 +9,7 @@ import shlex
 import numpy as np
 import pytest
 
-from pisc_bringup.configuration import load_graph_config
+from pisc_sim.configuration import load_graph_config
 from pisc_bringup.robustness import (
     FAILURES,
     Criteria,

@@ -9,7 +9,7 @@ import optuna
 import pytest
 import yaml
 
-from pisc_bringup.configuration import load_graph_config
+from pisc_sim.configuration import load_graph_config
 from pisc_bringup.robustness import Criteria
 from pisc_bringup.tune import (
     StudyMismatch,

@@ -11,7 +11,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from pisc_bringup.configuration import load_graph_config
+from pisc_sim.configuration import load_graph_config
 from pisc_bringup.robustness_cli import main as robustness_main
 from pisc_bringup.uncertainty import load_distribution
 from pisc_msgs_py.config import ConfigError

@@ -21,6 +21,7 @@ import array
 import dataclasses
 import difflib
 import math
+import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -34,6 +35,7 @@ __all__ = [
     "closest",
     "any_value",
     "describe",
+    "package_dir",
     "finite",
     "flatten",
     "from_flat",
@@ -275,6 +277,29 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
             raise ConfigError(f"--set {item!r}: expected NAME=VALUE")
         out[name.strip()] = yaml.safe_load(value)
     return out
+
+
+def package_dir(package: str, folder: str) -> Path:
+    """A data folder of a PISC package (``config``, ``scenes``, ``distributions``,
+    ``launch``): ``src/<package>/<folder>`` in a checkout or an editable install, else the
+    package's ``share/<package>/<folder>`` in the ament index (``colcon build``), else under
+    this interpreter's prefix (a plain pip install)."""
+    source = Path(__file__).resolve().parents[2] / package / folder
+    if source.is_dir():
+        return source
+    try:
+        from ament_index_python.packages import (
+            PackageNotFoundError,
+            get_package_share_directory,
+        )
+
+        try:
+            return Path(get_package_share_directory(package)) / folder
+        except (PackageNotFoundError, ValueError, LookupError, OSError):
+            pass
+    except ImportError:
+        pass
+    return Path(sys.prefix) / "share" / package / folder
 
 
 def find_file(name_or_path: str, directory: Path, what: str,

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from pisc_bringup.configuration import GraphConfig
+from pisc_sim.configuration import GraphConfig
 from pisc_control.current_loop import CurrentLoopState, current_loop_update, current_setpoint
 from pisc_control.estimator import EstimatorState, estimator_update
 from pisc_control.supervisor import Supervisor, SupervisorState

@@ -14,7 +14,6 @@ controllers were designed on; ``initial`` is the plant's.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -33,7 +32,7 @@ from pisc_control.supervisor import (
     SwitchingParams,
 )
 from pisc_control.swing_up import SwingUpParams
-from pisc_msgs_py.config import ConfigError, find_file, from_flat, load_params_file
+from pisc_msgs_py.config import ConfigError, find_file, from_flat, load_params_file, package_dir
 from pisc_plant.params import (
     ActuatorParams,
     FrictionParams,
@@ -51,23 +50,7 @@ from pisc_plant.plant import IntegratorParams, PlantConfig
 __all__ = ["CONFIG_DIR", "PLANT_READS", "GraphConfig", "check_plant_overrides", "config_path",
            "load_graph_config", "load_run_config", "params_file_text", "write_params_file"]
 
-def _config_dir() -> Path:
-    """Parameter files: the source tree, else the installed share directory."""
-    source = Path(__file__).resolve().parent.parent / "config"
-    if source.is_dir():
-        return source  # a checkout, or an editable install
-    try:
-        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
-        try:
-            return Path(get_package_share_directory("pisc_bringup")) / "config"
-        except PackageNotFoundError:
-            pass
-    except ImportError:
-        pass
-    return Path(sys.prefix) / "share" / "pisc_bringup" / "config"  # pip install
-
-
-CONFIG_DIR = _config_dir()
+CONFIG_DIR = package_dir("pisc_sim", "config")  # the named configurations
 
 SECTIONS: dict[str, type] = {
     "rig": RigParams, "motor": MotorParams, "sensors": SensorParams,

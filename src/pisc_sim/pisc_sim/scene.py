@@ -18,11 +18,11 @@ long to run, whether the controllers close the loop and what ``pisc_graph`` reco
         motor: {resistance_ohm: 18.2}
       record: [/pisc/state]       # optional: besides the run's own topics; default: all
 
-Scenes ship in ``pisc_bringup/scenes``; :func:`load_scene` takes a name or a path. The
+Scenes ship in ``pisc_sim/scenes``; :func:`load_scene` takes a name or a path. The
 scene's flat parameters are what the controllers get, and :func:`write_scene_params`
 writes them as a ROS 2 parameter file for ``ros2 run``. The ``plant:`` block goes on top
 of them for the plant (simulator or virtual rig) alone, after ``parameters``
-(:func:`pisc_bringup.configuration.load_run_config`): ``scene.config.true_plant`` is then
+(:func:`pisc_sim.configuration.load_run_config`): ``scene.config.true_plant`` is then
 the plant that is simulated, ``scene.plant_flat`` its parameters
 (``write_scene_params(scene, path, plant=True)``).
 """
@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pisc_bringup.configuration import (
+from pisc_sim.configuration import (
     CONFIG_DIR,
     PLANT_READS,
     GraphConfig,
@@ -48,7 +48,7 @@ from pisc_msgs_py.topics import graph_topics_named
 
 __all__ = ["DEFAULT_SCENE", "SCENE_DIR", "Scene", "load_scene", "scene_names", "scene_path"]
 
-SCENE_DIR = CONFIG_DIR.parent / "scenes"
+SCENE_DIR = CONFIG_DIR.parent / "scenes"  # share/pisc_sim/scenes beside config/
 DEFAULT_SCENE = "thesis-rig"
 CONTROLLERS = ("graph", "none")
 KEYS = ("description", "configuration", "duration_s", "controller", "parameters", "plant",

@@ -4,8 +4,8 @@ own acceptance is test/test_robust_graph.py."""
 
 import numpy as np
 
-from pisc_bringup.closed_loop import simulate, simulate_batch
-from pisc_bringup.configuration import load_graph_config
+from pisc_sim.closed_loop import simulate, simulate_batch
+from pisc_sim.configuration import load_graph_config
 from pisc_msgs_py.types import Mode
 
 STARTS = np.array([-0.10, -0.05, 0.0, 0.05, 0.10])

@@ -2,7 +2,7 @@
 
 import pytest
 
-from pisc_bringup.configuration import load_graph_config
+from pisc_sim.configuration import load_graph_config
 from pisc_msgs_py.config import ConfigError
 
 

@@ -6,8 +6,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from pisc_bringup.closed_loop import simulate, simulate_batch
-from pisc_bringup.scene import DEFAULT_SCENE, load_scene, scene_names
+from pisc_sim.closed_loop import simulate, simulate_batch
+from pisc_sim.scene import DEFAULT_SCENE, load_scene, scene_names
 from pisc_bringup.scene_cli import main as scene_main
 from pisc_msgs_py.config import ConfigError
 from pisc_model.dynamics import wrap_to_upright
