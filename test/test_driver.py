@@ -40,7 +40,7 @@ from pisc_msgs_py.convert import (
     motor_sample_to_msg,
     stamp_from_msg,
 )
-from pisc_msgs_py.topics import DIAGNOSTICS, JOINT_STATES, MODE, VOLTAGE
+from pisc_msgs_py.topics import DIAGNOSTICS, JOINT_STATES, MODE, MOTOR_CURRENT, VOLTAGE
 from pisc_msgs_py.types import Mode, MotorSample
 from pisc_plant.virtual_rig import RigProcess
 
@@ -651,3 +651,45 @@ def test_sigkill_of_the_controllers_process_leaves_the_driver_to_zero_the_rig(
     assert trip is None or zero < trip, (zero, trip)
     assert np.all(log["applied_v"][log["monotonic_s"] >= zero] == 0.0)
     print(f"0 V at the rig {(zero - killed) * 1e3:.1f} ms after the kill (rig's clock)")
+
+
+def test_the_driver_publishes_no_sample_before_the_graphs_subscribers_are_there(
+        tmp_path, env_for_domain, ros_context):
+    """Issue 15 (found by pisc_soak's outside observer): in its own process the driver
+    published the rig's first samples before the run's recorder had matched it, so the
+    bag lacked them. With driver.min_subscribers = N it publishes nothing until both
+    sample topics have N subscribers."""
+    rig = start_rig(tmp_path)
+    driver = subprocess.Popen(
+        [sys.executable, "-m", "pisc_driver.driver_node", "--ros-args", "-p",
+         f"driver.port:={rig.device}", "-p", "driver.min_subscribers:=2"],
+        env=env_for_domain, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    observer = Node("observer", context=ros_context)
+    second = Node("second_reader", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(observer)
+    seen: list[int] = []
+    observer.create_subscription(
+        message_class(JOINT_STATES.type), JOINT_STATES.name,
+        lambda m: seen.append(joint_sample_from_msg(m).stamp_ns), qos_profile(JOINT_STATES.qos))
+    observer.create_subscription(message_class(MOTOR_CURRENT.type), MOTOR_CURRENT.name,
+                                 lambda m: None, qos_profile(MOTOR_CURRENT.qos))
+    try:
+        # the rig streams 200 frames a second; with one subscriber nothing is published
+        assert spin_until(executor, lambda: rig.status()["frames"] > 400, 60.0)
+        assert seen == []
+        for topic in (JOINT_STATES, MOTOR_CURRENT):
+            second.create_subscription(message_class(topic.type), topic.name, lambda m: None,
+                                       qos_profile(topic.qos))
+        executor.add_node(second)
+        assert spin_until(executor, lambda: len(seen) > 20, 30.0), len(seen)
+        assert seen == sorted(seen)
+    finally:
+        driver.send_signal(signal.SIGINT)
+        try:
+            driver.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            driver.kill()
+        observer.destroy_node()
+        second.destroy_node()
+        rig.stop()

@@ -74,6 +74,11 @@ class DriverParams(ParserParams):
                                   "sends 0 V at the next frame and names the stage of the "
                                   "chain that stopped (the plant's simulation.watchdog_periods)",
                                   "", in_range(1, 1000))
+    min_subscribers: int = param(
+        0, "publish the rig's samples only once joint_states and the motor current each have "
+        "this many subscribers; frames before that are read and dropped (pisc_graph sets the "
+        "graph's count, its recorder included, so that the bag holds every sample the driver "
+        "publishes; 0 = publish at once)", "", in_range(0, 1000))
     command_node: str = param("current_loop", "the node whose command publisher the driver "
                               "pins; any other publisher on the command topic is a fault, "
                               "with 0 V while it is there", "",

@@ -66,6 +66,8 @@ class DriverNode(PiscNode):
         self._reader: threading.Thread | None = None
         self._running = False
         self._unwritten = 0  # command bytes the port did not take
+        self._ready = False  # the graph's subscribers are there (driver.min_subscribers)
+        self.dropped_before_ready = 0  # frames read before then, not published
         self._start(self.config)  # a missing or busy port raises LinkError here
 
     def build(self, flat: dict[str, Any]) -> DriverCore:
@@ -191,6 +193,9 @@ class DriverNode(PiscNode):
                     if byte is not None:
                         self._send(byte)
                     trip = core.new_trip
+                if samples and not self._subscribers_ready():
+                    self.dropped_before_ready += len(samples)
+                    samples = []
                 for s in samples:
                     self._joint_pub.publish(joint_sample_to_msg(
                         JointSample(s.stamp_ns, s.position_m, s.angle_rad)))
@@ -222,6 +227,19 @@ class DriverNode(PiscNode):
                     return  # shutting down: the publishers are gone, _stop closes the port
                 self._report(ERROR, f"driver fault: {exc!r}; sent 0 V", self._now_ns())
                 time.sleep(core.params.reopen_interval_s)
+
+    def _subscribers_ready(self) -> bool:
+        """Whether the samples may be published: every reader the graph expects has
+        matched both sample topics (checked until it is true, then never again)."""
+        if not self._ready:
+            need = self._core.params.min_subscribers
+            self._ready = (self._joint_pub.get_subscription_count() >= need
+                           and self._current_pub.get_subscription_count() >= need)
+            if self._ready and self.dropped_before_ready:
+                self._report(OK, f"link up on {self._link.port}: the graph's {need} "
+                             f"subscribers are there; {self.dropped_before_ready} frames "
+                             "read before them were not published", self._now_ns())
+        return self._ready
 
     def _report(self, level: int, message: str, now_ns: int, **values: Any) -> None:
         core = self._core
