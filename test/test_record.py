@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import os
 import random
+import select
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
@@ -17,7 +20,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from conftest import spin_until
-from pisc_bringup.bag import bag_files, bag_topics, read_bag
+from pisc_bringup.bag import bag_files, bag_topics, header_stamp_ns, index_problems, read_bag
+from pisc_bringup.bag_readers import READERS, read_every_way
 from pisc_bringup.graph import RunOptions, run_graph
 from pisc_msgs_py.base_node import qos_profile
 from pisc_msgs_py.convert import (
@@ -59,6 +63,18 @@ def test_sixty_seconds_at_200_hz_every_published_message_is_in_the_bag(tmp_path,
     recorded = bag_counts(result.bag_dir)
     assert recorded == result.published
     assert result.recorded == result.published  # what pisc_record said on closing
+    assert_every_reader_reads_it_all(result.bag_dir, sum(result.published.values()))
+
+
+def assert_every_reader_reads_it_all(bag, count: int) -> None:
+    """Issue 15: a bag the project writes is indexed and in log-time order, and rosbags'
+    AnyReader, mcap in log-time order and the indexed reader read all its messages."""
+    read = read_every_way(bag)
+    assert len(read["mcap"]) == count
+    for reader in READERS:
+        assert read[reader] == read["mcap"], reader
+    (path,) = bag_files(bag)
+    assert index_problems(path) == []
 
 
 CYCLE = (JOINT_STATES, MOTOR_CURRENT, STATE, CART_FORCE, CURRENT_SETPOINT, VOLTAGE)
@@ -190,6 +206,7 @@ def test_a_recorder_stopped_by_signal_finishes_the_bag_and_loses_nothing(
     assert recorder.returncode == 0
     counts = bag_counts(bag)  # finished: reads without repair
     assert all(counts[t.name] == len(sent_at) for t in CYCLE), (counts, len(sent_at))
+    assert_every_reader_reads_it_all(bag, len(CYCLE) * len(sent_at))
 
 
 def test_sigkilled_recorder_loses_at_most_the_last_period_and_repair_recovers_it(
@@ -218,6 +235,7 @@ def test_sigkilled_recorder_loses_at_most_the_last_period_and_repair_recovers_it
     print(f"SIGKILL after {len(sent_at)} cycles: recovered {recovered}, lost {lost} messages")
 
     # the repaired bag opens with rosbags and with mcap + mcap-ros2-support
+    assert_every_reader_reads_it_all(bag, recovered)
     typestore = get_typestore(Stores.ROS2_JAZZY)
     with AnyReader([bag], default_typestore=typestore) as reader:
         assert reader.message_count == recovered
@@ -264,3 +282,164 @@ def test_a_run_records_what_it_is_asked_and_its_own_topics(tmp_path, domain_id):
     # the command line: an unknown topic is refused before anything starts
     assert main(["--record", "/pisc/forces", "--bag", str(tmp_path / "none")]) == 2
     assert not (tmp_path / "none").exists()
+
+
+def _recorder_pid(bag: Path) -> int | None:
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmdline = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if str(bag).encode() in cmdline and any(c.endswith(b"pisc_record") or
+                                                c == b"pisc_bringup.record" for c in cmdline):
+            return int(proc.name)
+    return None
+
+
+class VoltageWatch:
+    """An outside subscriber of the voltage: each one's DDS reception time (wall clock).
+
+    Subscribes once the graph has found its recorder (the bag's parameter file exists):
+    a subscriber there before would be taken for the recorder."""
+
+    def __init__(self, ros_context) -> None:
+        from pisc_bringup.recorder_node import recording_qos
+        from pisc_msgs_py.base_node import message_class
+
+        self.node = Node("voltage_watch", context=ros_context)
+        self.executor = SingleThreadedExecutor(context=ros_context)
+        self.executor.add_node(self.node)
+        self.received: list[tuple[int, int]] = []  # (reception ns, stamp)
+        self.sub = self.node.create_subscription(
+            message_class(VOLTAGE.type), VOLTAGE.name,
+            lambda data, info: self.received.append(
+                (info["received_timestamp"], header_stamp_ns(data))),
+            recording_qos(VOLTAGE), raw=True)
+
+    def spin_until(self, predicate, timeout_s: float) -> bool:
+        return spin_until(self.executor, predicate, timeout_s)
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+def kill_the_recorder(graph: subprocess.Popen, bag: Path, watch: VoltageWatch,
+                      cycles: int) -> tuple[int, int]:
+    """SIGKILL pisc_record once ``watch`` has seen ``cycles`` voltages; returns the wall
+    times (ns) of the kill and of the kernel's report of the death."""
+    assert watch.spin_until(lambda: len(watch.received) >= cycles or graph.poll() is not None,
+                            120.0)
+    assert graph.poll() is None, graph.communicate()
+    pid = _recorder_pid(bag)
+    pidfd = os.pidfd_open(pid)
+    killed_ns = time.time_ns()
+    os.kill(pid, signal.SIGKILL)
+    select.select([pidfd], [], [], 10.0)
+    dead_ns = time.time_ns()
+    os.close(pidfd)
+    return killed_ns, dead_ns
+
+
+def start_graph_with_watch(args: list[str], bag: Path, env, ros_context):
+    graph = subprocess.Popen([sys.executable, "-m", "pisc_bringup.graph", "--bag", str(bag),
+                              *args], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60.0
+    while not (bag / "pisc_params.yaml").exists():
+        assert graph.poll() is None and time.monotonic() < deadline, graph.communicate()
+        time.sleep(0.002)
+    return graph, VoltageWatch(ros_context)
+
+
+@pytest.mark.parametrize("clock", ["lockstep", "wall"])
+def test_a_killed_recorder_is_noticed_within_a_period_and_the_run_stops(
+        tmp_path, ros_context, env_for_domain, clock):
+    """Issue 15: SIGKILL of pisc_record 5 s into a 20 s run went unnoticed until the end,
+    which then said only "pisc_record exited with status -9" (exit 2, no summary, no
+    word of repair). Now the run stops at the next cycle, the bag is finished with what
+    was recorded (as `pisc_bag repair` does), the summary of that part is printed, and
+    the exit status (2) comes with the command that finishes such a bag named."""
+    bag = tmp_path / "killed"
+    graph, watch = start_graph_with_watch(["--duration", "40", "--clock", clock], bag,
+                                          env_for_domain, ros_context)
+    try:
+        killed_ns, dead_ns = kill_the_recorder(graph, bag, watch, 600)
+        out, err = graph.communicate(timeout=120)
+        exited_ns = time.time_ns()
+        watch.spin_until(lambda: False, 0.3)  # what is still on its way
+    finally:
+        if graph.poll() is None:
+            graph.kill()
+            graph.communicate()
+        watch.close()
+    after_death = [stamp for received, stamp in watch.received if received > dead_ns]
+    print(f"\n{clock}: the kernel reported the death {(dead_ns - killed_ns) * 1e-6:.1f} ms "
+          f"after the kill; {len(after_death)} voltages after it; pisc_graph exited "
+          f"{(exited_ns - killed_ns) * 1e-9:.2f} s after the kill\n{err}")
+    assert graph.returncode == 2
+    # noticed at the next cycle: the cycle under way when the death was reported, and
+    # one more at most (in one process the plant may answer the voltage first)
+    assert len(after_death) <= 2, after_death
+    assert (exited_ns - killed_ns) * 1e-9 < 20.0  # not the rest of a 40 s run
+    lines = err.splitlines()
+    assert any(x.startswith("pisc_graph: pisc_record was killed by SIGKILL at t = ")
+               and x.endswith("; stopping the run") for x in lines), err
+    assert f"as `pisc_bag repair {bag}` does: " in err
+    assert "Traceback" not in err
+    # the summary of what was recorded, and a finished bag every reader reads
+    assert out.startswith(f"bag: {bag} (what was recorded before pisc_record died)\n"), out
+    cycles = int(next(x for x in out.splitlines() if x.startswith("cycles")).split()[1])
+    assert cycles >= 500
+    recovered = int(err.split("` does: ")[1].split(" ")[0])
+    assert_every_reader_reads_it_all(bag, recovered)
+    # every voltage sent a period or more before the kill is in the bag
+    in_bag = {stamp_from_msg(m.message.header.stamp) for m in read_bag(bag, [VOLTAGE.name])}
+    settled = [stamp for received, stamp in watch.received
+               if received < killed_ns - PERIOD_S * 1e9]
+    assert settled and set(settled) <= in_bag
+    report = replay_bag_of(bag)
+    assert report.reproduced, report.format()
+
+
+def replay_bag_of(bag):
+    from pisc_bringup.replay import replay_bag
+
+    return replay_bag(bag)
+
+
+def test_a_killed_recorder_in_a_driver_run_leaves_the_rig_at_zero_volts(
+        tmp_path, ros_context, env_for_domain):
+    """Through the serial driver and the virtual rig: the run stops at once and the
+    driver, stopped, sends 0 V (before the rig's own command watchdog would)."""
+    from pisc_bringup.configuration import config_path
+    from pisc_plant.virtual_rig import RigProcess
+
+    rig = RigProcess(["--params-file", str(config_path("default")), "--x0", "0.0"])
+    bag = tmp_path / "driven"
+    try:
+        graph, watch = start_graph_with_watch(["--driver", rig.device, "--duration", "20"],
+                                              bag, env_for_domain, ros_context)
+        try:
+            killed_ns, dead_ns = kill_the_recorder(graph, bag, watch, 400)
+            dead_monotonic = time.monotonic()
+            out, err = graph.communicate(timeout=120)
+        finally:
+            if graph.poll() is None:
+                graph.kill()
+                graph.communicate()
+            watch.close()
+        status = rig.status()
+    finally:
+        final = rig.stop()
+    print(f"\nthe rig's last byte {status['last_byte']:#04x}, "
+          f"{(status['last_byte_time'] - dead_monotonic) * 1e3:.1f} ms after the kernel "
+          f"reported the recorder's death\n{err}")
+    assert graph.returncode == 2, err
+    assert "and the rig left at 0 V" in err and f"`pisc_bag repair {bag}`" in err
+    assert status["last_byte"] == 0x00 and final["last_byte"] == 0x00
+    assert status["applied_v"] == 0.0
+    # sent by the stopping driver, not by the rig's watchdog (50 ms without a byte)
+    assert status["last_byte_time"] - dead_monotonic < 0.05
+    assert out.startswith(f"bag: {bag} (what was recorded before pisc_record died)\n"), out

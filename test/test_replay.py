@@ -9,7 +9,16 @@ from pathlib import Path
 
 import pytest
 
-from pisc_bringup.bag import BagError, read_bag
+from pisc_bringup.bag import (
+    BagError,
+    BagWriter,
+    header_stamp_ns,
+    index_problems,
+    read_bag,
+    read_bag_raw,
+    repair_bag,
+)
+from pisc_bringup.bag_readers import READERS, read_every_way
 from pisc_bringup.replay import (
     COMPARED_TOPICS,
     RecordedRun,
@@ -17,7 +26,17 @@ from pisc_bringup.replay import (
     load_recorded,
     replay_bag,
 )
-from pisc_msgs_py.topics import CART_FORCE, CURRENT_SETPOINT, MODE, STATE, VOLTAGE
+from pisc_msgs_py.convert import stamp_from_msg
+from pisc_msgs_py.topics import (
+    CART_FORCE,
+    CURRENT_SETPOINT,
+    GRAPH_TOPICS,
+    JOINT_STATES,
+    MODE,
+    MOTOR_CURRENT,
+    STATE,
+    VOLTAGE,
+)
 from pisc_msgs_py.types import Mode
 
 pytestmark = pytest.mark.bag
@@ -30,7 +49,28 @@ SWINGUP = BAGS / "default-swingup"
 
 
 def test_the_reference_bags_are_there():
-    assert {p.name for p in REFERENCE_BAGS} >= {"default-swingup", "thesis-gains"}
+    assert {p.name for p in REFERENCE_BAGS} >= {"default-swingup", "thesis-gains",
+                                                 "driver-swingup"}
+
+
+@pytest.mark.parametrize("bag", REFERENCE_BAGS, ids=lambda p: p.name)
+def test_every_reader_reads_every_message_of_every_reference_bag(bag):
+    """Issue 15: rosbags' AnyReader refused every committed bag ("Unindexed MCAP messages
+    are not in timestamp order") and an indexed reader found none of their messages.
+    Now each is indexed and in log-time order, and rosbags, mcap in log-time order and
+    the indexed reader read every message that metadata.yaml counts, the same ones."""
+    read = read_every_way(bag)
+    import yaml
+
+    count = yaml.safe_load((bag / "metadata.yaml").read_text())[
+        "rosbag2_bagfile_information"]["message_count"]
+    assert len(read["mcap"]) == count
+    for reader in READERS:
+        assert read[reader] == read["mcap"], reader
+    times = [t for _, t, _ in read["mcap"]]
+    assert times == sorted(times)
+    (path,) = bag.glob("*.mcap")
+    assert index_problems(path) == []
 
 
 def summary_cycles(bag: Path) -> int:
@@ -135,6 +175,44 @@ def test_compare_reports_missing_outputs_and_respects_the_tolerance():
     nan = {k: dict(v) for k, v in outputs.items()}
     nan[VOLTAGE.name][5_000_000] = (float("nan"),)
     assert not compare(run, nan, tolerance=1e9).reproduced
+
+
+def test_a_repaired_bag_whose_recording_ended_inside_a_cycle_replays_without_that_cycle(
+        tmp_path):
+    """Issue 15: replay of a repaired bag failed ("/pisc/joint_states at stamp ... has no
+    /pisc/motor/current of the same stamp"): the recorder died inside the last cycle.
+    The incomplete last cycle is dropped, and the report says so."""
+    cut = 1_000_000_000  # the recorder dies after this cycle's joint_states
+    live = BagWriter(tmp_path / "live", GRAPH_TOPICS)
+    for m in read_bag_raw(SWINGUP):
+        stamp = header_stamp_ns(m.data)
+        if stamp is not None and (stamp > cut or (stamp == cut and
+                                                  m.topic != JOINT_STATES.name)):
+            continue
+        live.write(m.topic, m.data, m.log_time_ns, m.publish_time_ns or 0)
+    bag = tmp_path / "killed"
+    bag.mkdir()
+    (bag / "killed_0.mcap").write_bytes(live.path.read_bytes())  # as SIGKILL leaves it
+    live.close()
+    shutil.copy(SWINGUP / "pisc_params.yaml", bag)
+    repair_bag(bag)
+    report = replay_bag(bag)
+    note = ("dropped the incomplete last cycle, the recording ended inside it: stamp "
+            f"1000000000 (t = 1.000 s) has no {MOTOR_CURRENT.name}")
+    assert report.reproduced, report.format()
+    assert report.cycles == 200 and note in report.notes
+    completed = subprocess.run([sys.executable, "-m", "pisc_bringup.bag_cli", "replay", str(bag)],
+                               capture_output=True, text=True, timeout=120)
+    assert completed.returncode == 0, completed.stderr
+    assert note in completed.stdout and "result: REPRODUCED" in completed.stdout
+    # a sample missing before the end is still an error
+    run = load_recorded(read_bag(SWINGUP))
+    assert not run.notes
+    messages = [m for m in read_bag(SWINGUP)
+                if not (m.topic == MOTOR_CURRENT.name
+                        and stamp_from_msg(m.message.header.stamp) == 5_000_000)]
+    with pytest.raises(BagError, match="at stamp 5000000 has no /pisc/motor/current"):
+        load_recorded(iter(messages))
 
 
 def test_a_truncated_bag_is_refused_with_its_name_and_no_traceback(tmp_path):

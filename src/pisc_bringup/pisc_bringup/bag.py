@@ -6,9 +6,20 @@ mcap-ros2-support, Foxglove and PlotJuggler. Message definitions come from the
 rosbags type store (the Jazzy definitions), embedded as ``ros2msg`` schemas; each
 channel carries its offered QoS profile and type hash as rosbag2 does.
 
-The MCAP file is written without chunks and flushed after each message, so a recorder
-that dies loses at most what the operating system had not yet been handed; a bag
-closed normally gets its summary, footer and ``metadata.yaml``.
+**While recording** the MCAP file is a stream: every message is written unchunked, in
+the order the recorder took it, and handed to the operating system at once, so a
+recorder that dies, even by SIGKILL, loses only what it had not yet taken.
+
+**Finishing** (:meth:`BagWriter.close`, and :func:`repair_bag` for a recorder that
+died) rewrites the stream as an indexed file, the way rosbag2 writes MCAP: the messages
+in log-time order (stable: a tie keeps the recorded order) in chunks of up to 768 KiB
+(libmcap's default, which rosbag2 uses), each followed by its message indexes, and a
+summary with the schemas, channels, statistics, one chunk index per chunk and the
+summary offsets, written by the ``mcap`` library's writer. The indexed file is written
+beside the stream (``<name>_0.mcap.tmp``), synced, and renamed over it, and
+``metadata.yaml`` is written last (also through a rename): a finish that is
+interrupted leaves either the whole stream or the whole indexed file, and
+``pisc_bag repair`` completes it.
 
 Times: ``log_time`` is when the recorder received a message and ``publish_time`` when
 it was sent (DDS source timestamp), both wall-clock nanoseconds; the control cycle's
@@ -18,9 +29,11 @@ own time is in each message's header stamp.
 from __future__ import annotations
 
 import io
+import os
 import struct
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from operator import attrgetter
 from pathlib import Path
 from typing import Any
 
@@ -41,10 +54,12 @@ from rosbags.typesys import Stores, get_typestore
 from pisc_msgs_py.topics import QosSpec, Topic
 
 __all__ = ["BagError", "BagMessage", "BagWriter", "RawMessage", "RepairReport", "bag_files",
-           "header_stamp_ns", "read_bag", "read_bag_raw", "repair_bag"]
+           "header_stamp_ns", "index_problems", "read_bag", "read_bag_raw", "repair_bag"]
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ROSBAG2_VERSION = 9
+CHUNK_SIZE = 768 * 1024  # libmcap's default chunk size, which rosbag2 writes with
+TEMP_SUFFIX = ".tmp"  # the indexed file while it is written, beside the stream
 _NEVER = QosTime(0x7FFFFFFF, 0xFFFFFFFF)  # rmw's "infinite" duration as rosbag2 dumps it
 
 
@@ -76,7 +91,11 @@ class _Channel:
 
 
 class BagWriter:
-    """Write raw (CDR) messages of known topics into a new rosbag2 MCAP bag."""
+    """Write raw (CDR) messages of known topics into a new rosbag2 MCAP bag.
+
+    Messages are streamed unchunked as they come (:meth:`write`); :meth:`close` finishes
+    the bag: indexed, in log-time order, with ``metadata.yaml`` (see the module).
+    """
 
     def __init__(self, directory: str | Path, topics: Sequence[Topic]) -> None:
         self.directory = Path(directory)
@@ -90,12 +109,11 @@ class BagWriter:
         self._writer.start(profile="ros2", library="pisc")
         self._channels: dict[str, _Channel] = {}
         self._schemas: dict[str, int] = {}
-        self._first_ns: int | None = None
-        self._last_ns = 0
         self._closed = False
+        self.finish_s: float | None = None  # how long close() took to index the file
         for topic in topics:
             self._add(topic)
-        self._file.flush()
+        self._writer.flush()  # the schemas and channels: a bag killed now is still whole
 
     def _add(self, topic: Topic) -> None:
         schema_id = self._schemas.get(topic.type)
@@ -111,32 +129,44 @@ class BagWriter:
         )
         self._channels[topic.name] = _Channel(topic, channel_id, type_hash)
 
-    def write(self, topic_name: str, data: bytes, log_time_ns: int, publish_time_ns: int) -> None:
+    def write(self, topic_name: str, data: bytes, log_time_ns: int, publish_time_ns: int,
+              flush: bool = True) -> None:
+        """Append one message to the stream; ``flush`` hands it to the operating system
+        now (else :meth:`flush` does, e.g. once for the messages taken together)."""
         channel = self._channels[topic_name]
         channel.count += 1
         self._writer.add_message(channel.channel_id, log_time_ns, data, publish_time_ns,
                                  sequence=channel.count)
+        if flush:
+            self._file.flush()
+
+    def flush(self) -> None:
         self._file.flush()
-        if self._first_ns is None:
-            self._first_ns = log_time_ns
-        self._first_ns = min(self._first_ns, log_time_ns)
-        self._last_ns = max(self._last_ns, log_time_ns)
 
     @property
     def counts(self) -> dict[str, int]:
         return {name: c.count for name, c in self._channels.items()}
 
     def close(self) -> None:
-        """Finish the MCAP file (summary, footer) and write ``metadata.yaml``."""
+        """Finish the bag: the stream rewritten indexed and in log-time order, then
+        ``metadata.yaml``. :class:`BagError` if that fails (the stream is then left for
+        ``pisc_bag repair``)."""
         if self._closed:
             return
         self._closed = True
-        self._writer.finish()
-        self._file.close()
-        _write_metadata(self.directory, self.path.name, [
-            _TopicRecord(c.topic.name, c.topic.type, _qos(c.topic.qos), c.type_hash, c.count)
-            for c in self._channels.values()
-        ], self._first_ns or 0, self._last_ns)
+        import time
+
+        self._file.close()  # the stream: whole records, no summary
+        started = time.perf_counter()
+        try:
+            records = _read_records(self.path.read_bytes())
+            counts = _write_indexed(self.path, records, "pisc")
+            _write_metadata(self.directory, self.path.name, _topic_records(records, counts),
+                            *records.time_range())
+        except (OSError, BagError) as exc:
+            raise BagError(f"{self.path}: could not finish the bag ({exc}); `pisc_bag repair "
+                           f"{self.directory}` finishes it from the recorded stream") from exc
+        self.finish_s = time.perf_counter() - started
 
 
 @dataclass(frozen=True)
@@ -228,9 +258,11 @@ def bag_files(directory: str | Path) -> list[Path]:
         info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
         names = info["relative_file_paths"]
         storage = info["storage_identifier"]
-    except (yaml.YAMLError, KeyError, TypeError, UnicodeDecodeError) as exc:
-        raise BagError(f"{meta}: malformed rosbag2 metadata ({type(exc).__name__}: {exc})") \
-            from None
+    except (yaml.YAMLError, KeyError, TypeError, AttributeError, UnicodeDecodeError) as exc:
+        hint = (f"; `pisc_bag repair {directory}` rebuilds it from the MCAP file"
+                if any(directory.glob("*.mcap")) else "")
+        raise BagError(f"{meta}: malformed rosbag2 metadata ({type(exc).__name__}: "
+                       f"{' '.join(str(exc).split())}){hint}") from None
     if storage != "mcap":
         raise BagError(f"{meta}: storage {storage!r}, only 'mcap' bags are read")
     if not names:
@@ -306,39 +338,214 @@ def read_bag_raw(directory: str | Path,
             raise BagError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from exc
 
 
+@dataclass
+class _Records:
+    """The schemas, channels and messages of an MCAP file, read record by record."""
+
+    schemas: dict[int, Any] = field(default_factory=dict)
+    channels: dict[int, Any] = field(default_factory=dict)  # by id, in the file's order
+    messages: list[Any] = field(default_factory=list)  # mcap.records.Message, file order
+    whole_bytes: int = 0  # the file's bytes up to the end of its last whole record
+    size: int = 0
+
+    def time_range(self) -> tuple[int, int]:
+        times = [m.log_time for m in self.messages]
+        return min(times, default=0), max(times, default=0)
+
+
+def _read_records(raw: bytes) -> _Records:
+    """Whole records of an MCAP file (a stream, finished or not, or an indexed file): up
+    to the first record that is incomplete or corrupt, or to the end of the data section.
+    """
+    from mcap.records import Channel, DataEnd, Footer, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    if not raw.startswith(MCAP_MAGIC):
+        raise BagError("not an MCAP file (it does not start with the MCAP magic)")
+    records = _Records(whole_bytes=_whole_records_end(raw), size=len(raw))
+    try:
+        for record in StreamReader(io.BytesIO(raw[:records.whole_bytes]),
+                                   validate_crcs=True).records:
+            if isinstance(record, Schema):
+                records.schemas[record.id] = record
+            elif isinstance(record, Channel):
+                records.channels[record.id] = record
+            elif isinstance(record, Message):
+                records.messages.append(record)
+            elif isinstance(record, (DataEnd, Footer)):
+                break
+    except Exception:  # noqa: BLE001, S110 - whole records that do not parse end the data
+        pass
+    return records
+
+
+def _write_indexed(path: Path, records: _Records, library: str) -> dict[str, int]:
+    """Write ``records`` as an indexed MCAP file in log-time order over ``path``.
+
+    Written to ``path`` + :data:`TEMP_SUFFIX`, synced, then renamed over ``path`` (an
+    interruption leaves ``path`` as it was). Returns the messages written per topic
+    (messages of a channel that has no channel record are dropped: they cannot be read).
+    """
+    tmp = path.with_name(path.name + TEMP_SUFFIX)
+    counts = {c.topic: 0 for c in records.channels.values()}
+    with tmp.open("wb") as out:
+        writer = Writer(out, chunk_size=CHUNK_SIZE, compression=CompressionType.NONE,
+                        enable_crcs=True)
+        writer.start(profile="ros2", library=library)
+        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data)
+                      for sid, s in records.schemas.items()}
+        channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding,
+                                                    schema_ids.get(c.schema_id, 0), c.metadata)
+                       for cid, c in records.channels.items()}
+        known = [m for m in records.messages if m.channel_id in channel_ids]
+        records.messages = sorted(known, key=attrgetter("log_time"))  # stable
+        for m in records.messages:
+            writer.add_message(channel_ids[m.channel_id], m.log_time, m.data, m.publish_time,
+                               sequence=m.sequence)
+            counts[records.channels[m.channel_id].topic] += 1
+        writer.finish()
+        out.flush()
+        os.fsync(out.fileno())
+    tmp.replace(path)
+    return counts
+
+
+def _topic_records(records: _Records, counts: dict[str, int]) -> list[_TopicRecord]:
+    topics = []
+    for c in records.channels.values():
+        schema = records.schemas.get(c.schema_id)
+        qos = _parse_offered_qos(c.metadata.get("offered_qos_profiles", ""))
+        topics.append(_TopicRecord(c.topic, schema.name if schema else "", qos,
+                                   c.metadata.get("topic_type_hash", ""), counts[c.topic]))
+    return topics
+
+
+def index_problems(path: str | Path) -> list[str]:
+    """What keeps a finished MCAP file from being indexed and in log-time order, as
+    :class:`BagWriter` and :func:`repair_bag` write it: ``[]`` when nothing does.
+
+    Checked: a summary with statistics; every message in a chunk with a chunk index in
+    the summary; every message listed by a message index; the statistics' message count;
+    log times that never decrease in file order.
+    """
+    from mcap.records import Chunk, ChunkIndex, Message, MessageIndex, Statistics
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    messages = in_chunks = indexed = backwards = chunks = chunk_indexes = 0
+    statistics = None
+    last: int | None = None
+    try:
+        with Path(path).open("rb") as stream:
+            for record in StreamReader(stream, validate_crcs=True, emit_chunks=True).records:
+                inner: list[Any] = [record]
+                if isinstance(record, Chunk):
+                    chunks += 1
+                    inner = breakup_chunk(record, validate_crc=True)
+                    in_chunks += sum(isinstance(r, Message) for r in inner)
+                elif isinstance(record, MessageIndex):
+                    indexed += len(record.records)
+                elif isinstance(record, ChunkIndex):
+                    chunk_indexes += 1
+                elif isinstance(record, Statistics):
+                    statistics = record
+                for r in inner:
+                    if isinstance(r, Message):
+                        messages += 1
+                        backwards += last is not None and r.log_time < last
+                        last = r.log_time
+    except Exception as exc:  # noqa: BLE001 - the readers raise several unrelated types
+        return [f"it cannot be read through ({type(exc).__name__}: {exc})"]
+    problems = []
+    if statistics is None:
+        problems.append("no statistics in its summary")
+    elif statistics.message_count != messages:
+        problems.append(f"its statistics count {statistics.message_count} messages, the file "
+                        f"holds {messages}")
+    if in_chunks != messages:
+        problems.append(f"{messages - in_chunks} of its {messages} messages are not in chunks "
+                        "(no index finds them)")
+    if chunk_indexes != chunks:
+        problems.append(f"{chunk_indexes} chunk indexes in its summary for {chunks} chunks")
+    if indexed != in_chunks:
+        problems.append(f"its message indexes list {indexed} of the {in_chunks} messages in "
+                        "chunks")
+    if backwards:
+        problems.append(f"{backwards} messages out of log-time order")
+    return problems
+
+
+def _metadata_problem(directory: Path, file_name: str, counts: dict[str, int]) -> str | None:
+    """What is wrong with a bag's ``metadata.yaml`` for an MCAP file holding ``counts``
+    messages per topic, or None."""
+    meta = directory / "metadata.yaml"
+    if not meta.exists():
+        return "no metadata.yaml"
+    try:
+        info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+        names = info["relative_file_paths"]
+        storage = info["storage_identifier"]
+        total = info["message_count"]
+        listed = {t["topic_metadata"]["name"]: t["message_count"]
+                  for t in info["topics_with_message_count"]}
+    except (yaml.YAMLError, KeyError, TypeError, AttributeError, UnicodeDecodeError) as exc:
+        return f"metadata.yaml is malformed ({type(exc).__name__}: {' '.join(str(exc).split())})"
+    if storage != "mcap" or names != [file_name]:
+        return (f"metadata.yaml lists {names!r} in storage {storage!r}, not the MCAP file "
+                f"{file_name}")
+    if total != sum(counts.values()) or listed != counts:
+        return (f"metadata.yaml disagrees with {file_name} ({total} messages listed, "
+                f"{sum(counts.values())} in the file)")
+    return None
+
+
 @dataclass(frozen=True)
 class RepairReport:
     """What :func:`repair_bag` did."""
 
     path: Path  # the repaired MCAP file
-    backup: Path  # the unfinished file as it was found
+    backup: Path | None  # the MCAP file as it was found, when it was rewritten
     counts: dict[str, int]  # messages recovered per topic
-    dropped_bytes: int  # the incomplete record at the end, discarded
+    dropped_bytes: int  # the incomplete or unreadable end of the file, discarded
+    found: tuple[str, ...] = ()  # what was wrong
+    metadata_backup: Path | None = None  # a metadata.yaml that was wrong, as found
+    removed: tuple[Path, ...] = ()  # an interrupted finish's temporary file
 
     @property
     def recovered(self) -> int:
         return sum(self.counts.values())
 
     def format(self) -> str:
-        lines = [f"repaired {self.path}: recovered {self.recovered} messages "
-                 f"({self.dropped_bytes} bytes of an incomplete last record dropped); "
-                 f"the file as found is kept as {self.backup.name}"]
+        first = f"repaired {self.path}: recovered {self.recovered} messages"
+        if self.backup is not None and self.backup.suffix == ".unfinished":
+            first += f" ({self.dropped_bytes} bytes of an incomplete last record dropped)"
+        if self.backup is not None:
+            first += f"; the file as found is kept as {self.backup.name}"
+        lines = [first, f"  found: {'; '.join(self.found)}"]
+        if self.backup is not None:
+            lines.append("  rewritten indexed, in log-time order")
+        else:
+            lines.append("  the MCAP file was whole, indexed and in order: left as it was")
+        lines.append("  metadata.yaml rebuilt from the MCAP file" + (
+            f" (the one found is kept as {self.metadata_backup.name})"
+            if self.metadata_backup is not None else ""))
+        lines += [f"  removed {p.name} (an interrupted finish)" for p in self.removed]
         lines += [f"  {name} {count}" for name, count in self.counts.items()]
         return "\n".join(lines)
 
 
 def repair_bag(directory: str | Path) -> RepairReport:
-    """Finish a bag whose recorder died: rebuild its MCAP summary and ``metadata.yaml``.
+    """Finish a bag whose recorder died, or whose finish was interrupted, and rebuild a
+    missing or broken ``metadata.yaml`` from its MCAP file.
 
-    Reads the unfinished file record by record up to the first incomplete or corrupt
-    record, writes the schemas, channels and messages found into a finished MCAP file
-    (same ids, times and sequence numbers) and writes ``metadata.yaml``. The file as
-    found is kept beside it with the suffix ``.unfinished``. A bag that is already
-    finished is left alone (:class:`BagError`).
+    An MCAP file that is not finished, not indexed or not in log-time order is read
+    record by record up to the first incomplete or corrupt record, and its schemas,
+    channels and messages (same times and sequence numbers) are written as a finished,
+    indexed file in log-time order (as :meth:`BagWriter.close` does); the file as found
+    is kept beside it with the suffix ``.unfinished`` (or ``.unindexed``). A
+    ``metadata.yaml`` that is missing, malformed or disagrees with the MCAP file is
+    written anew from it; a wrong one is kept as ``metadata.yaml.broken``. A bag with
+    nothing to repair is left alone (:class:`BagError`).
     """
-    from mcap.records import Channel, DataEnd, Footer, Message, Schema
-    from mcap.stream_reader import StreamReader
-
     directory = Path(directory)
     if not directory.is_dir():
         raise BagError(f"{directory}: no such bag directory")
@@ -347,58 +554,85 @@ def repair_bag(directory: str | Path) -> RepairReport:
         raise BagError(f"{directory}: expected one .mcap file to repair, found "
                        f"{len(candidates)}")
     path = candidates[0]
-    raw = path.read_bytes()
-    if not raw.startswith(MCAP_MAGIC):
-        raise BagError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
-    if len(raw) >= 16 and raw.endswith(MCAP_MAGIC) and (directory / "metadata.yaml").exists():
-        raise BagError(f"{path}: already finished; nothing to repair")
+    leftover = path.with_name(path.name + TEMP_SUFFIX)
+    with path.open("rb") as stream:
+        if stream.read(8) != MCAP_MAGIC:
+            raise BagError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
+        stream.seek(0, io.SEEK_END)
+        size = stream.tell()
+        stream.seek(max(0, size - 8))
+        finished = size >= 16 and stream.read(8) == MCAP_MAGIC
+    found = [] if finished else ["the file ends without the MCAP footer (its recording "
+                                 "was not finished)"]
+    if finished:
+        found += index_problems(path)
 
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    messages: list[Message] = []
-    complete = _whole_records_end(raw)
-    try:
-        for record in StreamReader(io.BytesIO(raw[:complete]), validate_crcs=True).records:
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, Message):
-                messages.append(record)
-            elif isinstance(record, (DataEnd, Footer)):
-                break
-    except Exception:  # noqa: BLE001, S110 - whole records that do not parse end the data
-        pass
-    if not channels:
+    if not found:  # a whole, indexed file: the metadata alone may be wrong
+        with path.open("rb") as stream:
+            reader = make_reader(stream)
+            summary = reader.get_summary()
+        records = _Records(schemas=dict(summary.schemas), channels=dict(summary.channels))
+        stats = summary.statistics
+        counts = {c.topic: stats.channel_message_counts.get(cid, 0)
+                  for cid, c in summary.channels.items()}
+        problem = _metadata_problem(directory, path.name, counts)
+        if problem is None:
+            if leftover.exists():
+                leftover.unlink()
+                return RepairReport(path, None, counts, 0, ("an interrupted finish's "
+                                    "temporary file",), None, (leftover,))
+            raise BagError(f"{path}: already finished; nothing to repair")
+        meta_backup = _keep_broken_metadata(directory)
+        times = ((stats.message_start_time, stats.message_end_time) if stats.message_count
+                 else (0, 0))
+        _write_metadata(directory, path.name, _topic_records(records, counts), *times)
+        removed = _remove(leftover)
+        return RepairReport(path, None, counts, 0, (problem,), meta_backup, removed)
+
+    removed = _remove(leftover)
+    records = _read_records(path.read_bytes())
+    if not records.channels:
         raise BagError(f"{path}: no channel record survived; nothing to recover")
+    backup = path.with_name(path.name + (".unindexed" if finished else ".unfinished"))
+    _link_or_copy(path, backup)
+    counts = _write_indexed(path, records, "pisc repair")
+    problem = _metadata_problem(directory, path.name, counts)
+    meta_backup = None
+    if problem is not None and problem != "no metadata.yaml":
+        found.append(problem)
+        meta_backup = _keep_broken_metadata(directory)
+    _write_metadata(directory, path.name, _topic_records(records, counts),
+                    *records.time_range())
+    dropped = records.size - records.whole_bytes if not finished else 0
+    return RepairReport(path, backup, counts, dropped, tuple(found), meta_backup, removed)
 
-    backup = path.with_name(path.name + ".unfinished")
-    path.replace(backup)
-    with path.open("wb") as out:
-        writer = Writer(out, compression=CompressionType.NONE, use_chunking=False,
-                        enable_crcs=True)
-        writer.start(profile="ros2", library="pisc repair")
-        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data)
-                      for sid, s in schemas.items()}
-        channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding,
-                                                    schema_ids.get(c.schema_id, 0), c.metadata)
-                       for cid, c in channels.items()}
-        counts = {c.topic: 0 for c in channels.values()}
-        known = [m for m in messages if m.channel_id in channel_ids]
-        for m in known:
-            writer.add_message(channel_ids[m.channel_id], m.log_time, m.data, m.publish_time,
-                               sequence=m.sequence)
-            counts[channels[m.channel_id].topic] += 1
-        writer.finish()
-    records = []
-    for cid, c in channels.items():
-        schema = schemas.get(c.schema_id)
-        qos = _parse_offered_qos(c.metadata.get("offered_qos_profiles", ""))
-        records.append(_TopicRecord(c.topic, schema.name if schema else "", qos,
-                                    c.metadata.get("topic_type_hash", ""), counts[c.topic]))
-    times = [m.log_time for m in known]
-    _write_metadata(directory, path.name, records, min(times, default=0), max(times, default=0))
-    return RepairReport(path, backup, counts, len(raw) - complete)
+
+def _remove(leftover: Path) -> tuple[Path, ...]:
+    if leftover.exists():
+        leftover.unlink()
+        return (leftover,)
+    return ()
+
+
+def _keep_broken_metadata(directory: Path) -> Path | None:
+    meta = directory / "metadata.yaml"
+    if not meta.exists():
+        return None
+    backup = directory / "metadata.yaml.broken"
+    meta.replace(backup)
+    return backup
+
+
+def _link_or_copy(path: Path, backup: Path) -> None:
+    """``backup``: the bytes of ``path`` as they are now (a hard link, else a copy)."""
+    import shutil
+
+    if backup.exists():
+        backup.unlink()
+    try:
+        os.link(path, backup)
+    except OSError:
+        shutil.copyfile(path, backup)
 
 
 def _whole_records_end(raw: bytes) -> int:

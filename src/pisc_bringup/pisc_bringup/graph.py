@@ -66,7 +66,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.task import Future
 
-from pisc_bringup.bag import BagError
+from pisc_bringup.bag import BagError, RepairReport, repair_bag
 from pisc_bringup.configuration import load_run_config, write_params_file
 from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
@@ -214,6 +214,19 @@ class GraphError(RuntimeError):
     """The graph did not run to the end; the message says what happened."""
 
 
+class RecorderDied(GraphError):
+    """pisc_record died during the run: the run stopped there, and the bag was finished
+    with what had been recorded (``repair``, None if that failed; ``summary`` of the
+    recorded part, None if there is none)."""
+
+    def __init__(self, message: str, bag_dir: Path, summary: RunSummary | None,
+                 repair: RepairReport | None) -> None:
+        super().__init__(message)
+        self.bag_dir = bag_dir
+        self.summary = summary
+        self.repair = repair
+
+
 def _default_bag_dir(options: RunOptions) -> Path:
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S-%f")
     x0 = options.initial_x_m
@@ -260,6 +273,66 @@ class _Progress:
         if stamp - self.first_ns >= self.duration_ns and not self.done.is_set():
             self.done.set()
             self.future.set_result(stamp)
+
+
+class _RecorderWatch:
+    """Notices that pisc_record died, at the next cycle's voltage or within a period of
+    wall time (a timer), in lockstep and on the wall clock alike, says so at once and
+    ends the spin (the run stops; a driver is stopped, which commands 0 V)."""
+
+    def __init__(self, recorder: subprocess.Popen, progress: _Progress) -> None:
+        self.recorder = recorder
+        self.progress = progress
+        self.died_at_ns: int | None = None  # the last voltage stamp when it was noticed
+        self.returncode: int | None = None
+
+    def check(self) -> None:
+        if self.returncode is not None or self.recorder.poll() is None:
+            return
+        self.returncode = self.recorder.returncode
+        self.died_at_ns = self.progress.last_ns
+        print(f"pisc_graph: pisc_record {_exit_description(self.returncode)} "
+              f"{self.run_time()}; stopping the run", file=sys.stderr, flush=True)
+        if not self.progress.future.done():
+            self.progress.future.set_result(None)
+
+    def run_time(self) -> str:
+        first, last = self.progress.first_ns, self.died_at_ns
+        if first is None or last is None:
+            return "before the first cycle"
+        return f"at t = {(last - first) * 1e-9:.3f} s"
+
+
+def _exit_description(returncode: int) -> str:
+    if returncode < 0:
+        try:
+            return f"was killed by {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"was killed by signal {-returncode}"
+    return f"exited with status {returncode}"
+
+
+def _recorder_died(what: str, bag_dir: Path, period_s: float,
+                   recorder_error: str) -> RecorderDied:
+    """Finish the bag of a run whose recorder died, as ``pisc_bag repair`` does."""
+    lines = [what]
+    if recorder_error:
+        lines.append(f"pisc_record said: {recorder_error}")
+    repair, summary = None, None
+    try:
+        repair = repair_bag(bag_dir)
+    except BagError as exc:
+        lines.append(f"`pisc_bag repair {bag_dir}` could not finish the bag: {exc}")
+    else:
+        lines.append(f"the bag was finished with what was recorded, as `pisc_bag repair "
+                     f"{bag_dir}` does: {repair.recovered} messages"
+                     + (f"; the recorder's file as found is kept as {repair.backup.name}"
+                        if repair.backup is not None else ""))
+        try:
+            summary = summarise_bag(bag_dir, period_s)
+        except BagError as exc:
+            lines.append(f"no summary: {exc}")
+    return RecorderDied("\n".join(lines), bag_dir, summary, repair)
 
 
 def _count_publications(nodes: Sequence[Node]) -> dict[str, int]:
@@ -379,10 +452,16 @@ def run_graph(options: RunOptions) -> RunResult:
     context = Context()
     rclpy.init(context=context, domain_id=options.domain_id)
     progress = _Progress(options.duration_s)
+    watch = _RecorderWatch(recorder, progress)
     watcher = Node("pisc_graph", context=context)
-    watcher.create_subscription(message_class(VOLTAGE.type), VOLTAGE.name,
-                                lambda data: progress(VOLTAGE.name, data),
+
+    def on_voltage(data: bytes) -> None:
+        progress(VOLTAGE.name, data)
+        watch.check()  # each cycle
+
+    watcher.create_subscription(message_class(VOLTAGE.type), VOLTAGE.name, on_voltage,
                                 qos_profile(VOLTAGE.qos), raw=True)
+    watcher.create_timer(config.loop.period_s, watch.check)  # wall clock: also when stalled
     nodes: list[Node] = []
     published: dict[str, int] = {}
     finished = False
@@ -443,19 +522,31 @@ def run_graph(options: RunOptions) -> RunResult:
         executor.spin_until_future_complete(progress.future, timeout)
         finished = progress.done.is_set()
         # the plant stops with the last sample; what is still in flight reaches the recorder
-        if not _wait_acknowledged(nodes, 30.0 + options.duration_s):
+        if watch.returncode is None and not _wait_acknowledged(nodes,
+                                                               30.0 + options.duration_s):
             print("pisc_graph: the recorder did not acknowledge every message within "
                   f"{30.0 + options.duration_s:.0f} s; the bag may miss the last ones",
                   file=sys.stderr)
     finally:
         # the plant first, so the controllers see no sample after their peers stopped
         failures = [_stop(child)[0] for child in reversed(children)]
-        for node in [*nodes, watcher]:
+        for node in [*reversed(nodes), watcher]:  # the plant or driver first: 0 V
             node.destroy_node()
         context.try_shutdown()
         recorder_problem, recorder_output = _stop(recorder)
         ready_dir.cleanup()
     failed = [f for f in failures if f]
+    said = "; ".join(x for x in [*failed, recorder_problem.partition(": ")[2].strip()] if x)
+    if watch.returncode is not None:
+        raise _recorder_died(
+            f"pisc_record {_exit_description(watch.returncode)} {watch.run_time()} of the "
+            f"run; the run was stopped there"
+            f"{' and the rig left at 0 V' if source is DRIVER else ''}",
+            bag_dir, config.loop.period_s, said)
+    if recorder_problem and finished and not failed:  # it died finishing the bag
+        raise _recorder_died(
+            f"pisc_record {_exit_description(recorder.returncode)} after the run, while "
+            "finishing the bag", bag_dir, config.loop.period_s, said)
     if failed:
         raise GraphError("; ".join(failed))
     if recorder_problem:
@@ -712,6 +803,13 @@ def main(argv: list[str] | None = None) -> int:
         result = run_graph(options)
     except ConfigError as exc:
         print(f"pisc_graph: invalid configuration: {exc}", file=sys.stderr)
+        return 2
+    except RecorderDied as exc:
+        if exc.summary is not None:
+            print(f"bag: {exc.bag_dir} (what was recorded before pisc_record died)")
+            print(exc.summary.format())
+        print("\n".join(f"pisc_graph: {line}" for line in str(exc).splitlines()),
+              file=sys.stderr)
         return 2
     except (GraphError, BagError) as exc:
         print(f"pisc_graph: {exc}", file=sys.stderr)

@@ -3,11 +3,14 @@
     pisc_record --bag DIR [--topic NAME ...] [--ready-file PATH [--expect NAME=N ...]]
 
 A process of its own, so recording competes with the control loop for nothing but a
-CPU core. On SIGINT or SIGTERM it first takes what DDS still holds for it (it spins
-until nothing has arrived for ``--drain`` seconds), writes what it has queued,
-finishes the bag (summary, footer, metadata.yaml) and prints the message count of
-every topic. Killed with SIGKILL, the bag keeps every message written so far (each is
-flushed) and ``pisc_bag repair`` finishes it.
+CPU core. Every message is written as soon as it is taken (:mod:`pisc_bringup.
+recorder_node`), unchunked, and handed to the operating system at once. On SIGINT or
+SIGTERM it first takes what DDS still holds for it (until nothing has arrived for
+``--drain`` seconds), then finishes the bag: the file rewritten indexed and in
+log-time order, then ``metadata.yaml`` (:mod:`pisc_bringup.bag`), and prints the
+message count of every topic and how long the finish took. Killed, even with SIGKILL,
+the bag keeps every message written so far, all but those of about the last wake-up,
+and ``pisc_bag repair`` finishes it.
 
 ``--ready-file PATH`` creates PATH once every subscription has matched its publishers
 (at least one each, or the N of ``--expect NAME=N``). A publisher sees the recorder
@@ -25,7 +28,6 @@ import time
 from pathlib import Path
 
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
 from pisc_bringup.bag import BagError, BagWriter
@@ -68,29 +70,33 @@ def main(argv: list[str] | None = None) -> int:
     # rclpy's own handlers would shut the context down at once, dropping what DDS holds
     rclpy.init(args=[sys.argv[0], *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     node = RecorderNode(writer, topics)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
     try:
         while not stop:
-            executor.spin_once(timeout_sec=0.1 if expected is None else 0.01)
+            node.take(0.1 if expected is None else 0.01)
             if expected is not None and all(
                     node.publisher_count(name) >= n for name, n in expected.items()):
                 args.ready_file.touch()
                 expected = None
-        # drain: take what has arrived but not been delivered, until the graph is quiet
+        # drain: take what has arrived but not been taken, until the graph is quiet
         quiet_since = time.monotonic()
-        seen = node.total_received
         while time.monotonic() - quiet_since < args.drain:
-            executor.spin_once(timeout_sec=0.01)
-            if node.total_received != seen:
-                seen = node.total_received
+            if node.take(0.01):
                 quiet_since = time.monotonic()
     finally:
-        node.close()
         node.destroy_node()
         rclpy.try_shutdown()
+        failed = None
+        try:
+            node.close()  # finish the bag: seconds for a long one, after DDS is done
+        except BagError as exc:
+            failed = exc
+    if failed is not None:
+        print(f"pisc_record: {failed}", file=sys.stderr)
+        return 1
     for name, count in writer.counts.items():
         print(f"{name} {count}")
+    print(f"pisc_record: finished {args.bag} in {writer.finish_s:.2f} s (indexed, in "
+          "log-time order)", file=sys.stderr)
     return 0
 
 

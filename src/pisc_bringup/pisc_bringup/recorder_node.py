@@ -1,9 +1,15 @@
-"""Recorder node: every graph topic, raw, into a rosbag2 MCAP bag, off the control path.
+"""Recorder node: every graph topic, raw, into a rosbag2 MCAP bag, as soon as it arrives.
 
-Subscriptions take the serialized CDR bytes (no decoding) together with the DDS message
-info, and hand them to a writer thread through a queue, so a slow disk never delays a
-callback of the control loop. rclpy's EventsExecutor cannot deliver message info, so
-this node runs on its own SingleThreadedExecutor (see :mod:`pisc_bringup.graph`).
+The recorder runs in a process of its own (:mod:`pisc_bringup.record`), so nothing it
+does delays the control loop's callbacks; what it must do is keep up, because whatever
+it has not yet written when it is killed is lost. So it does not go through an
+executor: :meth:`RecorderNode.take` waits on one wait set for any of its subscriptions,
+then takes every message that has arrived on every subscription (the serialized CDR
+bytes with the DDS message info, no decoding), writes them in the order they were
+received (the DDS reception time is each message's log time) and hands them to the
+operating system with one flush. A message is thus on its way to the disk about a wait
+set's wake-up after DDS received it, and a slow disk delays only the recorder: DDS
+keeps what arrives meanwhile.
 
 Subscriptions keep all history (``KEEP_ALL``) with the topic's reliability and
 durability, so the recorder never drops what it has taken. A reliable publisher keeps
@@ -15,11 +21,10 @@ every publisher (``--ready-file``); the runner starts the graph after that.
 
 from __future__ import annotations
 
-import queue
-import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
 
@@ -29,14 +34,16 @@ from pisc_msgs_py.topics import Topic
 
 __all__ = ["RecorderNode", "header_stamp_ns", "recording_qos"]
 
-_STOP = object()
-
 
 def recording_qos(topic: Topic) -> Any:
     """The topic's QoS with all history kept: the recorder never drops a sample it got."""
     profile = qos_profile(topic.qos)
     profile.history = HistoryPolicy.KEEP_ALL
     return profile
+
+
+def _unused(*_: Any) -> None:  # pragma: no cover - messages are taken by RecorderNode.take
+    pass
 
 
 class RecorderNode(Node):
@@ -49,35 +56,43 @@ class RecorderNode(Node):
         on_message: Callable[[str, bytes], None] | None = None,
         **kwargs: Any,
     ) -> None:
+        kwargs.setdefault("start_parameter_services", False)
         super().__init__("recorder", **kwargs)
         self._writer = writer
         self._on_message = on_message
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self.received: dict[str, int] = {t.name: 0 for t in topics}
         self._subs = {
             t.name: self.create_subscription(
-                message_class(t.type), t.name, self._callback(t.name), recording_qos(t),
-                raw=True)
+                message_class(t.type), t.name, _unused, recording_qos(t), raw=True)
             for t in topics
         }
-        self._thread = threading.Thread(target=self._write_loop, name="bag-writer", daemon=True)
-        self._thread.start()
+        self._takes = [(name, sub.handle, sub.msg_type) for name, sub in self._subs.items()]
+        self._wait_set = _rclpy.WaitSet(len(self._takes), 0, 0, 0, 0, 0, self.context.handle)
 
-    def _callback(self, topic: str) -> Callable[[bytes, dict], None]:
-        def callback(data: bytes, info: dict) -> None:
-            self.received[topic] += 1
-            self._queue.put((topic, data, info["received_timestamp"], info["source_timestamp"]))
-            if self._on_message is not None:
-                self._on_message(topic, data)
-
-        return callback
-
-    def _write_loop(self) -> None:
-        while True:
-            item = self._queue.get()
-            if item is _STOP:
-                return
-            self._writer.write(*item)
+    def take(self, timeout_s: float) -> int:
+        """Wait up to ``timeout_s`` for a message, then take and write every message that
+        has arrived; returns how many."""
+        wait_set = self._wait_set
+        wait_set.clear_entities()
+        for _, handle, _ in self._takes:
+            wait_set.add_subscription(handle)
+        wait_set.wait(round(timeout_s * 1e9))
+        batch = []
+        for name, handle, msg_type in self._takes:
+            while (taken := handle.take_message(msg_type, True)) is not None:
+                data, info = taken
+                batch.append((info["received_timestamp"], name, data, info["source_timestamp"]))
+        if not batch:
+            return 0
+        batch.sort(key=lambda item: item[0])
+        for log_time, name, data, publish_time in batch:
+            self._writer.write(name, data, log_time, publish_time, flush=False)
+            self.received[name] += 1
+        self._writer.flush()
+        if self._on_message is not None:
+            for _, name, data, _ in batch:
+                self._on_message(name, data)
+        return len(batch)
 
     def publisher_count(self, topic: str) -> int:
         """Publishers this recorder's subscription of ``topic`` has matched."""
@@ -88,7 +103,5 @@ class RecorderNode(Node):
         return sum(self.received.values())
 
     def close(self) -> None:
-        """Write what is queued, then finish the bag."""
-        self._queue.put(_STOP)
-        self._thread.join()
+        """Finish the bag (indexed, in log-time order, with its metadata)."""
         self._writer.close()

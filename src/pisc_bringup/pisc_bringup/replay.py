@@ -86,6 +86,7 @@ class RecordedRun:
 
     samples: list[tuple[int, float, float, float]]  # (stamp, x, theta, i) in order
     outputs: Outputs
+    notes: list[str] = field(default_factory=list)  # what was dropped, and why
 
     @property
     def first_stamp_ns(self) -> int:
@@ -98,7 +99,14 @@ def _first(table: dict[int, Any], stamp: int, value: Any) -> None:
 
 
 def load_recorded(messages: Iterable[BagMessage], where: str = "bag") -> RecordedRun:
-    """Samples and outputs of a run from its messages; :class:`BagError` if unusable."""
+    """Samples and outputs of a run from its messages; :class:`BagError` if unusable.
+
+    A sample is a stamp's ``/pisc/joint_states`` with its ``/pisc/motor/current``. A
+    recording that ended inside a cycle (a recorder that died, its bag repaired) holds
+    part of its last cycle: the stamps after the last whole sample are dropped, their
+    outputs with them, and the run's notes say so. A sample missing anywhere before
+    is an error.
+    """
     joints: dict[int, tuple[float, float]] = {}
     currents: dict[int, float] = {}
     outputs: Outputs = {name: {} for name in COMPARED_TOPICS}
@@ -131,6 +139,26 @@ def load_recorded(messages: Iterable[BagMessage], where: str = "bag") -> Recorde
         raise BagError(f"{where}: no {JOINT_STATES.name} message: nothing to replay")
     if not outputs[VOLTAGE.name]:
         raise BagError(f"{where}: no {VOLTAGE.name} message: nothing to compare with")
+    whole = [s for s in joints if s in currents]
+    last = max(whole, default=None)
+    notes = []
+    partial = sorted(s for s in set(joints) | set(currents) if last is None or s > last)
+    if last is not None and partial:
+        missing = {s: MOTOR_CURRENT.name if s in joints else JOINT_STATES.name for s in partial}
+        t0 = min(whole)
+        notes.append("dropped the incomplete last cycle" + ("s" if len(partial) > 1 else "")
+                     + ", the recording ended inside it: " + "; ".join(
+                         f"stamp {s} (t = {(s - t0) * 1e-9:.3f} s) has no {missing[s]}"
+                         for s in partial))
+        for s in partial:
+            joints.pop(s, None)
+            currents.pop(s, None)
+        for table in outputs.values():
+            for s in [s for s in table if s > last]:
+                del table[s]
+        if not outputs[VOLTAGE.name]:
+            raise BagError(f"{where}: no {VOLTAGE.name} message before the incomplete last "
+                           "cycle: nothing to compare with")
     samples = []
     for stamp in sorted(joints):
         if stamp not in currents:
@@ -138,7 +166,7 @@ def load_recorded(messages: Iterable[BagMessage], where: str = "bag") -> Recorde
                            f"{MOTOR_CURRENT.name} of the same stamp (the current loop needs "
                            "both)")
         samples.append((stamp, *joints[stamp], currents[stamp]))
-    return RecordedRun(samples, outputs)
+    return RecordedRun(samples, outputs, notes)
 
 
 def replay_cores(run: RecordedRun, config: GraphConfig) -> Outputs:
@@ -279,7 +307,8 @@ def compare(run: RecordedRun, recomputed: Outputs, tolerance: float = 0.0,
                 differ += 1
                 first = first or bad
         comparisons.append(TopicComparison(topic, compared, differ, largest, largest_at, first))
-    notes = ([f"not recorded, so not compared: {', '.join(skipped)}"] if skipped else [])
+    notes = [*run.notes,
+             *([f"not recorded, so not compared: {', '.join(skipped)}"] if skipped else [])]
     return ReplayReport(bag, how, len(stamps), tolerance, comparisons, unanswered, notes)
 
 

@@ -136,7 +136,7 @@ def replay_nodes(bag: str | Path, config: str | None = None,
     run = load_recorded(read_bag(bag), str(bag))
     # the run ends at the last recorded answer; later samples were never answered
     last = max(run.outputs[VOLTAGE.name])
-    run = RecordedRun([s for s in run.samples if s[0] <= last], run.outputs)
+    run = RecordedRun([s for s in run.samples if s[0] <= last], run.outputs, run.notes)
     timeout = timeout_s or 60.0 + 0.02 * len(run.samples)
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
