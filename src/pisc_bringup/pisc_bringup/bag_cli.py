@@ -30,7 +30,7 @@ __all__ = ["main"]
 SUBCOMMANDS = {
     "repair": ("pisc_bringup.repair_cmd", "finish a bag whose recorder was killed"),
     "play": ("pisc_bringup.play", "publish a bag's topics on /clock simulated time"),
-    "replay": ("pisc_bringup.replay", "recompute every controller output of a bag and "
+    "replay": ("pisc_bringup.replay_cmd", "recompute every controller output of a bag and "
                                       "compare, stamp by stamp"),
     "analyse": ("pisc_bringup.analysis", "metrics, plots like the thesis's Figs. 6.3-6.8 and "
                                          "the CSV log of a bag"),

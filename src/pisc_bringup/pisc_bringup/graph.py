@@ -16,13 +16,13 @@ the controllers' process leaves it to zero the motor). ``--realtime PRIORITY`` r
 process and the processes it starts under SCHED_FIFO, as a control computer runs its loop: a
 real device does not wait for a loaded machine (README, "Serial driver"). ``--scene``
 takes a scene's configuration, overrides, duration and the topics it records
-(:mod:`pisc_bringup.scene`; ``--record`` replaces that list, and :data:`RUN_TOPICS` are
+(:mod:`pisc_sim.scene`; ``--record`` replaces that list, and :data:`RUN_TOPICS` are
 recorded whatever it says). ``--markers`` also runs the markers node (the rig drawn on
 ``/pisc/markers`` for RViz and Foxglove, docs/markers.md) and records its topic.
 
 **Model error.** ``--plant-config`` and ``--plant-set`` (and a scene's ``plant:`` block)
 give the simulated plant other physical parameters than the controllers assume
-(:func:`pisc_bringup.configuration.load_run_config`): the plant node gets the plant's
+(:func:`pisc_sim.configuration.load_run_config`): the plant node gets the plant's
 flat parameters, the controllers keep theirs. The bag holds both: ``pisc_params.yaml``
 (the controllers', which replay and analysis read) and ``plant_params.yaml`` (what the
 plant node got; written for every simulated run). With ``--driver`` the plant is the
@@ -34,7 +34,8 @@ that matches late gets only the last 100 messages); a lockstep sample that is lo
 anyway is sent again. With ``--processes --clock wall`` the plant does not wait for the
 recorder. The run ends when the voltage answering the sample at ``--duration`` has been
 received; the bag is closed, read back and summarised. Exit status: 0 caught and held, 1 not
-caught, 2 bad configuration or the graph did not run.
+caught, 2 bad configuration or the graph did not run; an experiment run (``experiment.kind``)
+exits 0 when it ran without a fault, 1 when it faulted.
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ from rclpy.parameter import Parameter
 from rclpy.task import Future
 
 from pisc_bringup.bag import BagError, RepairReport, repair_bag
-from pisc_bringup.configuration import load_run_config, write_params_file
+from pisc_sim.configuration import load_run_config, write_params_file
 from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
 from pisc_control.supervisor import Supervisor
@@ -90,7 +91,7 @@ from pisc_msgs_py.topics import (
     graph_topics_named,
 )
 
-__all__ = ["CONTROLLERS_PARAMS", "GRAPH", "PLANT_PARAMS", "RUN_TOPICS", "NodeSpec",
+__all__ = ["CONTROLLERS_PARAMS", "GRAPH", "PLANT_PARAMS", "RUN_TOPICS", "NodeSpec", "ros_parameters",
            "RunOptions", "RunResult", "main", "plant_description", "recorded_topics",
            "run_graph"]
 
@@ -201,6 +202,7 @@ class RunResult:
     processes: list[str]  # executables started with --processes
     # messages per topic the nodes of this process published (empty with --processes)
     published: dict[str, int] = field(default_factory=dict)
+    experiment: str = "none"  # experiment.kind: an identification run, not a swing-up
 
 
 # ROS 2 (Jazzy) discovery range: LOCALHOST, SUBNET (the ROS default), OFF or SYSTEM_DEFAULT
@@ -247,7 +249,8 @@ def plant_description(options: RunOptions) -> str | None:
     return f"{name} with " + ", ".join(f"{k}={v}" for k, v in options.plant_overrides.items())
 
 
-def _parameters(flat: dict[str, Any]) -> list[Parameter]:
+def ros_parameters(flat: dict[str, Any]) -> list[Parameter]:
+    """Flat parameters as rclpy Parameters (tuples as lists), for a node's overrides."""
     return [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in flat.items()]
 
 
@@ -428,7 +431,10 @@ def run_graph(options: RunOptions) -> RunResult:
         # the plant stops at the duration itself: a node process is stopped later
         "simulation.duration_s": options.duration_s}
     if source is DRIVER:
-        plant_run = {"driver.port": options.driver_port}
+        # the driver publishes no sample before the graph's readers, the recorder among
+        # them, have matched both sample topics: the bag then holds every sample
+        plant_run = {"driver.port": options.driver_port, "driver.min_subscribers": min(
+            expected_subscribers(JOINT_STATES, True), expected_subscribers(MOTOR_CURRENT, True))}
     env = dict(os.environ)
     # discovery stays on this machine unless the user asked for more (docs/safety.md)
     env.setdefault(DISCOVERY_RANGE, "LOCALHOST")
@@ -489,7 +495,7 @@ def run_graph(options: RunOptions) -> RunResult:
                                             lambda data: None, qos_profile(CLOCK.qos), raw=True)
             executor: Any = SingleThreadedExecutor(context=context)
         else:
-            params = _parameters(flat)
+            params = ros_parameters(flat)
             sim = [Parameter("use_sim_time", value=lockstep)]
             for spec in CONTROLLERS:
                 cls = getattr(importlib.import_module(spec.module), spec.cls)
@@ -508,8 +514,8 @@ def run_graph(options: RunOptions) -> RunResult:
                     0.02, lambda: _end_if_a_node_died(children, progress, died_driver))
             else:
                 plant_cls = getattr(importlib.import_module(source.module), source.cls)
-                nodes.append(plant_cls(context=context, parameter_overrides=_parameters(
-                    plant_params) + _parameters(plant_run)))
+                nodes.append(plant_cls(context=context, parameter_overrides=ros_parameters(
+                    plant_params) + ros_parameters(plant_run)))
             # nothing is sent before the executor spins: by then the recorder takes it all
             _wait(lambda: _recorder_matched(recorder, ready), 30.0,
                   "pisc_record to match every publisher")
@@ -563,7 +569,8 @@ def run_graph(options: RunOptions) -> RunResult:
             recorded[topic] = int(count)
     summary = summarise_bag(bag_dir, config.loop.period_s)
     started_as = [Path(c.args[0]).name for c in children]
-    return RunResult(bag_dir, summary, recorded, wall, started_as, dict(published))
+    return RunResult(bag_dir, summary, recorded, wall, started_as, dict(published),
+                     config.supervisor.experiment.kind)
 
 
 def _end_if_a_node_died(children: Sequence[subprocess.Popen], progress: _Progress,
@@ -767,7 +774,7 @@ def main(argv: list[str] | None = None) -> int:
     config, duration = args.config, args.duration
     record = tuple(args.record) if args.record else None
     if args.scene is not None:
-        from pisc_bringup.scene import load_scene
+        from pisc_sim.scene import load_scene
 
         try:
             scene = load_scene(args.scene, overrides, plant_overrides)
@@ -829,6 +836,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"bag: {result.bag_dir} ({sum(result.recorded.values())} messages, "
           f"{result.wall_s:.1f} s wall)")
     print(result.summary.format())
+    if result.experiment != "none":  # nothing is to be caught: the run must not fault
+        faults = result.summary.faults
+        print(f"experiment             {result.experiment}: "
+              + (f"FAULT ({faults[0]})" if faults else "completed without a fault"))
+        return 1 if faults else 0
     return 0 if result.summary.caught else 1
 
 

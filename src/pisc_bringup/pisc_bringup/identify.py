@@ -55,7 +55,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import sparse, stats
+from scipy import stats
 from scipy.optimize import least_squares
 
 from pisc_bringup.bag import BagError, bag_topics, read_bag

@@ -2,7 +2,7 @@
 
 The recorded samples (``/pisc/joint_states`` and ``/pisc/motor/current``, keyed by
 header stamp) go through the estimator, supervisor and current-loop cores
-(:class:`pisc_bringup.closed_loop.Controllers`, what the nodes and the simulation
+(:class:`pisc_sim.closed_loop.Controllers`, what the nodes and the simulation
 run), with the configuration the run used (the bag's ``pisc_params.yaml``) or another.
 A bag of a simulated run also holds ``plant_params.yaml``, what the plant ran (with model
 error it differs from the controllers' file); replay does not read it: the recorded
@@ -30,9 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from pisc_bringup.bag import BagError, BagMessage, bag_topics, read_bag
-from pisc_bringup.closed_loop import Controllers
-from pisc_bringup.configuration import GraphConfig, load_graph_config
-from pisc_msgs_py.config import parse_overrides
+from pisc_sim.closed_loop import Controllers
+from pisc_sim.configuration import GraphConfig, load_graph_config
 from pisc_msgs_py.convert import (
     MessageError,
     cart_force_from_msg,
@@ -342,37 +341,3 @@ def replay_bag(bag: str | Path, config: str | None = None,
     changed = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items())
     report.notes.append(f"configuration: {source}" + (f" with {changed}" if changed else ""))
     return report
-
-
-def add_arguments(parser: Any) -> None:
-    """``pisc_bag replay`` options."""
-    parser.add_argument("bag", type=Path, help="bag directory")
-    parser.add_argument("--nodes", action="store_true",
-                        help="through the estimator, supervisor and current-loop nodes over "
-                             "topics (default: through their cores)")
-    parser.add_argument("--config", help="configuration to replay with (default: the bag's "
-                                         f"{PARAMS_FILE}); a name or a parameter file")
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                        help="change a parameter, e.g. --set swing_up.k_x=6.3")
-    parser.add_argument("--tolerance", type=float, default=0.0,
-                        help="largest accepted |recorded - recomputed| (default 0: same bits)")
-    parser.add_argument("--domain-id", type=int, help="ROS domain id for --nodes")
-    parser.add_argument("--executor", choices=("events", "single", "multi"), default="events",
-                        help="executor of the nodes for --nodes (default: events, as "
-                             "pisc_graph runs them)")
-
-
-def run(args: Any) -> int:
-    """Replay, print the report; 0 reproduced, 1 mismatch."""
-    overrides = parse_overrides(args.set)
-    if args.tolerance < 0 or not math.isfinite(args.tolerance):
-        raise BagError(f"--tolerance {args.tolerance}: expected a finite value >= 0")
-    if args.nodes:
-        from pisc_bringup.replay_node import replay_nodes
-
-        report = replay_nodes(args.bag, args.config, overrides, args.tolerance, args.domain_id,
-                              executor_name=args.executor)
-    else:
-        report = replay_bag(args.bag, args.config, overrides, args.tolerance)
-    print(report.format())
-    return 0 if report.reproduced else 1

@@ -22,13 +22,13 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from pisc_bringup.bag import bag_topics, read_bag
-from pisc_bringup.configuration import load_graph_config
+from pisc_sim.configuration import load_graph_config
 from pisc_bringup.graph import (
     CONTROLLERS,
     EXECUTORS,
     GraphError,
-    _parameters,
     expected_subscribers,
+    ros_parameters,
 )
 from pisc_bringup.replay import (
     COMPARED_TOPICS,
@@ -142,7 +142,7 @@ def replay_nodes(bag: str | Path, config: str | None = None,
     rclpy.init(context=context, domain_id=domain_id)
     nodes: list[Node] = []
     try:
-        params = [*_parameters(flat), Parameter("use_sim_time", value=False)]
+        params = [*ros_parameters(flat), Parameter("use_sim_time", value=False)]
         for spec in CONTROLLERS:
             cls = getattr(importlib.import_module(spec.module), spec.cls)
             nodes.append(cls(context=context, parameter_overrides=params))

@@ -84,7 +84,6 @@ __all__ = [
     "lanes",
     "phi",
     "rhs_one",
-    "warm_up",
 ]
 
 METHODS = ("rk4", "exprk4")
@@ -1320,39 +1319,5 @@ _ENTRY_POINTS = {
 
 def for_layout(layout: Layout) -> Kernels:
     """The kernels of a layout (each compiled on its first use, or loaded from cache;
-    :func:`warm_up` compiles the uniform ones, not those of plant sets)."""
+    :func:`pisc_plant.warm.warm_up` compiles the uniform ones, not those of plant sets)."""
     return Kernels(*_ENTRY_POINTS[(layout.armature, layout.filters)])
-
-
-def warm_up() -> float:
-    """Compile (or load from numba's cache) the entry points of every layout; seconds.
-
-    The first compilation takes minutes; ``./pisc`` runs this once at set-up so that
-    nodes and tests started later load the cache instead of compiling in parallel.
-    """
-    import time
-
-    from pisc_plant.params import ModelParams
-    from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
-
-    start = time.perf_counter()
-    for armature in ("full", "quasi_static", "ideal_force"):
-        for filters in (True, False):
-            models = ModelParams(armature=armature,
-                                 current_loop="ideal" if armature == "ideal_force"
-                                 else "sampled_pi",
-                                 sensors="quantised" if filters else "ideal",
-                                 sensor_filters=filters)
-            plant = Plant(PlantConfig(models=models, integrator=IntegratorParams("exprk4", 2)))
-            one = plant.initial_state(0.0)
-            plant.advance(one, 1.0, 0.005)
-            plant.advance(plant.initial_state(np.zeros(2)), np.zeros(2), 0.005)
-            many = CHUNK + 1  # the parallel entry point
-            plant.advance(plant.initial_state(np.zeros(many)), np.zeros(many), 0.005)
-            plant.derivative(one, 0.0)
-            plant.end_stops(one)
-    return time.perf_counter() - start
-
-
-if __name__ == "__main__":
-    print(f"pisc_plant.kernel: compiled or loaded in {warm_up():.1f} s")

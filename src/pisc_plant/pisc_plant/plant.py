@@ -35,7 +35,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_msgs_py.config import ConfigError, in_range, one_of, param
-from pisc_plant import kernel, sensors
+from pisc_model import sensors
+from pisc_plant import kernel
 from pisc_model.params import (
     ActuatorParams,
     FrictionParams,

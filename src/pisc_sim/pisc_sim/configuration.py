@@ -33,7 +33,7 @@ from pisc_control.supervisor import (
 )
 from pisc_control.swing_up import SwingUpParams
 from pisc_msgs_py.config import ConfigError, find_file, from_flat, load_params_file, package_dir
-from pisc_plant.params import (
+from pisc_model.params import (
     ActuatorParams,
     FrictionParams,
     InitialParams,

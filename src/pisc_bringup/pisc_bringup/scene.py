@@ -1,7 +1,0 @@
-"""Moved to :mod:`pisc_sim.scene` (the simulation without ROS); this name stays only until
-the last importers move, and goes away then."""
-
-from pisc_sim import scene as _moved
-
-globals().update({k: v for k, v in vars(_moved).items() if not k.startswith("__")})
-__all__ = _moved.__all__

@@ -1,5 +1,0 @@
-"""Moved to :mod:`pisc_model.sensors` (the model without the simulator); this name stays only
-until the last importers move, and goes away then."""
-
-from pisc_model.sensors import *  # noqa: F403
-from pisc_model.sensors import __all__  # noqa: F401

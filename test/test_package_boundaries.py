@@ -1,0 +1,132 @@
+"""The packages' boundaries show the architecture (issue 17): every package declares in
+package.xml what its code imports, the controllers and the driver do not depend on the
+simulator, the analysis does not depend on the launch package, and no module imports
+itself back through another.
+
+Imports are read from the source with ``ast`` (function-level imports included: a lazy
+import is still a dependency); modules of the standard library are left out.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+PACKAGES = sorted(p.name for p in SRC.iterdir() if (p / "package.xml").is_file())
+
+#: Python module -> the package.xml key that provides it. ROS packages keep their names;
+#: Python libraries take the rosdep/Debian key (python3-<name>).
+KEYS = {
+    "numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python3-yaml",
+    "control": "python3-control", "serial": "python3-serial", "numba": "python3-numba",
+    "matplotlib": "python3-matplotlib", "sympy": "python3-sympy", "mcap": "python3-mcap",
+    "rosbags": "python3-rosbags", "optuna": "python3-optuna", "dask": "python3-dask",
+    "distributed": "python3-distributed", "tqdm": "python3-tqdm", "PIL": "python3-pil",
+    "imageio_ffmpeg": "python3-imageio-ffmpeg", "llvmlite": "python3-llvmlite",
+    "sqlalchemy": "python3-sqlalchemy",
+}
+
+#: Dependencies the architecture forbids: (package, package it must not use, why).
+FORBIDDEN = [
+    ("pisc_control", "pisc_plant", "the controllers run on a rig computer without the simulator"),
+    ("pisc_driver", "pisc_plant", "the driver runs on a rig computer without the simulator"),
+    ("pisc_model", "pisc_plant", "the model is what the simulator builds on"),
+    ("pisc_analysis", "pisc_bringup", "the analysis needs no launch package"),
+]
+
+
+def _imports(path: Path) -> set[str]:
+    """Absolute modules a file imports, anywhere in it."""
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            out.add(node.module)
+            out.update(f"{node.module}.{a.name}" for a in node.names)
+    return out
+
+
+def _modules(package: str) -> dict[str, Path]:
+    root = SRC / package
+    return {".".join(p.relative_to(root).with_suffix("").parts).removesuffix(".__init__"): p
+            for p in (root / package).rglob("*.py")}
+
+
+def _declared(package: str) -> set[str]:
+    root = ET.parse(SRC / package / "package.xml").getroot()
+    return {e.text.strip() for e in root if e.tag in ("depend", "exec_depend") and e.text}
+
+
+def _needed(package: str) -> dict[str, set[str]]:
+    """package.xml key -> the modules of ``package`` that need it."""
+    need: dict[str, set[str]] = {}
+    for module, path in _modules(package).items():
+        for name in _imports(path):
+            top = name.split(".")[0]
+            if top in sys.stdlib_module_names or top == package or top == "__future__":
+                continue
+            key = KEYS.get(top, top)
+            need.setdefault(key, set()).add(module)
+    return need
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_package_xml_declares_what_the_code_imports(package):
+    declared = _declared(package)
+    missing = {key: sorted(mods) for key, mods in _needed(package).items()
+               if key not in declared}
+    assert not missing, f"{package}/package.xml lacks: {missing}"
+
+
+@pytest.mark.parametrize("package, other, why", FORBIDDEN)
+def test_forbidden_dependencies(package, other, why):
+    users = sorted(_needed(package).get(other, ()))
+    assert other not in _declared(package) and not users, f"{package} uses {other} ({users}): " + why
+
+
+def test_no_import_circle():
+    """No module reaches itself through the modules it imports (Tarjan's strongly
+    connected components over every pisc module)."""
+    modules = {m: p for package in PACKAGES for m, p in _modules(package).items()}
+    edges = {m: sorted({i for name in _imports(p) for i in (name, name.rsplit(".", 1)[0])
+                        if i in modules and i != m})
+             for m, p in modules.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    circles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in edges[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            # a package's __init__ importing its own modules is not a circle
+            if len([c for c in component if "." in c]) > 1:
+                circles.append(sorted(component))
+
+    sys.setrecursionlimit(10000)
+    for v in sorted(modules):
+        if v not in index:
+            visit(v)
+    assert not circles, circles
