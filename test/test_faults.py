@@ -349,3 +349,40 @@ def test_a_run_in_separate_processes_ends_at_its_duration_exactly(tmp_path, doma
     assert stamps[JOINT_STATES.name] == stamps[SIM_STATE.name] == stamps[VOLTAGE.name]
     assert max(stamps[VOLTAGE.name]) - min(stamps[VOLTAGE.name]) == 1_000_000_000
     assert result.summary.state_source == "true"
+
+
+def test_another_subscriber_on_the_domain_does_not_pass_for_the_recorder(tmp_path, domain_id):
+    """Issue 15: any subscriber of the graph's topics on the same ROS domain (a `ros2
+    topic echo`) fooled the recorder readiness check, and the run then failed with a
+    FileNotFoundError traceback on the bag's pisc_params.yaml. The run now waits for its
+    own recorder, by node name."""
+    from pisc_bringup.graph import RunOptions, run_graph
+    from pisc_msgs_py.topics import GRAPH_TOPICS
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    echo = rclpy.node.Node("echo", context=context)
+    for topic in GRAPH_TOPICS:
+        echo.create_subscription(message_class(topic.type), topic.name, lambda m: None,
+                                 qos_profile(topic.qos))
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(echo)
+    try:
+        executor.spin_once(timeout_sec=0.5)  # discovered before the run starts
+        bag = tmp_path / "bag"
+        result = run_graph(RunOptions(duration_s=0.5, bag_dir=bag, domain_id=domain_id))
+        assert result.summary.cycles == 101, result.summary.format()
+        assert (bag / "pisc_params.yaml").is_file()
+    finally:
+        echo.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def test_an_experiment_run_exits_0_without_a_fault_and_says_so(tmp_path, domain_id, capfd):
+    """An identification run has nothing to catch: pisc_graph printed NOT CAUGHT and
+    exited 1 for every excitation run. It now exits 0 when the run did not fault."""
+    status = main(["--scene", "excitation", "--duration", "1", "--bag", str(tmp_path / "bag"),
+                   "--domain-id", str(domain_id)])
+    out = capfd.readouterr().out
+    assert status == 0, out
+    assert "experiment             excitation: completed without a fault" in out

@@ -452,8 +452,12 @@ def run_graph(options: RunOptions) -> RunResult:
     topic_args += ["--ready-file", str(ready), *(
         arg for t in recorded
         for arg in ("--expect", f"{t.name}={expected_publishers(t, publishers, lockstep)}"))]
+    # the run's recorder by a name of its own: another subscriber on the domain (a
+    # `ros2 topic echo`, another run's recorder) must not pass for it
+    recorder_name = f"pisc_record_{os.getpid()}"
     recorder = _spawn([*_command("pisc_record", "pisc_bringup.record"), "--bag", str(bag_dir),
-                       *topic_args], env, subprocess.PIPE, normal_scheduling=True)
+                       *topic_args, "--ros-args", "-r", f"__node:={recorder_name}"], env,
+                      subprocess.PIPE, normal_scheduling=True)
     children: list[subprocess.Popen] = []
     context = Context()
     rclpy.init(context=context, domain_id=options.domain_id)
@@ -472,7 +476,7 @@ def run_graph(options: RunOptions) -> RunResult:
     published: dict[str, int] = {}
     finished = False
     try:
-        _wait(lambda: _recorder_ready(watcher, recorder, recorded), 30.0,
+        _wait(lambda: _recorder_ready(watcher, recorder, recorded, recorder_name), 30.0,
               "pisc_record to subscribe")
         write_params_file(bag_dir / CONTROLLERS_PARAMS, flat)
         if source is PLANT:  # a bag says what was simulated, model error or not
@@ -630,11 +634,14 @@ def _check_recorder(recorder: subprocess.Popen) -> None:
         raise GraphError(f"pisc_record exited: {err.decode(errors='replace').strip()}")
 
 
-def _recorder_ready(watcher: Node, recorder: subprocess.Popen,
-                    recorded: Sequence[Topic]) -> bool:
-    """The recorder runs and its subscriptions are seen (before any node exists)."""
+def _recorder_ready(watcher: Node, recorder: subprocess.Popen, recorded: Sequence[Topic],
+                    name: str) -> bool:
+    """The recorder runs and its own subscriptions (node ``name``) are seen on every
+    recorded topic (before any node of the graph exists)."""
     _check_recorder(recorder)
-    return all(watcher.count_subscribers(t.name) >= 1 + (t is VOLTAGE) for t in recorded)
+    return all(any(info.node_name == name
+                   for info in watcher.get_subscriptions_info_by_topic(t.name))
+               for t in recorded)
 
 
 def _recorder_matched(recorder: subprocess.Popen, ready: Path) -> bool:
