@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -238,9 +239,11 @@ PARSERS = (("naive (0xAA + 6 bytes)", NaiveParser, False),
 
 
 def run(n_frames: int, rates: list[float], seed: int, adversarial: int = 100_000,
-        counts: tuple[int, ...] = ADVERSARIAL_COUNTS) -> list[dict]:
+        counts: tuple[int, ...] = ADVERSARIAL_COUNTS,
+        progress: Callable[[int], None] | None = None) -> list[dict]:
     """Rows of the table: the simulated rigs' stream (drops and flips), then
-    ``adversarial`` frames of the adversarial stream about ``counts`` (drops; none if 0)."""
+    ``adversarial`` frames of the adversarial stream about ``counts`` (drops; none if 0).
+    ``progress(1)`` is called after each row."""
     sources = [("rigs", rig_frames(n_frames, seed=seed), ("drop", "flip"), n_frames, ())]
     if adversarial:
         sources.append(("adversarial", adversarial_frames(adversarial, seed=seed,
@@ -259,6 +262,8 @@ def run(n_frames: int, rates: list[float], seed: int, adversarial: int = 100_000
                     damaged = int(sum(s.damaged_frames.sum() for s in streams))
                     rows.append(dict(stream=source, kind=kind, rate=rate, parser=name,
                                      frames=frames, damaged=damaged, score=total))
+                    if progress is not None:
+                        progress(1)
     return rows
 
 
@@ -322,7 +327,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--adversarial-counts are 16-bit register values, 0 to 0xFFFF")
     started = time.monotonic()
     counts = tuple(args.adversarial_counts)
-    rows = run(args.frames, args.rates, args.seed, args.adversarial_frames, counts)
+    from pisc_bringup.robustness_cli import progress_bar
+
+    total = len(PARSERS) * len(args.rates) * (2 + (1 if args.adversarial_frames else 0))
+    with progress_bar(total, "row", "parser bench") as bar:
+        rows = run(args.frames, args.rates, args.seed, args.adversarial_frames, counts, bar)
     print(f"{args.frames} frames per condition (100 simulated rigs), "
           f"{args.adversarial_frames} of the adversarial stream (100 rigs about counts "
           f"{', '.join(f'0x{c:04X}' for c in counts)}), seed {args.seed}")
