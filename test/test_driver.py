@@ -525,8 +525,10 @@ def test_a_visitor_answering_every_sample_drives_nothing_through_the_driver(
         loop.executor.remove_node(visitor.node)
         visitor.node.destroy_node()
         visitor = None
+        # the driver learns of the departure through discovery, slower under load
         assert loop.spin_until(lambda: any(
-            _level(s) == 0 and "/visitor left" in s.message for _, s in watch.statuses), 20.0)
+            _level(s) == 0 and "/visitor left" in s.message for _, s in watch.statuses), 60.0), [
+            (t, _level(s), s.message) for t, s in watch.statuses[-5:]]
         assert loop.spin_until(lambda: rig.status()["applied_v"] == pytest.approx(three_v),
                                20.0), rig.status()
     finally:
