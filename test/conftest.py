@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import fcntl
 import os
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -13,33 +11,9 @@ import pytest
 import rclpy
 from rclpy.context import Context
 
-_LOCK_DIR = Path(tempfile.gettempdir()) / "pisc-ros-domains"
+from pisc_msgs_py.processes import DomainClaim
 
-
-class DomainClaim:
-    """A ROS domain id no other process on this machine uses while the claim is held.
-
-    Each id 1..100 has a lock file; a claim holds an exclusive lock on one, so test runs
-    in parallel (several checkouts, CI and a developer) never hear each other's graphs.
-    """
-
-    def __init__(self) -> None:
-        _LOCK_DIR.mkdir(exist_ok=True)
-        for domain in range(1, 101):
-            handle = (_LOCK_DIR / f"{domain}.lock").open("w")
-            try:
-                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                handle.close()
-                continue
-            self.domain_id = domain
-            self._handle = handle
-            return
-        raise RuntimeError(f"no free ROS domain id: all of 1..100 are claimed in {_LOCK_DIR}")
-
-    def release(self) -> None:
-        self._handle.close()
-
+__all__ = ["DomainClaim", "recorder_pid", "spin_until"]
 
 @pytest.fixture
 def claim_domain() -> Iterator[Callable[[], int]]:
@@ -85,3 +59,18 @@ def env_for_domain(domain_id: int) -> dict[str, str]:
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(domain_id)
     return env
+
+
+def recorder_pid(bag: Path) -> int | None:
+    """The pid of the pisc_record process writing ``bag`` (from /proc), if it runs."""
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmdline = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if str(bag).encode() in cmdline and any(c.endswith(b"pisc_record") or
+                                                c == b"pisc_bringup.record" for c in cmdline):
+            return int(proc.name)
+    return None

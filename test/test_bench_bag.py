@@ -28,6 +28,7 @@ from pathlib import Path
 import pytest
 from mcap.writer import CompressionType, Writer
 
+from conftest import recorder_pid
 from pisc_bringup.bag import TYPESTORE, BagError, BagWriter, read_bag, read_bag_raw
 from pisc_bringup.replay import bag_config, load_recorded, replay_bag, replay_cores
 from pisc_msgs_py.topics import GRAPH_TOPICS, JOINT_STATES, VOLTAGE
@@ -168,20 +169,6 @@ def listen(out: str, start_file: str) -> None:
     rclpy.try_shutdown()
 
 
-def _recorder_pid(bag: Path) -> int | None:
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            cmdline = (proc / "cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if str(bag).encode() in cmdline and any(c.endswith(b"pisc_record") or
-                                                c == b"pisc_bringup.record" for c in cmdline):
-            return int(proc.name)
-    return None
-
-
 def _wait_for(predicate, timeout_s: float, what: str):
     deadline = time.monotonic() + timeout_s
     while not (value := predicate()):
@@ -206,7 +193,7 @@ def kill_run(tmp_path: Path, env: dict[str, str], clock: str, duration_s: float,
     listener = subprocess.Popen(
         [sys.executable, __file__, "listen", out, str(bag / "pisc_params.yaml")], env=env)
     try:
-        pid = _wait_for(lambda: graph.poll() is not None or _recorder_pid(bag), 60.0,
+        pid = _wait_for(lambda: graph.poll() is not None or recorder_pid(bag), 60.0,
                         "pisc_record started")
         assert graph.poll() is None, graph.communicate()
         _wait_for(lambda: graph.poll() is not None or Path(out + ".ready").exists(), 60.0,

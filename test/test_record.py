@@ -19,7 +19,7 @@ from rclpy.node import Node
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from conftest import spin_until
+from conftest import recorder_pid, spin_until
 from pisc_bringup.bag import bag_files, bag_topics, header_stamp_ns, index_problems, read_bag
 from pisc_bringup.bag_readers import READERS, read_every_way
 from pisc_bringup.graph import RunOptions, run_graph
@@ -284,20 +284,6 @@ def test_a_run_records_what_it_is_asked_and_its_own_topics(tmp_path, domain_id):
     assert not (tmp_path / "none").exists()
 
 
-def _recorder_pid(bag: Path) -> int | None:
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            cmdline = (proc / "cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if str(bag).encode() in cmdline and any(c.endswith(b"pisc_record") or
-                                                c == b"pisc_bringup.record" for c in cmdline):
-            return int(proc.name)
-    return None
-
-
 class VoltageWatch:
     """An outside subscriber of the voltage: each one's DDS reception time (wall clock).
 
@@ -332,7 +318,7 @@ def kill_the_recorder(graph: subprocess.Popen, bag: Path, watch: VoltageWatch,
     assert watch.spin_until(lambda: len(watch.received) >= cycles or graph.poll() is not None,
                             120.0)
     assert graph.poll() is None, graph.communicate()
-    pid = _recorder_pid(bag)
+    pid = recorder_pid(bag)
     pidfd = os.pidfd_open(pid)
     killed_ns = time.time_ns()
     os.kill(pid, signal.SIGKILL)

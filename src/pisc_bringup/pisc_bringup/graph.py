@@ -45,7 +45,6 @@ import ctypes
 import importlib
 import math
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -72,6 +71,7 @@ from pisc_sim.configuration import load_run_config, write_params_file
 from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
 from pisc_control.supervisor import Supervisor
+from pisc_msgs_py.processes import console_command
 from pisc_msgs_py.base_node import message_class, qos_profile
 from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_msgs_py.topics import (
@@ -455,7 +455,8 @@ def run_graph(options: RunOptions) -> RunResult:
     # the run's recorder by a name of its own: another subscriber on the domain (a
     # `ros2 topic echo`, another run's recorder) must not pass for it
     recorder_name = f"pisc_record_{os.getpid()}"
-    recorder = _spawn([*_command("pisc_record", "pisc_bringup.record"), "--bag", str(bag_dir),
+    recorder = _spawn([*console_command("pisc_record", "pisc_bringup.record"),
+                       "--bag", str(bag_dir),
                        *topic_args, "--ros-args", "-r", f"__node:={recorder_name}"], env,
                       subprocess.PIPE, normal_scheduling=True)
     children: list[subprocess.Popen] = []
@@ -486,7 +487,7 @@ def run_graph(options: RunOptions) -> RunResult:
                                         source, recorded)
             if options.markers:  # the lockstep plant starts once the recorder matched it
                 children.insert(0, _spawn([
-                    *_command(MARKERS_NODE.executable, MARKERS_NODE.module), "--ros-args",
+                    *console_command(MARKERS_NODE.executable, MARKERS_NODE.module), "--ros-args",
                     "--params-file", str(bag_dir / CONTROLLERS_PARAMS)], env, subprocess.DEVNULL))
             # a node process that dies ends the run at once; the plant's watchdog has
             # zeroed the motor, and _stop below names the process
@@ -667,22 +668,12 @@ def _matched(nodes: Sequence[Node], recorded: Sequence[Topic]) -> bool:
     return True
 
 
-def _command(executable: str, module: str) -> list[str]:
-    """The console entry point: beside this interpreter (a virtual environment), on PATH
-    (a colcon install), else ``python -m module``."""
-    beside = Path(sys.executable).parent / executable
-    if beside.is_file() and os.access(beside, os.X_OK):
-        return [str(beside)]
-    path = shutil.which(executable)
-    return [path] if path else [sys.executable, "-m", module]
-
-
 def _start_node(spec: NodeSpec, bag_dir: Path, extra: dict[str, Any],
                 env: dict[str, str]) -> subprocess.Popen:
     """Start one node through its console entry point with the bag's parameter file (the
     plant's :data:`PLANT_PARAMS`, the others' :data:`CONTROLLERS_PARAMS`) and ``extra``."""
     params_file = bag_dir / (PLANT_PARAMS if spec is PLANT else CONTROLLERS_PARAMS)
-    args = [*_command(spec.executable, spec.module), "--ros-args",
+    args = [*console_command(spec.executable, spec.module), "--ros-args",
             "--params-file", str(params_file)]
     for name, value in extra.items():
         args += ["-p", f"{name}:={str(value).lower() if isinstance(value, bool) else value}"]

@@ -38,14 +38,12 @@ The report is also written to ``DIR/report.json`` (``DIR``: ``--out``, default
 from __future__ import annotations
 
 import argparse
-import fcntl
 import json
 import math
 import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -55,6 +53,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from pisc_msgs_py.processes import DomainClaim, console_command
 
 __all__ = ["FaultSchedule", "Recovery", "Sample", "Targets", "fault_schedule",
            "latency_figures", "main", "missed_targets", "observer_check", "parse_args",
@@ -503,35 +503,6 @@ def observe(out: Path, domain_id: int) -> int:
 
 # -- the run -----------------------------------------------------------------------------
 
-class DomainClaim:
-    """A ROS domain id no other PISC run or test uses meanwhile (test/conftest.py's lock
-    files, so a soak and a test run never hear each other)."""
-
-    def __init__(self) -> None:
-        locks = Path(tempfile.gettempdir()) / "pisc-ros-domains"
-        locks.mkdir(exist_ok=True)
-        for domain in range(1, 101):
-            handle = (locks / f"{domain}.lock").open("w")
-            try:
-                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                handle.close()
-                continue
-            self.domain_id, self._handle = domain, handle
-            return
-        raise RuntimeError(f"no free ROS domain id: all of 1..100 are claimed in {locks}")
-
-    def release(self) -> None:
-        self._handle.close()
-
-
-def _command(executable: str, module: str) -> list[str]:
-    beside = Path(sys.executable).parent / executable
-    if beside.is_file() and os.access(beside, os.X_OK):
-        return [str(beside)]
-    return [sys.executable, "-m", module]
-
-
 @dataclass
 class RunRecord:
     """What happened while the graph ran, for the report."""
@@ -566,7 +537,7 @@ def run(options: SoakOptions, out: Path, domain_id: int,
                 env=env, stdout=subprocess.PIPE, text=True)
             if observer.stdout.readline().strip() != "ready":
                 raise RuntimeError("the outside observer did not start")
-        command = [*_command("pisc_graph", "pisc_bringup.graph"), "--clock", "wall",
+        command = [*console_command("pisc_graph", "pisc_bringup.graph"), "--clock", "wall",
                    "--duration", f"{options.duration_s:g}", "--bag", str(out / "bag"),
                    "--domain-id", str(domain_id)]
         if options.driver:
