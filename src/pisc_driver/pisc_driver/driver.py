@@ -142,6 +142,7 @@ class DriverCore:
         self.answered_stamp_ns: int | None = None  # stamp of the newest answered frame
         self.intruders: tuple[str, ...] = ()
         self.refused_commands = 0  # commands sent as 0 V while another publisher was there
+        self.second_answers = 0  # commands answering a sample already answered (dropped)
 
     def receive(self, data: bytes, now_ns: int) -> list[Measurement]:
         """Bytes read at ``now_ns`` -> the samples they completed, stamped ``now_ns``.
@@ -172,14 +173,24 @@ class DriverCore:
             self._frames += len(out)
         return out
 
-    def command(self, stamp_ns: int, voltage_v: float, now_ns: int) -> int | None:
-        """The byte to send for a voltage answering the sample ``stamp_ns``, or None."""
+    @property
+    def newest_stamp_ns(self) -> int:
+        """The stamp of the newest sample (-1 before the first)."""
+        return -1 if self._stamp_ns is None else self._stamp_ns
+
+    def command(self, stamp_ns: int, voltage_v: float, now_ns: int,
+                refused: bool = False) -> int | None:
+        """The byte to send for a voltage answering the sample ``stamp_ns``, or None;
+        ``refused``: the node's publisher pin did not admit the message (0 V is sent)."""
         if (now_ns - stamp_ns > self.max_age_ns
                 or (self.sent_stamp_ns is not None and stamp_ns < self.sent_stamp_ns)):
             self.stale_commands += 1
             return None
+        if stamp_ns == self.sent_stamp_ns:  # one answer per sample, the first: the
+            self.second_answers += 1  # graph's current loop answers each sample once
+            return None
         self.sent_stamp_ns = stamp_ns
-        if self.intruders:
+        if self.intruders or refused:
             self.refused_commands += 1
             self.sent_byte = ZERO
         else:

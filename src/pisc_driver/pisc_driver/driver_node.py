@@ -141,9 +141,11 @@ class DriverNode(PiscNode):
             self.diagnose(WARN, f"rejected voltage command: {exc}")
             return
         self._check_publishers()
+        admitted = self._pin.admits(command.stamp_ns)
         with self._lock:
             core = self._core
-            byte = core.command(command.stamp_ns, command.value, self._now_ns())
+            byte = core.command(command.stamp_ns, command.value, self._now_ns(),
+                                refused=not admitted)
             if byte is not None:
                 self._send(byte)
             resumed, core.resumed_from = core.resumed_from, None
@@ -158,7 +160,9 @@ class DriverNode(PiscNode):
         matched = self._sub.get_publisher_count()
         if not self._pin.needs_look(matched):
             return
-        change = self._pin.look(matched, listed_publishers(self, VOLTAGE.name))
+        with self._lock:
+            newest_ns = self._core.newest_stamp_ns
+        change = self._pin.look(matched, listed_publishers(self, VOLTAGE.name), newest_ns)
         if change is None:
             return
         now = self._now_ns()
@@ -250,6 +254,7 @@ class DriverNode(PiscNode):
                       commands_sent=core.commands, stale_commands=core.stale_commands,
                       zeroed_for_age=core.zeroed, keepalives_sent=core.keepalives,
                       silences=core.silences, refused_commands=core.refused_commands,
+                      second_answers=core.second_answers,
                       bytes_not_written=self._unwritten)
 
 

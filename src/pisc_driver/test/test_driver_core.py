@@ -58,6 +58,15 @@ def test_a_fresh_command_is_sent_a_stale_or_superseded_one_is_not():
     assert c.command(115 * MS, 0.0, 125 * MS) == ZERO  # exactly two periods old: still sent
     assert (c.commands, c.stale_commands) == (3, 2)
     assert c.command_age_ns(130 * MS) == 15 * MS
+    # a message the node's publisher pin did not admit is sent as 0 V, answering nothing
+    answered = c.watchdog.answered
+    assert c.command(130 * MS, 11.47, 131 * MS, refused=True) == ZERO
+    assert c.refused_commands == 1 and c.watchdog.answered == answered
+    # a second answer to a sample (another publisher the pin does not know of yet):
+    # dropped, the first stands
+    assert c.command(135 * MS, 3.0, 136 * MS) == 0x21
+    assert c.command(135 * MS, 11.47, 136 * MS) is None and c.second_answers == 1
+    assert c.sent_byte == 0x21
 
 
 def test_zero_voltage_once_the_newest_command_is_older_than_two_periods():

@@ -68,6 +68,7 @@ class CommandWatchdog:
 
 
 UNNAMED = "_NODE_NAME_UNKNOWN_"  # rmw's node name of an endpoint not yet fully discovered
+UNNAMED_TEXT = "a publisher whose node the ROS graph does not name yet"
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,7 @@ class Endpoint:
     @property
     def fully_qualified(self) -> str:
         if self.node == UNNAMED:  # discovery has not told the node's name yet
-            return "a publisher whose node the ROS graph does not name yet"
+            return UNNAMED_TEXT
         return f"{self.namespace.rstrip('/')}/{self.node}"
 
 
@@ -104,24 +105,50 @@ class PublisherPin:
     topic may drive the motor. The subscription's matched count is cheap to read on
     every message; the graph is asked who the publishers are only when it changes, while
     an intruder is there, or before the pin is set.
+
+    The matched count moves in DDS's discovery thread, not with the messages: a departed
+    publisher's last messages can still be queued when the count has dropped, and
+    :meth:`admits` refuses them by their stamps. (An arriving one's first message taken
+    in the instant between the match and the count's move is not told apart; rclpy's
+    EventsExecutor on Jazzy cannot deliver the message info that would carry its
+    publication sequence number.)
     """
 
     UNLISTED = "a publisher the ROS graph does not list yet"
     UNKNOWN = "publishers of unknown nodes"
+    PLACEHOLDERS = frozenset({UNLISTED, UNKNOWN, UNNAMED_TEXT})
 
     def __init__(self, owner: str) -> None:
         self.owner = owner
         self.pinned: bytes | None = None  # GID of the owner's publisher
         self.matched = -1  # publishers matched when last looked
         self.intruders: tuple[str, ...] = ()
+        self.named: list[str] = []  # the intruders named since the last had gone
+        self.fence_ns = -1  # no message answering a sample up to this stamp is admitted
+        self.refused = 0  # messages not admitted while no intruder was matched
+
+    def admits(self, stamp_ns: int) -> bool:
+        """Whether a message answering the sample stamped ``stamp_ns`` may drive the
+        motor (call :meth:`look` first): not while an intruder is matched, and not when
+        it answers a sample no later than the newest one when an intruder's departure was
+        seen (``fence_ns``): the intruder's messages still queued answer those."""
+        if self.intruders:
+            return False
+        if stamp_ns <= self.fence_ns:
+            self.refused += 1
+            return False
+        return True
 
     def needs_look(self, matched: int) -> bool:
         return not (matched == self.matched and not self.intruders
                     and (self.pinned is not None or matched == 0))
 
-    def look(self, matched: int, listed: Sequence[Endpoint]) -> PinChange | None:
+    def look(self, matched: int, listed: Sequence[Endpoint],
+             newest_ns: int = -1) -> PinChange | None:
         """``matched`` publishers on the subscription, ``listed`` by the ROS graph: pin
-        the owner's, and say what changed (None: nothing)."""
+        the owner's, and say what changed (None: nothing). ``newest_ns`` is the stamp of
+        the newest sample published: when the intruders have gone, only answers to later
+        samples are admitted."""
         self.matched = matched
         if self.pinned is None:
             ours = [e for e in listed if e.node == self.owner]
@@ -135,10 +162,17 @@ class PublisherPin:
         if self.pinned is None and matched > 1:
             intruders = intruders or (self.UNKNOWN,)
         before, self.intruders = self.intruders, intruders
-        if intruders and intruders != before:
+        named = [i for i in intruders if i not in self.PLACEHOLDERS]
+        new = [i for i in named if i not in self.named]
+        self.named += new
+        if intruders and (not before or new):
+            # (a named intruder that turns into a placeholder while it leaves, the graph
+            # forgetting it before the count drops, is not news)
             return PinChange(intruders=intruders)
         if not intruders and before:
-            return PinChange(left=before)
+            self.fence_ns = max(self.fence_ns, newest_ns)
+            left, self.named = tuple(self.named) or before, []
+            return PinChange(left=left)
         return None
 
 

@@ -91,3 +91,40 @@ def test_a_publisher_not_yet_named_by_discovery_is_held_off_and_said_so():
         intruders=("a publisher whose node the ROS graph does not name yet",))
     assert pin.pinned is None and pin.needs_look(1)
     assert pin.look(1, [LOOP]).left and pin.pinned == LOOP.gid and pin.intruders == ()
+
+
+def test_the_pin_admits_nothing_a_departed_intruder_left_queued():
+    """The matched count lags the messages (it moves in DDS's discovery thread): after a
+    visitor's departure its queued answers (to samples up to the newest one when the
+    departure was seen) are refused by their stamps; the owner's next answers drive."""
+    pin = PublisherPin("current_loop")
+    pin.look(1, [LOOP], newest_ns=1000)
+    assert pin.admits(1000) and pin.fence_ns == -1  # no departure yet: no fence
+    assert pin.look(2, [LOOP, VISITOR]).intruders == ("/lab/visitor",)
+    assert not pin.admits(1005) and pin.refused == 0  # held off while it is there
+    # the visitor goes when sample 1010 is the newest; its answer to 1010 is still queued
+    assert pin.look(1, [LOOP], newest_ns=1010).left == ("/lab/visitor",)
+    assert not pin.admits(1010) and not pin.admits(1005) and pin.refused == 2
+    assert pin.admits(1015)
+    # a later departure seen at an older stamp does not move the fence back
+    pin.look(2, [LOOP, VISITOR])
+    pin.look(1, [LOOP], newest_ns=1008)
+    assert pin.fence_ns == 1010
+
+
+def test_a_visitor_the_graph_forgets_before_the_count_drops_is_named_when_it_leaves():
+    """Seen under load (issue 15): while a visitor left, the graph stopped listing it
+    before the subscription's matched count dropped; the driver then said "a publisher
+    the ROS graph does not list yet" had left, never that /lab/visitor had."""
+    pin = PublisherPin("current_loop")
+    pin.look(1, [LOOP])
+    assert pin.look(2, [LOOP, VISITOR]) == PinChange(intruders=("/lab/visitor",))
+    assert pin.look(2, [LOOP]) is None  # forgotten by the graph, still matched: no news
+    assert pin.intruders == (PublisherPin.UNLISTED,) and not pin.admits(2000)
+    assert pin.look(1, [LOOP], 2000) == PinChange(left=("/lab/visitor",))
+    # a second visitor while the first is leaving is news, and both are said to leave
+    other = Endpoint("other", "/", b"\x04" * 16)
+    pin.look(2, [LOOP, VISITOR])
+    assert pin.look(3, [LOOP, VISITOR, other]) == PinChange(
+        intruders=("/lab/visitor", "/other"))
+    assert pin.look(1, [LOOP]) == PinChange(left=("/lab/visitor", "/other"))

@@ -316,9 +316,11 @@ class PlantNode(PiscNode):
                 # lockstep only takes the awaited sample; on the wall clock a command older
                 # than the watchdog's window is not fresh and drives nothing
                 return
-        # while another publisher is there, nothing on the topic drives the motor
-        value = 0.0 if self._pin.intruders else command.value
-        if not self._pin.intruders:
+        # while another publisher is there, nothing on the topic drives the motor, nor do
+        # answers to samples from before its departure was seen (PublisherPin.admits)
+        admitted = self._pin.admits(command.stamp_ns)
+        value = command.value if admitted else 0.0
+        if admitted:
             resumed = self._watchdog.answer(answers)
             if resumed is not None:
                 self.diagnose(OK, f"command watchdog: commands resumed at sample {answers} "
@@ -344,7 +346,8 @@ class PlantNode(PiscNode):
         matched = self._command_sub.get_publisher_count()
         if not self._pin.needs_look(matched):
             return
-        change = self._pin.look(matched, listed_publishers(self, self._command_topic.name))
+        change = self._pin.look(matched, listed_publishers(self, self._command_topic.name),
+                                self._stamp_ns)
         if change is None:
             return
         if change.intruders:
