@@ -342,7 +342,7 @@ def add_arguments(parser: Any) -> None:
 
 def run(args: Any) -> int:
     """Write the animation; 0 on success."""
-    from pisc_bringup.robustness_cli import progress_bar
+    from pisc_msgs_py.progress import progress_bar
 
     out = args.out or args.bag / "animation.gif"
     if out.suffix.lower() not in (".gif", ".mp4"):

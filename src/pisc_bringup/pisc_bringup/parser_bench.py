@@ -327,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--adversarial-counts are 16-bit register values, 0 to 0xFFFF")
     started = time.monotonic()
     counts = tuple(args.adversarial_counts)
-    from pisc_bringup.robustness_cli import progress_bar
+    from pisc_msgs_py.progress import progress_bar
 
     total = len(PARSERS) * len(args.rates) * (2 + (1 if args.adversarial_frames else 0))
     with progress_bar(total, "row", "parser bench") as bar:

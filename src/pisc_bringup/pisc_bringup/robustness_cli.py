@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import sys
 import textwrap
 import time
@@ -91,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     from pisc_bringup.uncertainty import load_distribution
     from pisc_control.supervisor import Supervisor
     from pisc_msgs_py.config import ConfigError, parse_overrides
+    from pisc_msgs_py.progress import progress_bar
 
     try:
         overrides = parse_overrides(args.set)
@@ -249,29 +249,6 @@ def plot_success(path: Path, distribution: Distribution, draws: Draws, outcomes:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
-
-
-class progress_bar:  # noqa: N801 (a context manager used like a function)
-    """A tqdm bar on stderr, quiet when stderr is not a terminal; called with a count."""
-
-    def __init__(self, total: int, unit: str, desc: str = "") -> None:
-        self.total, self.unit, self.desc = total, unit, desc
-        self.bar: Any = None
-
-    def __enter__(self) -> progress_bar:
-        from tqdm import tqdm
-
-        width = min(shutil.get_terminal_size((100, 24)).columns, 120)
-        self.bar = tqdm(total=self.total, unit=self.unit, desc=self.desc or None,
-                        disable=not sys.stderr.isatty(), leave=False, file=sys.stderr,
-                        ncols=width)
-        return self
-
-    def __call__(self, n: int) -> None:
-        self.bar.update(n)
-
-    def __exit__(self, *exc: object) -> None:
-        self.bar.close()
 
 
 if __name__ == "__main__":

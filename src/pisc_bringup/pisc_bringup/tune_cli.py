@@ -49,11 +49,12 @@ def main(argv: list[str] | None = None) -> int:
     from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
     from pisc_sim.configuration import load_graph_config
     from pisc_bringup.robustness import CHUNK_DRAWS
-    from pisc_bringup.robustness_cli import describe_distribution, progress_bar
+    from pisc_bringup.robustness_cli import describe_distribution
     from pisc_bringup.tune import Tuning, load_space, provenance, tune, tuned_file_text
     from pisc_bringup.uncertainty import load_distribution
     from pisc_control.supervisor import Supervisor
     from pisc_msgs_py.config import ConfigError, parse_overrides
+    from pisc_msgs_py.progress import progress_bar
 
     storage = args.storage or f"sqlite:///{args.out.with_suffix('.db')}"
     try:
@@ -82,8 +83,8 @@ def main(argv: list[str] | None = None) -> int:
                 chunk_runner(workers, args.scheduler) as map_chunks:
 
             def progress(done: int, best: float) -> None:
-                bar.bar.n = done
-                bar.bar.set_description(f"best {100 * best:.1f} %")
+                bar.to(done)
+                bar.describe(f"best {100 * best:.1f} %")
 
             result = tune(tuning, args.trials, storage, map_chunks, progress)
     except ConfigError as exc:  # includes a storage of another tuning
