@@ -13,6 +13,7 @@ from pisc_model.params import MotorParams
 __all__ = [
     "CurrentLoopParams",
     "CurrentLoopState",
+    "current_loop_cycle",
     "current_loop_update",
     "current_setpoint",
 ]
@@ -73,3 +74,32 @@ def current_loop_update(
     )
     voltage = np.clip(params.k_pi * e + integral, -vm, vm)
     return CurrentLoopState(integral), voltage
+
+
+def current_loop_cycle(
+    motor: MotorParams,
+    params: CurrentLoopParams,
+    period_s: float,
+    state: CurrentLoopState,
+    force_n: ArrayLike,
+    current_a: ArrayLike,
+    fault: ArrayLike = False,
+) -> tuple[CurrentLoopState, np.ndarray, np.ndarray]:
+    """One cycle of the current loop as the graph runs it, with its fault handling.
+
+    Returns the new state, the current set-point ``i_d`` and the voltage. The current
+    loop node, the pure closed loop and the batch simulation all call this.
+
+    Notes
+    -----
+    The set-point of the force is (4.2) (:func:`current_setpoint`), the voltage that of
+    the PI loop (3.47) (:func:`current_loop_update`). Where ``fault`` holds (the
+    supervisor's mode is ``fault``; one flag, or one per rig) the answer is the safe
+    state: 0 A, 0 V, and the integral cleared, so that none is left to kick when the
+    fault clears.
+    """
+    fault = np.asarray(fault, dtype=bool)
+    i_d = current_setpoint(motor, params, force_n)
+    new_state, voltage = current_loop_update(params, period_s, state, i_d, current_a)
+    return (CurrentLoopState(np.where(fault, 0.0, new_state.integral_v)),
+            np.where(fault, 0.0, i_d), np.where(fault, 0.0, voltage))

@@ -6,6 +6,7 @@ import pytest
 from pisc_control.current_loop import (
     CurrentLoopParams,
     CurrentLoopState,
+    current_loop_cycle,
     current_loop_update,
     current_setpoint,
 )
@@ -61,3 +62,47 @@ def test_setpoint_is_f_r_over_km_saturated():
     assert current_setpoint(motor, P, 1.0) == pytest.approx(0.032 / 0.0637)
     assert current_setpoint(motor, P, 10.0) == 0.9
     assert current_setpoint(motor, P, -10.0) == -0.9
+
+
+# -- one cycle as the graph runs it (the node, the pure closed loop, the batch) -----------
+
+def test_a_cycle_without_fault_is_the_setpoint_then_the_pi_loop_bit_for_bit():
+    motor = MotorParams()
+    state = CurrentLoopState()
+    ref_state = CurrentLoopState()
+    for force, current in ((1.2, 0.0), (-0.4, 0.31), (7.0, -0.2), (0.0, 0.05)):
+        state, i_d, u = current_loop_cycle(motor, P, TS, state, force, current)
+        ref_i_d = float(current_setpoint(motor, P, force))
+        ref_state, ref_u = current_loop_update(P, TS, ref_state, ref_i_d, current)
+        assert float(i_d) == ref_i_d
+        assert float(u) == float(ref_u)
+        assert float(state.integral_v) == float(ref_state.integral_v)
+    assert float(i_d) == 0.0 and float(state.integral_v) != 0.0  # the integral is carried
+
+
+def test_a_faulted_cycle_answers_zero_and_clears_the_integral():
+    motor = MotorParams()
+    state, _, _ = current_loop_cycle(motor, P, TS, CurrentLoopState(), 1.5, 0.0)
+    assert float(state.integral_v) == pytest.approx(1800.0 * TS * 1.5 * 0.032 / 0.0637)
+    state, i_d, u = current_loop_cycle(motor, P, TS, state, 1.5, 0.0, fault=True)
+    assert (float(i_d), float(u), float(state.integral_v)) == (0.0, 0.0, 0.0)
+    # when the fault clears, the loop starts as a fresh one: no integral left to kick
+    after, i_d, u = current_loop_cycle(motor, P, TS, state, 1.5, 0.0)
+    fresh, i_d0, u0 = current_loop_cycle(motor, P, TS, CurrentLoopState(), 1.5, 0.0)
+    assert (float(i_d), float(u), float(after.integral_v)) == (
+        float(i_d0), float(u0), float(fresh.integral_v))
+
+
+def test_a_cycle_of_many_rigs_zeroes_only_the_faulted_ones():
+    motor = MotorParams()
+    state = CurrentLoopState(np.array([0.5, -0.5, 2.0]))
+    force = np.array([1.0, -2.0, 0.3])
+    current = np.array([0.1, 0.0, -0.1])
+    fault = np.array([False, True, False])
+    new, i_d, u = current_loop_cycle(motor, P, TS, state, force, current, fault)
+    ref_i_d = current_setpoint(motor, P, force)
+    ref_state, ref_u = current_loop_update(P, TS, state, ref_i_d, current)
+    np.testing.assert_array_equal(i_d, [ref_i_d[0], 0.0, ref_i_d[2]])
+    np.testing.assert_array_equal(u, [ref_u[0], 0.0, ref_u[2]])
+    np.testing.assert_array_equal(new.integral_v,
+                                  [ref_state.integral_v[0], 0.0, ref_state.integral_v[2]])

@@ -11,22 +11,22 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_sim.configuration import GraphConfig
-from pisc_control.current_loop import CurrentLoopState, current_loop_update, current_setpoint
+from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
 from pisc_control.estimator import EstimatorState, estimator_update
 from pisc_control.supervisor import Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
+from pisc_plant.command import plant_command
 from pisc_plant.plant import THETA, Plant, PlantConfig, X
 from pisc_plant.sampled import SampledPlant
 
-__all__ = ["BatchOutcome", "Controllers", "CycleLog", "CycleOutputs", "plant_command",
-           "simulate", "simulate_batch"]
+__all__ = ["BatchOutcome", "Controllers", "CycleLog", "CycleOutputs", "simulate",
+           "simulate_batch"]
 
 COLUMNS = ("t", "x", "theta", "x_dot", "theta_dot", "i", "i_d", "u", "f", "mode",
            "true_x", "true_x_dot", "true_theta", "true_theta_dot", "true_i")
@@ -40,15 +40,6 @@ class CycleLog:
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.data[:, COLUMNS.index(name)]
-
-
-def plant_command(plant: PlantConfig, i_d: Any, voltage: Any) -> Any:
-    """What the plant is driven by: the voltage, or with an ideal current loop
-    (``models.current_loop = ideal``) the force k_m i_d / r of the set-point (4.2), with
-    the plant's own k_m / r, as the plant node does."""
-    if plant.models.force_input:
-        return plant.motor.force_per_amp * i_d
-    return voltage
 
 
 @dataclass(frozen=True)
@@ -91,15 +82,10 @@ class Controllers:
             self.supervisor_state, position_m, x_dot, angle_rad, theta_dot)
         force = float(force)
         mode = Mode.from_code(int(code))
-        if mode is Mode.FAULT:
-            self.current_loop_state = CurrentLoopState()
-            i_d, voltage = 0.0, 0.0
-        else:
-            i_d = float(current_setpoint(c.plant.motor, c.current_loop, force))
-            self.current_loop_state, u = current_loop_update(
-                c.current_loop, period, self.current_loop_state, i_d, current_a)
-            voltage = float(u)
-        return CycleOutputs(x_dot, theta_dot, force, mode, i_d, voltage)
+        self.current_loop_state, i_d, voltage = current_loop_cycle(
+            c.plant.motor, c.current_loop, period, self.current_loop_state, force, current_a,
+            fault=mode is Mode.FAULT)
+        return CycleOutputs(x_dot, theta_dot, force, mode, float(i_d), float(voltage))
 
     def fault_reason(self, position_m: float) -> str:
         """Why the supervisor faulted (empty when it has not)."""
@@ -126,7 +112,7 @@ def simulate(config: GraphConfig, duration_s: float) -> CycleLog:
         rows.append((sampled.time_ns * 1e-9, sample.position_m, sample.angle_rad, out.x_dot,
                      out.theta_dot, sample.current_a, out.i_d, out.voltage, out.force,
                      out.mode.code, *sample.true_state))
-        sampled.command(plant_command(plant.config, out.i_d, out.voltage))
+        sampled.command(plant_command(plant.config, setpoint_a=out.i_d, voltage_v=out.voltage))
         sampled.advance()
     return CycleLog(np.array(rows))
 
@@ -233,12 +219,9 @@ def simulate_batch(
         sup_state, force, mode = supervisor.update(sup_state, x, x_dot, theta, theta_dot)
         fault = mode == Mode.FAULT.code
         faulted |= fault
-        cl_state = CurrentLoopState(np.where(fault, 0.0, cl_state.integral_v))
-        i_d = current_setpoint(config.plant.motor, config.current_loop, force)
-        cl_state, voltage = current_loop_update(config.current_loop, period, cl_state, i_d,
-                                                current)
-        voltage = np.where(fault, 0.0, voltage)
-        command = np.where(fault, 0.0, plant_command(plant_config, i_d, voltage))
+        cl_state, i_d, voltage = current_loop_cycle(
+            config.plant.motor, config.current_loop, period, cl_state, force, current, fault)
+        command = plant_command(plant_config, setpoint_a=i_d, voltage_v=voltage)
         catching = mode == Mode.CATCH.code
         entered = catching & (previous_mode != Mode.CATCH.code)
         caught_at = np.where(entered, t, np.where(catching, caught_at, np.inf))
@@ -247,7 +230,7 @@ def simulate_batch(
         if t >= hold_start_s:
             hold_theta = np.maximum(hold_theta, np.abs(wrap_to_upright(y[..., THETA])))
             hold_x = np.maximum(hold_x, np.abs(y[..., X]))
-            hold_i2 += np.where(fault, 0.0, i_d) ** 2
+            hold_i2 += i_d ** 2
             hold_cycles += 1
         if delay.ndim:
             flat = y.reshape(-1, y.shape[-1])
