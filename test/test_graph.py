@@ -224,3 +224,21 @@ def test_a_scene_runs_through_the_graph_with_an_ideal_force_source(tmp_path, env
     assert len(recorded) > 1000
     index = np.round(stamps / 5e6).astype(int)  # lockstep: sample k is stamped k * 5 ms
     assert np.array_equal(recorded, log["i_d"][index])
+
+
+def test_pisc_graph_starts_what_its_launch_file_says(tmp_path, domain_id):
+    """pisc_graph --launch FILE: a launch file naming the estimator 'estimator_b' runs a
+    node of that name (its diagnostics say so; no node 'estimator' runs), and the graph
+    still catches the pendulum in the same cycles as the shipped file's."""
+    from test_launch import edited_launch
+
+    path = edited_launch(tmp_path, "sim", 'name="estimator"', 'name="estimator_b"')
+    result = run_graph(RunOptions(overrides={"initial.x_m": 0.05}, duration_s=2.5,
+                                  bag_dir=tmp_path / "renamed", domain_id=domain_id,
+                                  launch=str(path)))
+    names = {s.name for m in read_bag(result.bag_dir, [DIAGNOSTICS.name])
+             for s in m.message.status}
+    assert names == {"pisc/estimator_b", "pisc/supervisor", "pisc/current_loop",
+                     "pisc/plant"}, names
+    cfg, _ = load_graph_config("default", {"initial.x_m": 0.05})
+    assert np.array_equal(recorded_voltages(result.bag_dir), simulate(cfg, 2.5)["u"])

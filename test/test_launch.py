@@ -1,18 +1,23 @@
-"""The launch files: they name only executables and files that exist, they declare the
-same nodes pisc_graph starts, and a launch file the reader cannot take is refused with
-what is wrong."""
+"""The launch files: they name only executables and files that exist, they are the graph
+pisc_graph starts (the nodes, their names, parameter files and parameters), a launch file
+whose graph cannot run is refused naming the file and the node, and a launch file the
+reader cannot take is refused with what is wrong."""
 
 from __future__ import annotations
 
+import ast
 from importlib.metadata import entry_points
 from pathlib import Path
 
 import pytest
 
-from pisc_bringup.graph import CONTROLLERS, DRIVER, GRAPH
+from pisc_bringup import graph
+from pisc_bringup.graph import NODE_KINDS, RunOptions, read_graph
 from pisc_bringup.launch_file import LaunchError, declared_args, launch_path, read_launch
+from pisc_sim.configuration import load_run_config
 
-LAUNCH = Path(__file__).resolve().parents[1] / "src" / "pisc_bringup" / "launch"
+SRC = Path(__file__).resolve().parents[1] / "src"
+LAUNCH = SRC / "pisc_bringup" / "launch"
 
 
 def _console_scripts() -> dict[str, str]:
@@ -21,7 +26,25 @@ def _console_scripts() -> dict[str, str]:
             if ep.dist is not None and ep.dist.name.startswith("pisc_")}
 
 
-@pytest.mark.parametrize("name, args", [("sim", {}), ("rig", {"port": "/dev/ttyUSB0"})])
+def _setup_console_scripts(package: str) -> dict[str, str]:
+    """executable -> module of the console_scripts in ``src/PACKAGE/setup.py`` (read, not
+    run)."""
+    tree = ast.parse((SRC / package / "setup.py").read_text())
+    for call in ast.walk(tree):
+        if isinstance(call, ast.Call) and getattr(call.func, "id", None) == "setup":
+            entry = next(k.value for k in call.keywords if k.arg == "entry_points")
+            out = {}
+            for line in ast.literal_eval(entry)["console_scripts"]:
+                name, _, target = line.partition("=")
+                out[name.strip()] = target.strip().partition(":")[0]
+            return out
+    raise AssertionError(f"{package}/setup.py calls no setup()")
+
+
+ALL = [("sim", {"markers": "true"}), ("rig", {"port": "/dev/ttyUSB0", "markers": "true"})]
+
+
+@pytest.mark.parametrize("name, args", [("sim", {}), ("rig", {"port": "/dev/ttyUSB0"}), *ALL])
 def test_launch_files_name_only_executables_and_files_that_exist(name, args):
     scripts = _console_scripts()
     nodes = read_launch(launch_path(name), args)
@@ -31,20 +54,167 @@ def test_launch_files_name_only_executables_and_files_that_exist(name, args):
     assert len({n.name for n in nodes}) == len(nodes)
 
 
+@pytest.mark.parametrize("name, args", ALL)
+def test_every_exec_is_a_console_script_of_its_package_setup_py(name, args):
+    """ros2 launch runs lib/PACKAGE/EXEC, which colcon makes from setup.py's console_scripts;
+    pisc_graph instantiates the same module's class in one process."""
+    nodes = read_launch(launch_path(name), args)
+    assert {n.executable for n in nodes} >= {"estimator_node", "markers_node"}
+    for node in nodes:
+        scripts = _setup_console_scripts(node.package)
+        assert node.executable in scripts, (node, sorted(scripts))
+        assert scripts[node.executable] == NODE_KINDS[node.package, node.executable].module
+
+
+def test_the_console_script_reader_reads_what_setup_py_says():
+    scripts = _setup_console_scripts("pisc_bringup")
+    assert scripts["pisc_graph"] == "pisc_bringup.graph"
+    assert "plant_node" not in scripts and "plant_node" in _setup_console_scripts("pisc_plant")
+
+
 def test_launch_files_declare_the_nodes_pisc_graph_starts():
     sim = read_launch(launch_path("sim"))
     assert [(n.name, n.executable) for n in sim] == [
-        (s.name, s.executable) for s in (GRAPH[-1], *GRAPH[:-1])]
+        ("plant", "plant_node"), ("estimator", "estimator_node"),
+        ("supervisor", "supervisor_node"), ("current_loop", "current_loop_node")]
     rig = read_launch(launch_path("rig"), {"port": "/dev/ttyUSB0"})
     assert [(n.name, n.executable) for n in rig] == [
-        (s.name, s.executable) for s in (DRIVER, *CONTROLLERS)]
+        ("driver", "driver_node"), ("estimator", "estimator_node"),
+        ("supervisor", "supervisor_node"), ("current_loop", "current_loop_node")]
     # lockstep: the controllers follow the plant's /clock; the plant owns time
     assert all(n.parameters.get("use_sim_time") is True for n in sim[1:])
     assert "use_sim_time" not in sim[0].parameters
+    # ros2 launch alone: the plant's own defaults (it waits for one reader, runs on)
+    assert sim[0].parameters == {
+        "simulation.clock": "lockstep", "simulation.duration_s": 0.0,
+        "simulation.min_subscribers": 1, "simulation.min_true_state_subscribers": 0,
+        "simulation.min_clock_subscribers": 0}
+    # model error: the plant's file is params unless plant_params says otherwise
+    assert sim[0].param_files == sim[1].param_files
+    thesis = SRC / "pisc_sim" / "config" / "thesis.yaml"
+    split = read_launch(launch_path("sim"), {"plant_params": str(thesis)})
+    assert split[0].param_files == (thesis,) and split[1].param_files == sim[1].param_files
     wall = read_launch(launch_path("sim"), {"clock": "wall", "use_sim_time": "false"})
     assert wall[0].parameters["simulation.clock"] == "wall"
     assert all(n.parameters["use_sim_time"] is False for n in wall[1:])
-    assert rig[0].parameters == {"driver.port": "/dev/ttyUSB0"}
+    assert rig[0].parameters == {"driver.port": "/dev/ttyUSB0", "driver.min_subscribers": 0}
+    # markers on request, in either file, reading the controllers' parameter file
+    for name, args in ALL:
+        nodes = read_launch(launch_path(name), args)
+        assert [(n.name, n.executable) for n in nodes][-1] == ("markers", "markers_node")
+        assert nodes[-1].param_files == nodes[1].param_files and not nodes[-1].parameters
+
+
+def _run_files(tmp_path, options):
+    _, flat, plant = load_run_config(options.config, options.overrides, options.plant_config,
+                                     options.plant_overrides)
+    return graph._write_params(tmp_path, flat, None if options.driver_port else plant)
+
+
+@pytest.mark.parametrize("processes", [False, True])
+def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path, processes):
+    """The arguments pisc_graph passes (its bag's files, the clock, the duration, what the
+    plant waits for: the 3 controllers' clocks, the recorder and, with separate processes,
+    the runner) reach the plant's and the controllers' parameters."""
+    options = RunOptions(overrides={"initial.x_m": 0.05}, duration_s=3.0, processes=processes,
+                         plant_overrides={"motor.resistance_ohm": 18.2})
+    files = _run_files(tmp_path, options)
+    first = read_graph("sim", graph._launch_args(options, files))
+    g = graph._read_again(first, options, files, graph._run_args(options, first))
+    assert [n.name for n in g.nodes] == ["estimator", "supervisor", "current_loop", "plant"]
+    clocks = 5 if processes else 4
+    assert g.source.parameters == {
+        "simulation.clock": "lockstep", "simulation.duration_s": 3.0,
+        "simulation.min_subscribers": 2, "simulation.min_true_state_subscribers": 1,
+        "simulation.min_clock_subscribers": clocks}
+    plant, estimator = g.source.flat(), g.controllers[0].flat()
+    assert plant["motor.resistance_ohm"] == 18.2 and estimator["motor.resistance_ohm"] == 14.0
+    assert estimator["initial.x_m"] == 0.05 and estimator["use_sim_time"] is True
+    # as a process: the file's name, files and parameters on the command line
+    command = g.source.command()
+    assert command[0].endswith("plant_node") and command[1:] == [
+        "--ros-args", "-r", "__node:=plant", "--params-file", str(tmp_path / "plant_params.yaml"),
+        "-p", "simulation.clock:=lockstep", "-p", "simulation.duration_s:=3.0",
+        "-p", "simulation.min_subscribers:=2", "-p", "simulation.min_true_state_subscribers:=1",
+        "-p", f"simulation.min_clock_subscribers:={clocks}"]
+    assert g.controllers[2].command()[-2:] == ["-p", "use_sim_time:=true"]
+
+
+def test_the_driver_waits_for_the_graphs_readers_and_the_recorder(tmp_path):
+    options = RunOptions(clock="wall", driver_port="/dev/ttyUSB0", markers=True)
+    files = _run_files(tmp_path, options)
+    first = read_graph("rig", graph._launch_args(options, files), driver=True)
+    g = graph._read_again(first, options, files, graph._run_args(options, first))
+    assert [n.name for n in g.nodes] == ["estimator", "supervisor", "current_loop", "markers",
+                                         "driver"]
+    assert g.source.parameters == {"driver.port": "/dev/ttyUSB0", "driver.min_subscribers": 2}
+    assert g.source.param_files == (tmp_path / "pisc_params.yaml",)
+    assert "use_sim_time" not in g.controllers[0].flat()
+
+
+def edited_launch(tmp_path, name, old, new):
+    """A copy of a shipped launch file with ``old`` (found once) replaced by ``new``."""
+    text = (LAUNCH / f"{name}.launch.xml").read_text()
+    assert text.count(old) == 1, old
+    path = tmp_path / f"edited-{name}.launch.xml"
+    path.write_text(text.replace(old, new))
+    return path
+
+
+ESTIMATOR = """<node pkg="pisc_control" exec="estimator_node" name="estimator" output="screen">
+    <param from="$(var params)"/>
+    <param name="use_sim_time" value="$(var use_sim_time)"/>
+  </node>"""
+
+
+@pytest.mark.parametrize("old, new, driver, message", [
+    (ESTIMATOR, "", False, "no node publishes /pisc/state, which node 'supervisor' "
+     "(pisc_control supervisor_node) reads"),
+    ('exec="supervisor_node"', 'exec="supervisor"', False,
+     "node 'supervisor' (pisc_control supervisor): pisc_graph does not know this executable"),
+    ('name="supervisor"', 'name="estimator"', False, "two nodes are named 'estimator'"),
+    ('name="plant"', 'name="plant"', True,
+     "node 'plant' (pisc_plant plant_node) in a run through the serial driver"),
+    ('<node pkg="pisc_plant" exec="plant_node"', '<node pkg="pisc_driver" exec="driver_node"',
+     False, "node 'plant' (pisc_driver driver_node) in a run of the simulated plant"),
+    (ESTIMATOR, ESTIMATOR + ESTIMATOR.replace('name="estimator"', 'name="estimator2"'), False,
+     "nodes 'estimator' and 'estimator2' both publish /pisc/state"),
+])
+def test_a_launch_file_whose_graph_cannot_run_is_refused_naming_file_and_node(
+        tmp_path, old, new, driver, message):
+    path = edited_launch(tmp_path, "sim", old, new)
+    with pytest.raises(LaunchError) as info:
+        read_graph(path, {}, driver=driver)
+    assert str(info.value).startswith(f"{path}: ") and message in str(info.value)
+
+
+def test_a_graph_without_its_source_is_refused(tmp_path):
+    plant = (LAUNCH / "sim.launch.xml").read_text()
+    start = plant.index('  <node pkg="pisc_plant"')
+    path = tmp_path / "no-plant.launch.xml"
+    path.write_text(plant[:start] + plant[plant.index("</node>", start) + 8:])
+    with pytest.raises(LaunchError, match="no node runs pisc_plant plant_node"):
+        read_graph(path)
+
+
+def test_pisc_graph_launch_refuses_a_file_without_the_nodes_or_arguments_it_needs(
+        tmp_path, capsys):
+    """pisc_graph --launch FILE: refused before anything starts, exit 2, naming the file
+    and what is wrong, no traceback, no bag."""
+    bag = tmp_path / "bag"
+    path = edited_launch(tmp_path, "sim", ESTIMATOR, "")
+    assert graph.main(["--launch", str(path), "--duration", "1", "--bag", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: no node publishes /pisc/state, which node 'supervisor'" in err
+    assert "Traceback" not in err and not bag.exists()
+    # a file that does not declare an argument pisc_graph gives it
+    path = edited_launch(tmp_path, "sim", '<arg name="duration"', '<arg name="length"')
+    assert graph.main(["--launch", str(path), "--duration", "1", "--bag", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: argument 'duration' is not declared" in err and not bag.exists()
+    assert graph.main(["--launch", str(tmp_path / "none.launch.xml"), "--bag", str(bag)]) == 2
+    assert "none.launch.xml: no such launch file" in capsys.readouterr().err
+    assert not bag.exists()
 
 
 def test_arguments_have_descriptions_and_the_rig_needs_a_port():
@@ -56,6 +226,20 @@ def test_arguments_have_descriptions_and_the_rig_needs_a_port():
         read_launch(launch_path("rig"), {"port": "/dev/ttyUSB0", "prot": "x"})
     with pytest.raises(LaunchError, match="not one of rig, sim"):
         launch_path("simulation")
+
+
+@pytest.mark.parametrize("condition, started", [
+    ("if='true'", ["a", "b", "c"]), ("if='False'", ["a", "c"]), ("if='1'", ["a", "b", "c"]),
+    ("unless='true'", ["a", "c"]), ("unless='0'", ["a", "b", "c"]), ("", ["a", "b", "c"]),
+    ("if='$(var on)'", ["a", "c"])])
+def test_a_group_starts_its_nodes_when_its_condition_holds(tmp_path, condition, started):
+    path = tmp_path / "group.launch.xml"
+    node = "<node pkg='pisc_control' exec='estimator_node' name='{}'/>"
+    path.write_text(f"<launch><arg name='on' default='false'/>{node.format('a')}<group "
+                    f"{condition}>{node.format('b')}</group>{node.format('c')}</launch>")
+    assert [n.name for n in read_launch(path)] == started
+    if "var on" in condition:
+        assert [n.name for n in read_launch(path, {"on": "TRUE"})] == ["a", "b", "c"]
 
 
 @pytest.mark.parametrize("body, message", [
@@ -71,6 +255,13 @@ def test_arguments_have_descriptions_and_the_rig_needs_a_port():
      "supported"),
     ("<node pkg='pisc_control' exec='$(var nothing)' name='e'/>", "no argument 'nothing'"),
     ("", "starts no node"),
+    ("<group if='maybe'><node pkg='pisc_control' exec='estimator_node' name='e'/></group>",
+     "<group> if: condition 'maybe' is 'maybe': expected true, false, 1 or 0"),
+    ("<group if='1' unless='0'/>", "both 'if' and 'unless'"),
+    ("<group scoped='false'/>", "attribute 'scoped' not supported"),
+    ("<group if='false'><arg name='x'/></group>", "<group>: element <arg> not supported"),
+    ("<group if='false'><node pkg='p' exec='e' name='e'><param from='/nonexistent.yaml'/>"
+     "</node></group><node pkg='p' exec='e' name='f'/>", "/nonexistent.yaml does not exist"),
 ])
 def test_a_launch_file_the_reader_cannot_take_is_refused(tmp_path, body, message):
     path = tmp_path / "bad.launch.xml"

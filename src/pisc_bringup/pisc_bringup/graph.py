@@ -4,15 +4,28 @@
                [--clock lockstep|wall] [--processes] [--executor events|single|multi]
                [--driver PORT] [--realtime PRIORITY] [--bag DIR] [--set NAME=VALUE ...]
                [--plant-config default|thesis|FILE] [--plant-set NAME=VALUE ...]
+               [--markers] [--launch FILE]
+
+**The graph is the launch file's.** Which nodes run, with which executable, node name,
+parameter files and parameters, is read from ``pisc_bringup/launch/sim.launch.xml``
+(``rig.launch.xml`` with ``--driver``; ``--launch FILE`` names another) by
+:mod:`pisc_bringup.launch_file`, with the arguments ``ros2 launch`` would take: the bag's
+parameter files (``params``, ``plant_params``), ``clock``, ``use_sim_time``, ``duration``,
+what the plant or the driver waits for (``min_subscribers``...: the run's recorder) and
+``markers``. What a launch file does not say, the class of each executable and the topics
+it reads and writes, is :data:`NODE_KINDS`. A file whose graph cannot run (an unknown
+executable, no plant or two, a topic the loop reads that no node publishes) is refused,
+naming the file and the node, before anything starts.
 
 The recorder (``pisc_record``) always runs as a process of its own. By default the
 plant, estimator, supervisor and current loop run in this process on one
-``EventsExecutor`` (the measured choice, see README); ``--processes`` starts each node
-as its own process through its console entry point, with the merged parameter file,
-as ``ros2 run`` would. ``--driver PORT`` puts the serial driver (``pisc_driver
-driver_node``) in the plant's place, on the rig's port or on the pseudo-terminal of
-``pisc_virtual_rig``, against the wall clock, always in a process of its own (a crash of
-the controllers' process leaves it to zero the motor). ``--realtime PRIORITY`` runs this
+``EventsExecutor`` (the measured choice, see README), each named and parametrised as
+the launch file says; ``--processes`` starts each node as its own process through its
+console entry point, with the file's parameter files and parameters, as ``ros2 launch``
+would. ``--driver PORT`` puts the serial driver (``pisc_driver driver_node``) in the
+plant's place, on the rig's port or on the pseudo-terminal of ``pisc_virtual_rig``,
+against the wall clock, always in a process of its own (a crash of the controllers'
+process leaves it to zero the motor). ``--realtime PRIORITY`` runs this
 process and the processes it starts under SCHED_FIFO, as a control computer runs its loop: a
 real device does not wait for a loaded machine (README, "Serial driver"). ``--scene``
 takes a scene's configuration, overrides, duration and the topics it records
@@ -66,14 +79,17 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.task import Future
 
+import yaml
+
 from pisc_bringup.bag import BagError, RepairReport, repair_bag
+from pisc_bringup.launch_file import LaunchError, launch_path, read_launch
 from pisc_sim.configuration import load_run_config, write_params_file
 from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.processes import console_command
 from pisc_msgs_py.base_node import message_class, qos_profile
-from pisc_msgs_py.config import ConfigError, parse_overrides
+from pisc_msgs_py.config import ConfigError, load_params_file, parse_overrides
 from pisc_msgs_py.topics import (
     CART_FORCE,
     CLOCK,
@@ -91,39 +107,183 @@ from pisc_msgs_py.topics import (
     graph_topics_named,
 )
 
-__all__ = ["CONTROLLERS_PARAMS", "GRAPH", "PLANT_PARAMS", "RUN_TOPICS", "NodeSpec", "ros_parameters",
-           "RunOptions", "RunResult", "main", "plant_description", "recorded_topics",
-           "run_graph"]
+__all__ = ["CONTROLLERS_PARAMS", "Graph", "GraphNode", "NODE_KINDS", "NodeKind", "PLANT_PARAMS",
+           "RUN_TOPICS", "RunOptions", "RunResult", "controllers", "main", "plant_description",
+           "read_graph", "recorded_topics", "ros_parameters", "run_graph"]
 
 
 @dataclass(frozen=True)
-class NodeSpec:
-    name: str
-    executable: str  # console entry point
+class NodeKind:
+    """What a launch file does not say about a node, by its package and executable: the
+    class pisc_graph instantiates in one process, the topics it reads and writes (for the
+    recording and the start-up wait), and its part: ``source`` (the plant or the driver:
+    the samples, started last), ``controller`` (the loop), ``observer`` (reads only)."""
     module: str
     cls: str
     subscribes: tuple[Topic, ...]
     publishes: tuple[Topic, ...]
+    role: str
 
 
-GRAPH = (
-    NodeSpec("estimator", "estimator_node", "pisc_control.estimator_node", "EstimatorNode",
-             (JOINT_STATES,), (STATE, DIAGNOSTICS)),
-    NodeSpec("supervisor", "supervisor_node", "pisc_control.supervisor_node", "SupervisorNode",
-             (STATE,), (CART_FORCE, MODE, DIAGNOSTICS)),
-    NodeSpec("current_loop", "current_loop_node", "pisc_control.current_loop_node",
-             "CurrentLoopNode", (CART_FORCE, MOTOR_CURRENT, MODE),
-             (CURRENT_SETPOINT, VOLTAGE, DIAGNOSTICS)),
-    NodeSpec("plant", "plant_node", "pisc_plant.plant_node", "PlantNode",
-             (VOLTAGE,), (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, CLOCK, DIAGNOSTICS)),
-)
-PLANT = GRAPH[-1]
-CONTROLLERS = GRAPH[:-1]
-DRIVER = NodeSpec("driver", "driver_node", "pisc_driver.driver_node", "DriverNode",
-                  (VOLTAGE,), (JOINT_STATES, MOTOR_CURRENT, DIAGNOSTICS))
-# on request (--markers): draws the rig for RViz and Foxglove, read by no other node
-MARKERS_NODE = NodeSpec("markers", "markers_node", "pisc_bringup.markers_node", "MarkersNode",
-                        (SIM_STATE, JOINT_STATES, CART_FORCE, MODE), (MARKERS, DIAGNOSTICS))
+NODE_KINDS: dict[tuple[str, str], NodeKind] = {
+    ("pisc_plant", "plant_node"): NodeKind(
+        "pisc_plant.plant_node", "PlantNode", (VOLTAGE,),
+        (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, CLOCK, DIAGNOSTICS), "source"),
+    ("pisc_driver", "driver_node"): NodeKind(
+        "pisc_driver.driver_node", "DriverNode", (VOLTAGE,),
+        (JOINT_STATES, MOTOR_CURRENT, DIAGNOSTICS), "source"),
+    ("pisc_control", "estimator_node"): NodeKind(
+        "pisc_control.estimator_node", "EstimatorNode", (JOINT_STATES,), (STATE, DIAGNOSTICS),
+        "controller"),
+    ("pisc_control", "supervisor_node"): NodeKind(
+        "pisc_control.supervisor_node", "SupervisorNode", (STATE,),
+        (CART_FORCE, MODE, DIAGNOSTICS), "controller"),
+    ("pisc_control", "current_loop_node"): NodeKind(
+        "pisc_control.current_loop_node", "CurrentLoopNode",
+        (CART_FORCE, MOTOR_CURRENT, MODE), (CURRENT_SETPOINT, VOLTAGE, DIAGNOSTICS),
+        "controller"),
+    # draws the rig for RViz and Foxglove (docs/markers.md), read by no other node
+    ("pisc_bringup", "markers_node"): NodeKind(
+        "pisc_bringup.markers_node", "MarkersNode", (SIM_STATE, JOINT_STATES, CART_FORCE, MODE),
+        (MARKERS, DIAGNOSTICS), "observer"),
+}
+# the launch file's source node, by what runs the rig
+SOURCES = {False: ("pisc_plant", "plant_node"), True: ("pisc_driver", "driver_node")}
+
+
+@dataclass(frozen=True)
+class GraphNode:
+    """A node of the launch file: its name, executable and parameters as the file says,
+    and its :class:`NodeKind`."""
+    name: str
+    package: str
+    executable: str
+    kind: NodeKind
+    param_files: tuple[Path, ...] = ()
+    parameters: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def module(self) -> str:
+        return self.kind.module
+
+    @property
+    def cls(self) -> str:
+        return self.kind.cls
+
+    @property
+    def subscribes(self) -> tuple[Topic, ...]:
+        return self.kind.subscribes
+
+    @property
+    def publishes(self) -> tuple[Topic, ...]:
+        return self.kind.publishes
+
+    def flat(self) -> dict[str, Any]:
+        """Its parameters as ``ros2 launch`` gives them: each file's ``/**`` section and
+        its own, in order, then the ``<param name value>``s."""
+        flat: dict[str, Any] = {}
+        for file in self.param_files:
+            flat.update(load_params_file(file, ("/**", self.name, f"/{self.name}")))
+        flat.update(self.parameters)
+        return flat
+
+    def instantiate(self, context: Context) -> Node:
+        """The node in this process, named as the file names it."""
+        cls = getattr(importlib.import_module(self.module), self.cls)
+        return cls(context=context, parameter_overrides=ros_parameters(self.flat()),
+                   cli_args=["--ros-args", "-r", f"__node:={self.name}"])
+
+    def command(self) -> list[str]:
+        """The node as a process through its console entry point, as ``ros2 launch`` runs
+        it: named as the file names it, with its parameter files and parameters."""
+        args = [*console_command(self.executable, self.module), "--ros-args",
+                "-r", f"__node:={self.name}"]
+        for file in self.param_files:
+            args += ["--params-file", str(file)]
+        for name, value in self.parameters.items():
+            text = str(value).lower() if isinstance(value, bool) else str(value)
+            args += ["-p", f"{name}:={text}"]
+        return args
+
+
+@dataclass(frozen=True)
+class Graph:
+    """The nodes a launch file starts, by part; ``path`` is the file."""
+    path: Path
+    source: GraphNode
+    controllers: tuple[GraphNode, ...]
+    observers: tuple[GraphNode, ...]
+
+    @property
+    def nodes(self) -> tuple[GraphNode, ...]:
+        return (*self.controllers, *self.observers, self.source)
+
+
+def read_graph(launch: str | Path, args: dict[str, str] | None = None,
+               driver: bool = False) -> Graph:
+    """The graph a launch file (a path, or ``sim``/``rig``) declares, with ``args``.
+
+    Refused with :class:`ConfigError` naming the file and the node: a node whose
+    executable pisc_graph does not know, two nodes of one name, no source or two (the
+    plant, or the driver when ``driver``), a topic two nodes publish, or a topic the loop
+    reads that no node of the file publishes.
+    """
+    path = launch_path(str(launch))
+    nodes = []
+    for n in read_launch(path, args):
+        kind = NODE_KINDS.get((n.package, n.executable))
+        if kind is None:
+            known = ", ".join(f"{p} {e}" for p, e in NODE_KINDS)
+            raise LaunchError(f"{path}: node {n.name!r} ({n.package} {n.executable}): "
+                              f"pisc_graph does not know this executable (known: {known})")
+        nodes.append(GraphNode(n.name, n.package, n.executable, kind, n.param_files,
+                               n.parameters))
+    names = [n.name for n in nodes]
+    twice = next((n for n in names if names.count(n) > 1), None)
+    if twice is not None:
+        raise LaunchError(f"{path}: two nodes are named {twice!r}: node names are unique")
+    want = SOURCES[driver]
+    sources = [n for n in nodes if n.kind.role == "source"]
+    wrong = [n for n in sources if (n.package, n.executable) != want]
+    if wrong:
+        raise LaunchError(
+            f"{path}: node {wrong[0].name!r} ({wrong[0].package} {wrong[0].executable}) in a "
+            f"run {'through the serial driver' if driver else 'of the simulated plant'}, "
+            f"whose source of samples is {' '.join(want)}")
+    if len(sources) != 1:
+        raise LaunchError(
+            f"{path}: {'no' if not sources else 'more than one'} node runs {' '.join(want)} "
+            f"({', '.join(n.name for n in sources) or 'nodes: ' + ', '.join(names)}): the "
+            "graph has one source of samples")
+    for topic in GRAPH_TOPICS + (MARKERS,):
+        if topic is DIAGNOSTICS:
+            continue
+        writers = [n.name for n in nodes if topic in n.publishes]
+        if len(writers) > 1:
+            raise LaunchError(f"{path}: nodes {writers[0]!r} and {writers[1]!r} both publish "
+                              f"{topic.name}: a topic of the graph has one publisher")
+    for node in nodes:
+        if node.kind.role == "observer":  # draws what there is
+            continue
+        for topic in node.subscribes:
+            if not any(topic in n.publishes for n in nodes):
+                raise LaunchError(f"{path}: no node publishes {topic.name}, which node "
+                                  f"{node.name!r} ({node.package} {node.executable}) reads")
+    return Graph(path, sources[0], tuple(n for n in nodes if n.kind.role == "controller"),
+                 tuple(n for n in nodes if n.kind.role == "observer"))
+
+
+def controllers(launch: str | Path = "sim") -> tuple[GraphNode, ...]:
+    """The controller nodes the launch file declares (with its default arguments)."""
+    return read_graph(launch).controllers
+
+
+def __getattr__(name: str) -> Any:
+    # CONTROLLERS: the controllers of sim.launch.xml, for importers of the former tuple
+    # (replay_node); read from the launch file when asked for
+    if name == "CONTROLLERS":
+        return controllers()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # The bag's parameter files: the controllers' (replay and analysis read it) and the plant's.
@@ -148,20 +308,20 @@ def recorded_topics(names: Sequence[str] | None) -> tuple[Topic, ...]:
         raise ConfigError(f"record: {exc}") from None
 
 
-def expected_subscribers(topic: Topic, recording: bool, nodes: Sequence[NodeSpec] = GRAPH) -> int:
+def expected_subscribers(topic: Topic, recording: bool, nodes: Sequence[GraphNode]) -> int:
     """Subscribers ``topic`` has among ``nodes`` (and the recorder)."""
     return sum(topic in n.subscribes for n in nodes) + (1 if recording else 0)
 
 
-def _clock_subscribers(processes: bool) -> int:
+def _clock_subscribers(graph: Graph, processes: bool) -> int:
     """Subscribers of /clock the lockstep plant waits for: each controller's clock (rclpy
     subscribes a node with use_sim_time to /clock), the recorder, and, with separate
     processes, this runner, which subscribes once the recorder has matched every
     publisher (in one process nothing runs before the runner spins, after that)."""
-    return len(CONTROLLERS) + 1 + (1 if processes else 0)
+    return len(graph.controllers) + 1 + (1 if processes else 0)
 
 
-def expected_publishers(topic: Topic, nodes: Sequence[NodeSpec], lockstep: bool) -> int:
+def expected_publishers(topic: Topic, nodes: Sequence[GraphNode], lockstep: bool) -> int:
     """Publishers ``topic`` has among ``nodes``; /clock has its publisher in lockstep only."""
     if topic is CLOCK and not lockstep:
         return 0
@@ -186,6 +346,9 @@ class RunOptions:
     plant_config: str | None = None
     plant_overrides: dict[str, Any] = field(default_factory=dict)
     markers: bool = False  # also run the markers node and record /pisc/markers
+    # the launch file declaring the graph (a path); None: sim.launch.xml, or
+    # rig.launch.xml with driver_port
+    launch: str | None = None
 
     @property
     def initial_x_m(self) -> Any:
@@ -380,6 +543,70 @@ def _wait(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
         time.sleep(0.01)
 
 
+LAUNCH_FILES = {False: "sim", True: "rig"}
+
+
+def _write_params(directory: Path, flat: dict[str, Any],
+                  plant_flat: dict[str, Any] | None) -> dict[str, Path]:
+    """The run's parameter files in ``directory``: the controllers' and, for the simulated
+    plant, the plant's (:data:`CONTROLLERS_PARAMS`, :data:`PLANT_PARAMS`)."""
+    files = {"params": directory / CONTROLLERS_PARAMS}
+    write_params_file(files["params"], flat)
+    if plant_flat is not None:
+        files["plant_params"] = directory / PLANT_PARAMS
+        write_params_file(files["plant_params"], plant_flat)
+    return files
+
+
+def _launch_args(options: RunOptions, files: dict[str, Path],
+                 run: dict[str, str] | None = None) -> dict[str, str]:
+    """The arguments pisc_graph gives the launch file, as ``ros2 launch FILE name:=value``
+    would: its parameter files, the clock, markers on request, and ``run`` (what the plant
+    or the driver waits for, computed from the graph: :func:`_run_args`; placeholders
+    before the graph is known)."""
+    args = {name: str(path) for name, path in files.items()}
+    args["markers"] = "true" if options.markers else "false"
+    if options.driver_port is not None:
+        args["port"] = options.driver_port
+        args["min_subscribers"] = "0"
+    else:
+        args["clock"] = options.clock
+        args["use_sim_time"] = "true" if options.clock == "lockstep" else "false"
+        # the plant stops at the duration itself: a node process is stopped later
+        args["duration"] = yaml.safe_dump(float(options.duration_s)).splitlines()[0]
+        args.update(min_subscribers="1", min_true_state_subscribers="0",
+                    min_clock_subscribers="0")
+    args.update(run or {})
+    return args
+
+
+def _run_args(options: RunOptions, graph: Graph) -> dict[str, str]:
+    """What the source waits for before its first sample, from the graph's nodes."""
+    loop = [*graph.controllers, graph.source]
+    if options.driver_port is not None:
+        # the driver publishes no sample before the graph's readers, the recorder among
+        # them, have matched both sample topics: the bag then holds every sample
+        return {"min_subscribers": str(min(expected_subscribers(JOINT_STATES, True, loop),
+                                           expected_subscribers(MOTOR_CURRENT, True, loop)))}
+    return {"min_subscribers": str(expected_subscribers(JOINT_STATES, True, loop)),
+            "min_true_state_subscribers": "1",
+            "min_clock_subscribers": str(_clock_subscribers(graph, options.processes))}
+
+
+def _read_again(first: Graph, options: RunOptions, files: dict[str, Path],
+                run: dict[str, str]) -> Graph:
+    """The launch file read with the bag's parameter files and the run's arguments; it
+    must start the nodes it started on the first reading."""
+    graph = read_graph(first.path, _launch_args(options, files, run),
+                       options.driver_port is not None)
+    if [(n.name, n.executable) for n in graph.nodes] != [
+            (n.name, n.executable) for n in first.nodes]:
+        raise GraphError(f"{first.path}: starts other nodes with the run's arguments "
+                         f"({', '.join(n.name for n in graph.nodes)}) than without "
+                         f"({', '.join(n.name for n in first.nodes)})")
+    return graph
+
+
 def run_graph(options: RunOptions) -> RunResult:
     """Run, record and summarise; raises ConfigError, BagError or GraphError.
 
@@ -416,25 +643,23 @@ def run_graph(options: RunOptions) -> RunResult:
     if options.driver_port is not None and lockstep:
         raise ConfigError("--driver runs against the wall clock (the device paces the "
                           "samples): use --clock wall")
-    source = PLANT if options.driver_port is None else DRIVER
-    recorded = recorded_topics(options.record) + ((MARKERS,) if options.markers else ())
+    driver = options.driver_port is not None
     bag_dir = options.bag_dir or _default_bag_dir(options)
     if bag_dir.exists() and any(bag_dir.iterdir()):
         raise BagError(f"{bag_dir}: exists and is not empty; not overwriting a bag")
+    # Which nodes run is the launch file's to say. Read it now, with the run's parameter
+    # files in a scratch directory (a file it refuses leaves no bag), and again once they
+    # are in the bag, with what the run computes from the graph (what the plant or the
+    # driver waits for).
+    with tempfile.TemporaryDirectory(prefix="pisc_graph-launch-") as scratch:
+        files = _write_params(Path(scratch), flat, None if driver else plant_params)
+        graph = read_graph(options.launch or LAUNCH_FILES[driver],
+                           _launch_args(options, files), driver)
+    run_args = _run_args(options, graph)
+    source = graph.source
+    recorded = recorded_topics(options.record) + tuple(
+        t for n in graph.observers for t in n.publishes if t is not DIAGNOSTICS)
     timeout = options.timeout_s or (60.0 + 20.0 * options.duration_s)
-    # what the plant node gets besides its parameter file: how this run drives it
-    plant_run: dict[str, Any] = {
-        "simulation.clock": options.clock,
-        "simulation.min_subscribers": expected_subscribers(JOINT_STATES, True),
-        "simulation.min_true_state_subscribers": 1,
-        "simulation.min_clock_subscribers": _clock_subscribers(options.processes),
-        # the plant stops at the duration itself: a node process is stopped later
-        "simulation.duration_s": options.duration_s}
-    if source is DRIVER:
-        # the driver publishes no sample before the graph's readers, the recorder among
-        # them, have matched both sample topics: the bag then holds every sample
-        plant_run = {"driver.port": options.driver_port, "driver.min_subscribers": min(
-            expected_subscribers(JOINT_STATES, True), expected_subscribers(MOTOR_CURRENT, True))}
     env = dict(os.environ)
     # discovery stays on this machine unless the user asked for more (docs/safety.md)
     env.setdefault(DISCOVERY_RANGE, "LOCALHOST")
@@ -443,12 +668,12 @@ def run_graph(options: RunOptions) -> RunResult:
 
     started = time.monotonic()
     # the recorder never runs under --realtime: it must not take the CPU from the loop
-    topic_args = [] if options.record is None and not options.markers else [
+    topic_args = [] if options.record is None and not graph.observers else [
         arg for t in recorded for arg in ("--topic", t.name)]
     # the recorder announces in this file that it has matched every publisher of the run
     ready_dir = tempfile.TemporaryDirectory(prefix="pisc_graph-")
     ready = Path(ready_dir.name) / "recorder-ready"
-    publishers = [*CONTROLLERS, source, *([MARKERS_NODE] if options.markers else [])]
+    publishers = list(graph.nodes)
     topic_args += ["--ready-file", str(ready), *(
         arg for t in recorded
         for arg in ("--expect", f"{t.name}={expected_publishers(t, publishers, lockstep)}"))]
@@ -479,16 +704,14 @@ def run_graph(options: RunOptions) -> RunResult:
     try:
         _wait(lambda: _recorder_ready(watcher, recorder, recorded, recorder_name), 30.0,
               "pisc_record to subscribe")
-        write_params_file(bag_dir / CONTROLLERS_PARAMS, flat)
-        if source is PLANT:  # a bag says what was simulated, model error or not
-            write_params_file(bag_dir / PLANT_PARAMS, plant_params)
+        # a bag says what was simulated, model error or not (plant_params.yaml)
+        files = _write_params(bag_dir, flat, None if driver else plant_params)
+        graph = _read_again(graph, options, files, run_args)
+        source = graph.source
         if options.processes:
-            children = _start_processes(bag_dir, plant_run, watcher, env, lockstep,
-                                        source, recorded)
-            if options.markers:  # the lockstep plant starts once the recorder matched it
-                children.insert(0, _spawn([
-                    *console_command(MARKERS_NODE.executable, MARKERS_NODE.module), "--ros-args",
-                    "--params-file", str(bag_dir / CONTROLLERS_PARAMS)], env, subprocess.DEVNULL))
+            children = _start_processes(graph, watcher, env, recorded)
+            for node in graph.observers:  # the lockstep plant starts once the recorder
+                children.insert(0, _spawn(node.command(), env, subprocess.DEVNULL))  # matched it
             # a node process that dies ends the run at once; the plant's watchdog has
             # zeroed the motor, and _stop below names the process
             died: list[float] = []
@@ -500,27 +723,22 @@ def run_graph(options: RunOptions) -> RunResult:
                                             lambda data: None, qos_profile(CLOCK.qos), raw=True)
             executor: Any = SingleThreadedExecutor(context=context)
         else:
-            params = ros_parameters(flat)
-            sim = [Parameter("use_sim_time", value=lockstep)]
-            for spec in CONTROLLERS:
-                cls = getattr(importlib.import_module(spec.module), spec.cls)
-                nodes.append(cls(context=context, parameter_overrides=params + sim))
-            if options.markers:  # before the plant, which stays last: it is stopped first
-                cls = getattr(importlib.import_module(MARKERS_NODE.module), MARKERS_NODE.cls)
-                nodes.append(cls(context=context, parameter_overrides=params))  # stamps only
+            for node in graph.controllers:
+                nodes.append(node.instantiate(context))
+            for node in graph.observers:  # before the plant, which stays last: it is
+                nodes.append(node.instantiate(context))  # stopped first
             # DDS matches in its own threads: no spinning is needed to wait for it.
-            _wait(lambda: _matched(nodes, recorded), 30.0, "the graph to connect")
-            if source is DRIVER:
+            _wait(lambda: _matched(nodes, recorded, graph.controllers), 30.0,
+                  "the graph to connect")
+            if driver:
                 # the driver in a process of its own: a crash of this one (the
                 # controllers') leaves it to zero the motor (docs/safety.md)
-                children = [_start_node(DRIVER, bag_dir, plant_run, env)]
+                children = [_spawn(source.command(), env, subprocess.DEVNULL)]
                 died_driver: list[float] = []
                 watcher.create_timer(
                     0.02, lambda: _end_if_a_node_died(children, progress, died_driver))
             else:
-                plant_cls = getattr(importlib.import_module(source.module), source.cls)
-                nodes.append(plant_cls(context=context, parameter_overrides=ros_parameters(
-                    plant_params) + ros_parameters(plant_run)))
+                nodes.append(source.instantiate(context))
             # nothing is sent before the executor spins: by then the recorder takes it all
             _wait(lambda: _recorder_matched(recorder, ready), 30.0,
                   "pisc_record to match every publisher")
@@ -552,7 +770,7 @@ def run_graph(options: RunOptions) -> RunResult:
         raise _recorder_died(
             f"pisc_record {_exit_description(watch.returncode)} {watch.run_time()} of the "
             f"run; the run was stopped there"
-            f"{' and the rig left at 0 V' if source is DRIVER else ''}",
+            f"{' and the rig left at 0 V' if driver else ''}",
             bag_dir, config.loop.period_s, said)
     if recorder_problem and finished and not failed:  # it died finishing the bag
         raise _recorder_died(
@@ -651,7 +869,8 @@ def _recorder_matched(recorder: subprocess.Popen, ready: Path) -> bool:
     return ready.exists()
 
 
-def _matched(nodes: Sequence[Node], recorded: Sequence[Topic]) -> bool:
+def _matched(nodes: Sequence[Node], recorded: Sequence[Topic],
+             controllers: Sequence[GraphNode]) -> bool:
     """Every controller publisher sees its subscribers among the controllers and recorder.
 
     The plant comes later and waits for its own edges (``simulation.min_subscribers``).
@@ -661,57 +880,37 @@ def _matched(nodes: Sequence[Node], recorded: Sequence[Topic]) -> bool:
             topic = next((t for t in GRAPH_TOPICS if t.name == publisher.topic_name), None)
             if topic is None or topic in (DIAGNOSTICS, CLOCK):
                 continue
-            expected = (expected_subscribers(topic, topic in recorded, CONTROLLERS)
+            expected = (expected_subscribers(topic, topic in recorded, controllers)
                         + (topic is VOLTAGE))
             if publisher.get_subscription_count() < expected:
                 return False
     return True
 
 
-def _start_node(spec: NodeSpec, bag_dir: Path, extra: dict[str, Any],
-                env: dict[str, str]) -> subprocess.Popen:
-    """Start one node through its console entry point with the bag's parameter file (the
-    plant's :data:`PLANT_PARAMS`, the others' :data:`CONTROLLERS_PARAMS`) and ``extra``."""
-    params_file = bag_dir / (PLANT_PARAMS if spec is PLANT else CONTROLLERS_PARAMS)
-    args = [*console_command(spec.executable, spec.module), "--ros-args",
-            "--params-file", str(params_file)]
-    for name, value in extra.items():
-        args += ["-p", f"{name}:={str(value).lower() if isinstance(value, bool) else value}"]
-    return _spawn(args, env, subprocess.DEVNULL)
-
-
-def _start_processes(bag_dir: Path, plant_run: dict[str, Any],
-                     watcher: Node, env: dict[str, str], lockstep: bool,
-                     source: NodeSpec = PLANT,
+def _start_processes(graph: Graph, watcher: Node, env: dict[str, str],
                      recorded: Sequence[Topic] = GRAPH_TOPICS) -> list[subprocess.Popen]:
-    """Start the nodes from the bag's parameter files: the controllers (and the driver)
-    from :data:`CONTROLLERS_PARAMS`, the plant from :data:`PLANT_PARAMS`."""
-    children = []
-
-    def start(spec: NodeSpec, extra: dict[str, Any]) -> None:
-        children.append(_start_node(spec, bag_dir, extra, env))
-
-    for spec in CONTROLLERS:
-        start(spec, {"use_sim_time": lockstep})
+    """Start the launch file's controllers, each as its own process, wait until they are
+    connected, then start its source (the plant or the driver)."""
+    children = [_spawn(node.command(), env, subprocess.DEVNULL) for node in graph.controllers]
 
     def connected() -> bool:
         for child in children:
             if child.poll() is not None:
                 raise GraphError(_stop(child)[0] or f"{child.args[0]} exited")
-        for spec in CONTROLLERS:
-            for topic in spec.publishes:
+        for node in graph.controllers:
+            for topic in node.publishes:
                 if topic is DIAGNOSTICS:
                     continue
-                expected = (expected_subscribers(topic, topic in recorded, CONTROLLERS)
+                expected = (expected_subscribers(topic, topic in recorded, graph.controllers)
                             + (topic is VOLTAGE))
                 if watcher.count_subscribers(topic.name) < expected:
                     return False
-            if watcher.count_publishers(spec.publishes[0].name) < 1:
+            if watcher.count_publishers(node.publishes[0].name) < 1:
                 return False
         return True
 
     _wait(connected, 60.0, "the node processes to connect")
-    start(source, plant_run)
+    children.append(_spawn(graph.source.command(), env, subprocess.DEVNULL))
     return children
 
 
@@ -742,6 +941,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--record", action="append", metavar="TOPIC",
                         help="record this topic (repeatable; default: the scene's list, else "
                         "every topic); the run's own topics are always recorded")
+    parser.add_argument("--launch", metavar="FILE",
+                        help="the launch file declaring the graph (default: the package's "
+                        "sim.launch.xml, or rig.launch.xml with --driver)")
     parser.add_argument("--markers", action="store_true",
                         help="also run the markers node (the rig on /pisc/markers for RViz "
                         "and Foxglove, docs/markers.md) and record its topic")
@@ -803,7 +1005,7 @@ def main(argv: list[str] | None = None) -> int:
                          executor=args.executor, bag_dir=args.bag,
                          domain_id=args.domain_id, driver_port=args.driver, record=record,
                          plant_config=args.plant_config, plant_overrides=plant_overrides,
-                         markers=args.markers)
+                         markers=args.markers, launch=args.launch)
     try:
         result = run_graph(options)
     except ConfigError as exc:

@@ -5,9 +5,11 @@ the same nodes from one declaration.
     launch/rig.launch.xml    the serial driver and the controllers (port:=/dev/ttyUSB0)
 
 This reads the subset of ROS 2's XML launch format (``launch_xml``) those files use:
-``<launch>`` holding ``<arg name default description>`` and ``<node pkg exec name
-output>`` with ``<param from="FILE"/>`` and ``<param name value/>``; values may hold the
-substitutions ``$(var NAME)`` and ``$(find-pkg-share PACKAGE)``. Anything else is refused
+``<launch>`` holding ``<arg name default description>``, ``<node pkg exec name output>``
+with ``<param from="FILE"/>`` and ``<param name value/>``, and ``<group if="..."/>`` (or
+``unless``) holding nodes, started when the condition is true (``true``/``1``) or false
+(``false``/``0``); values may hold the substitutions ``$(var NAME)`` and
+``$(find-pkg-share PACKAGE)``. Anything else is refused
 with the element and what is wrong, rather than half understood.
 
 ``$(find-pkg-share PACKAGE)`` is the package's ``share/PACKAGE`` in the ament index when the
@@ -128,8 +130,10 @@ def _root(path: Path) -> ET.Element:
 
 
 def read_launch(path: str | Path, args: Mapping[str, str] | None = None) -> list[LaunchNode]:
-    """The nodes a launch file starts, with ``args`` (``name: value``) given as
-    ``ros2 launch FILE name:=value`` would; :class:`LaunchError` names what is wrong."""
+    """The nodes a launch file starts, in the file's order, with ``args`` (``name:
+    value``) given as ``ros2 launch FILE name:=value`` would; :class:`LaunchError` names
+    what is wrong. A group whose condition is false starts nothing, but what it holds is
+    checked all the same (its parameter files must exist)."""
     path = Path(path)
     root = _root(path)
     given = dict(args or {})
@@ -146,13 +150,47 @@ def read_launch(path: str | Path, args: Mapping[str, str] | None = None) -> list
     if given:
         raise LaunchError(f"{path}: argument {sorted(given)[0]!r} is not declared (declared: "
                           f"{', '.join(values) or 'none'})")
-    nodes = []
-    for element in root:
-        if element.tag == "arg":
+    nodes: list[LaunchNode] = []
+    _read_nodes(root, path, values, nodes, top=True)
+    if not nodes:
+        raise LaunchError(f"{path}: starts no node")
+    return nodes
+
+
+def _condition(text: str, values: Mapping[str, str], where: str) -> bool:
+    """An ``if``/``unless`` value as launch evaluates it: true/1 or false/0, any case."""
+    value = _substitute(text, values, where).strip().lower()
+    if value in ("true", "1"):
+        return True
+    if value in ("false", "0"):
+        return False
+    raise LaunchError(f"{where}: condition {text!r} is {value!r}: expected true, false, 1 or 0")
+
+
+def _read_nodes(parent: ET.Element, path: Path, values: Mapping[str, str],
+                nodes: list[LaunchNode], top: bool) -> None:
+    """The nodes under ``parent`` (``<launch>`` or a ``<group>``), in order."""
+    for element in parent:
+        if element.tag == "arg" and top:
+            continue
+        if element.tag == "group":
+            where = f"{path}: <group>"
+            a = _attributes(element, {"if", "unless"}, set(), where)
+            if "if" in a and "unless" in a:
+                raise LaunchError(f"{where}: both 'if' and 'unless' (give one)")
+            run = (_condition(a["if"], values, f"{where} if") if "if" in a
+                   else not _condition(a["unless"], values, f"{where} unless")
+                   if "unless" in a else True)
+            if run:
+                _read_nodes(element, path, values, nodes, top=False)
+            else:  # what it would start is still checked, as strictly
+                _read_nodes(element, path, values, [], top=False)
             continue
         if element.tag != "node":
-            raise LaunchError(f"{path}: element <{element.tag}> not supported (only <arg> "
-                              "and <node>)")
+            raise LaunchError(f"{path}: element <{element.tag}> not supported (only <arg>, "
+                              "<node> and <group if|unless> holding <node>s)"
+                              if top else f"{path}: <group>: element <{element.tag}> not "
+                              "supported (only <node> and <group>)")
         where = f"{path}: <node {element.get('name', '?')}>"
         a = _attributes(element, {"pkg", "exec", "name", "output"}, {"pkg", "exec", "name"},
                         where)
@@ -177,6 +215,3 @@ def read_launch(path: str | Path, args: Mapping[str, str] | None = None) -> list
                                 _substitute(a["exec"], values, where),
                                 _substitute(a["name"], values, where), tuple(files),
                                 parameters))
-    if not nodes:
-        raise LaunchError(f"{path}: starts no node")
-    return nodes
