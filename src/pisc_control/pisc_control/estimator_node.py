@@ -5,13 +5,11 @@ from __future__ import annotations
 from typing import Any
 
 from pisc_control.estimator import EstimatorParams, EstimatorState, estimator_update
-from pisc_msgs_py.base_node import ERROR, OK, PiscNode, run_node
-from pisc_msgs_py.convert import MessageError, joint_sample_from_msg, state_to_msg
+from pisc_msgs_py.base_node import OK, PiscNode, ResendCache, run_node
+from pisc_msgs_py.convert import joint_sample_from_msg, state_to_msg
 from pisc_msgs_py.topics import JOINT_STATES, STATE
 from pisc_msgs_py.types import StateEstimate
 from pisc_model.params import LoopParams
-
-DIAGNOSTIC_EVERY = 200  # samples between routine diagnostics (1 s at 5 ms)
 
 
 class EstimatorNode(PiscNode):
@@ -19,7 +17,7 @@ class EstimatorNode(PiscNode):
         super().__init__("estimator", {"loop": LoopParams, "estimator": EstimatorParams}, **kwargs)
         self._state = EstimatorState()
         self._samples = 0
-        self._last: tuple[int, Any] | None = None  # (stamp, published state) for resends
+        self._answers = ResendCache()  # a resent sample: same answer, same state
         self._state_pub = self.publisher(STATE)
         self._sub = self.subscription(JOINT_STATES, self._on_joint_states)
 
@@ -27,23 +25,17 @@ class EstimatorNode(PiscNode):
         return self.section(flat, "loop"), self.section(flat, "estimator")
 
     def _on_joint_states(self, msg: Any) -> None:
-        try:
-            sample = joint_sample_from_msg(msg)
-        except MessageError as exc:
-            self.diagnose(ERROR, f"rejected joint_states: {exc}")
-            return
-        if self._last is not None and self._last[0] == sample.stamp_ns:
-            self._state_pub.publish(self._last[1])  # a resent sample: same answer, same state
+        sample = self.parse(msg, joint_sample_from_msg, "joint_states")
+        if sample is None or self._answers.resend(sample.stamp_ns):
             return
         loop, params = self.config
         self._state, x_dot, theta_dot = estimator_update(
             params, loop.period_s, self._state, sample.position_m, sample.angle_rad)
         out = state_to_msg(StateEstimate(
             sample.stamp_ns, sample.position_m, float(x_dot), sample.angle_rad, float(theta_dot)))
-        self._last = (sample.stamp_ns, out)
-        self._state_pub.publish(out)
+        self._answers.publish(sample.stamp_ns, (self._state_pub, out))
         self._samples += 1
-        if self._samples % DIAGNOSTIC_EVERY == 1:
+        if self.routine_diagnostics(self._samples):
             self.diagnose(OK, "estimating", sample.stamp_ns, samples=self._samples)
 
 

@@ -18,8 +18,8 @@ from pisc_control.supervisor import (
 )
 from pisc_control.swing_up import SwingUpParams
 from pisc_model.params import LoopParams, RigParams
-from pisc_msgs_py.base_node import ERROR, OK, PiscNode, run_node
-from pisc_msgs_py.convert import MessageError, cart_force_to_msg, mode_to_msg, state_from_msg
+from pisc_msgs_py.base_node import ERROR, OK, PiscNode, ResendCache, run_node
+from pisc_msgs_py.convert import cart_force_to_msg, mode_to_msg, state_from_msg
 from pisc_msgs_py.topics import CART_FORCE, MODE, STATE
 from pisc_msgs_py.types import CartForce, Mode, ModeReport
 
@@ -40,7 +40,7 @@ class SupervisorNode(PiscNode):
         super().__init__("supervisor", SECTIONS, **kwargs)
         self._state = SupervisorState()
         self._mode: Mode | None = None
-        self._last: tuple[int, Any] | None = None  # (stamp, published force) for resends
+        self._answers = ResendCache()  # a resent cycle: same force, same state
         self._force_pub = self.publisher(CART_FORCE)
         self._mode_pub = self.publisher(MODE)
         self._sub = self.subscription(STATE, self._on_state)
@@ -50,13 +50,8 @@ class SupervisorNode(PiscNode):
         return Supervisor(SupervisorConfig(**{s: self.section(flat, s) for s in SECTIONS}))
 
     def _on_state(self, msg: Any) -> None:
-        try:
-            state = state_from_msg(msg)
-        except MessageError as exc:
-            self.diagnose(ERROR, f"rejected state: {exc}")
-            return
-        if self._last is not None and self._last[0] == state.stamp_ns:
-            self._force_pub.publish(self._last[1])  # a resent cycle: same answer, same state
+        state = self.parse(msg, state_from_msg, "state")
+        if state is None or self._answers.resend(state.stamp_ns):
             return
         supervisor: Supervisor = self.config
         self._state, force, code = supervisor.update(
@@ -75,9 +70,8 @@ class SupervisorNode(PiscNode):
                               state.stamp_ns)
             self._mode_pub.publish(mode_to_msg(ModeReport(state.stamp_ns, mode, reason)))
             self._mode = mode
-        out = cart_force_to_msg(CartForce(state.stamp_ns, float(force)))
-        self._last = (state.stamp_ns, out)
-        self._force_pub.publish(out)
+        self._answers.publish(state.stamp_ns, (
+            self._force_pub, cart_force_to_msg(CartForce(state.stamp_ns, float(force)))))
 
 
 def main(args: list[str] | None = None) -> int:

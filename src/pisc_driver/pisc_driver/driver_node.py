@@ -31,7 +31,6 @@ from pisc_driver.driver import ZERO, DriverCore, DriverParams
 from pisc_driver.link import LinkError, SerialLink
 from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, run_node
 from pisc_msgs_py.convert import (
-    MessageError,
     joint_sample_to_msg,
     motor_sample_from_msg,
     motor_sample_to_msg,
@@ -44,7 +43,6 @@ from pisc_model.params import ActuatorParams, LoopParams, SensorParams
 
 SECTIONS = {"driver": DriverParams, "sensors": SensorParams, "actuator": ActuatorParams,
             "loop": LoopParams}
-DIAGNOSTIC_EVERY = 200  # frames: once a second
 
 
 class DriverNode(PiscNode):
@@ -135,10 +133,8 @@ class DriverNode(PiscNode):
                 self._unwritten += 1  # the reader finds the port gone and reports it
 
     def _on_voltage(self, msg: Any) -> None:
-        try:
-            command = motor_sample_from_msg(msg)
-        except MessageError as exc:
-            self.diagnose(WARN, f"rejected voltage command: {exc}")
+        command = self.parse(msg, motor_sample_from_msg, "voltage command", WARN)
+        if command is None:
             return
         self._check_publishers()
         admitted = self._pin.admits(command.stamp_ns)
@@ -205,7 +201,7 @@ class DriverNode(PiscNode):
                         JointSample(s.stamp_ns, s.position_m, s.angle_rad)))
                     self._current_pub.publish(motor_sample_to_msg(
                         MotorSample(s.stamp_ns, s.current_a)))
-                    if core.parser.frames % DIAGNOSTIC_EVERY == 1:
+                    if self.routine_diagnostics(core.parser.frames):  # once a second
                         # (names the port: a recorder started with this process may
                         # have missed the "opened" status of its start)
                         self._report(OK, f"link up on {link.port}", now)

@@ -19,6 +19,11 @@ it at start-up, naming it and the closest known name:
 
 :func:`run_node` reads ``--ros-args`` before rclpy does, so a missing or broken
 parameter file and a malformed ``-p`` are a one-line refusal, not an rcl traceback.
+
+**Shell code said once.** :meth:`PiscNode.parse` turns a message into its core type or
+says on ``/diagnostics`` why it was rejected; :meth:`PiscNode.routine_diagnostics` is the
+cadence of routine statuses (:data:`DIAGNOSTIC_EVERY`); :class:`ResendCache` answers a
+sample a lockstep plant sent again with the messages already published for it.
 """
 
 from __future__ import annotations
@@ -44,15 +49,18 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from pisc_msgs_py import config as cfg
-from pisc_msgs_py.convert import stamp_to_msg
+from pisc_msgs_py.convert import MessageError, stamp_to_msg
 from pisc_msgs_py.topics import DIAGNOSTICS, QosSpec, Topic
 
-__all__ = ["PISC_SECTIONS", "Override", "PiscNode", "message_class", "parse_ros_arguments",
-           "qos_profile", "run_node"]
+__all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "Override", "PiscNode", "ResendCache",
+           "message_class", "parse_ros_arguments", "qos_profile", "run_node"]
 
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
 ERROR = DiagnosticStatus.ERROR
+
+#: Routine statuses on /diagnostics: the first item, then every this many (1 s at 5 ms).
+DIAGNOSTIC_EVERY = 200
 
 
 def qos_profile(spec: QosSpec) -> QoSProfile:
@@ -185,6 +193,36 @@ def _aims_at(target: str, fully_qualified_name: str) -> bool:
     return fnmatch.fnmatchcase(fully_qualified_name, pattern.replace("/**", "*"))
 
 
+class ResendCache:
+    """A stage's answer to the newest stamp, to publish again when that stamp comes again.
+
+    A lockstep plant sends a sample again when no voltage answered it; every stage then
+    answers the repeated stamp with the messages it already published (the same objects),
+    without running its core a second time, so its state advances once per sample.
+    """
+
+    def __init__(self) -> None:
+        self._stamp_ns: int | None = None
+        self._sent: tuple[tuple[Any, Any], ...] = ()  # (publisher, message) pairs
+
+    def resend(self, stamp_ns: int) -> bool:
+        """If ``stamp_ns`` is the stamp last answered, publish that answer again and
+        return True; otherwise publish nothing and return False."""
+        if self._stamp_ns is None or stamp_ns != self._stamp_ns:
+            return False
+        for publisher, message in self._sent:
+            publisher.publish(message)
+        return True
+
+    def publish(self, stamp_ns: int, *sent: tuple[Any, Any]) -> None:
+        """Publish the answer to ``stamp_ns`` (``(publisher, message)`` pairs, in order)
+        and keep it for :meth:`resend`."""
+        self._stamp_ns = stamp_ns
+        self._sent = sent
+        for publisher, message in sent:
+            publisher.publish(message)
+
+
 class PiscNode(Node):
     """Base of the PISC nodes. Subclasses pass their sections and implement ``build``."""
 
@@ -283,6 +321,22 @@ class PiscNode(Node):
     def subscription(self, topic: Topic, callback: Callable[..., None]) -> Any:
         return self.create_subscription(
             message_class(topic.type), topic.name, callback, qos_profile(topic.qos))
+
+    @staticmethod
+    def routine_diagnostics(count: int) -> bool:
+        """Whether the ``count``-th item (1 for the first) gets a routine status: the
+        first, then every :data:`DIAGNOSTIC_EVERY`-th."""
+        return (count - 1) % DIAGNOSTIC_EVERY == 0
+
+    def parse(self, msg: Any, from_msg: Callable[[Any], Any], what: str,
+              level: int = ERROR) -> Any:
+        """``from_msg(msg)``, or None after saying on /diagnostics why the message was
+        rejected (``rejected WHAT: reason`` at ``level``)."""
+        try:
+            return from_msg(msg)
+        except MessageError as exc:
+            self.diagnose(level, f"rejected {what}: {exc}")
+            return None
 
     def diagnose(self, level: int, message: str, stamp_ns: int | None = None,
                  **values: Any) -> None:

@@ -44,7 +44,6 @@ from rosgraph_msgs.msg import Clock
 from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, run_node
 from pisc_msgs_py.config import ConfigError, in_range, one_of, param
 from pisc_msgs_py.convert import (
-    MessageError,
     joint_sample_to_msg,
     motor_sample_from_msg,
     motor_sample_to_msg,
@@ -72,10 +71,9 @@ from pisc_msgs_py.watchdog import (
 from pisc_model.params import (
     InitialParams,
 )
+from pisc_plant.command import plant_command
 from pisc_plant.plant import PLANT_SECTIONS, Plant, PlantConfig
 from pisc_plant.sampled import SampledPlant
-
-DIAGNOSTIC_EVERY = 200
 
 
 @dataclass(frozen=True)
@@ -140,9 +138,8 @@ class PlantNode(PiscNode):
         self._clock_pub = self.publisher(CLOCK) if self._lockstep else None
         self._sub = self.subscription(VOLTAGE, self._on_voltage)
         # An ideal current loop (models.current_loop = ideal) makes the current equal its
-        # set-point: the plant is then driven by the force k_m i_d / r of the set-point
-        # (4.2), and the voltage the current loop computes acts on nothing.
-        self._force_per_amp = plant_config.motor.force_per_amp
+        # set-point: the plant is then driven by the set-point's force (plant_command),
+        # and the voltage the current loop computes acts on nothing.
         self._command_topic: Topic = VOLTAGE
         self._command_sub = self._sub
         if plant.force_input:
@@ -195,7 +192,7 @@ class PlantNode(PiscNode):
         if self._sim_params.publish_true_state:
             self._true_pub.publish(true_state_to_msg(TrueState(self._stamp_ns, *sample.true_state)))
         self._published_ns = self._wall_ns()
-        if sample.index % DIAGNOSTIC_EVERY == 0:
+        if self.routine_diagnostics(sample.index + 1):
             self.diagnose(OK, "simulating", self._stamp_ns, sample=sample.index,
                           deadline_misses=self._missed, stale_commands=self._stale,
                           resent_samples=self._resent)
@@ -277,13 +274,20 @@ class PlantNode(PiscNode):
         if self._stopping():
             return
         self._watch_duration(msg)
-        if not self._sim.plant.force_input:
-            self._on_command(msg, "voltage command", 1.0)
+        if self._sim.plant.force_input:
+            return
+        command = self.parse(msg, motor_sample_from_msg, "voltage command", WARN)
+        if command is not None:
+            self._on_command(command.stamp_ns,
+                             plant_command(self._sim.plant.config, voltage_v=command.value))
 
     def _on_setpoint(self, msg: Any) -> None:
         if self._stopping():
             return
-        self._on_command(msg, "current set-point", self._force_per_amp)
+        command = self.parse(msg, motor_sample_from_msg, "current set-point", WARN)
+        if command is not None:
+            self._on_command(command.stamp_ns,
+                             plant_command(self._sim.plant.config, setpoint_a=command.value))
 
     def _watch_duration(self, msg: Any) -> None:
         """The run's end, by pisc_graph's own rule (a voltage stamped ``duration_s`` after
@@ -299,18 +303,13 @@ class PlantNode(PiscNode):
             self.get_logger().info(f"the run's {self._sim_params.duration_s} s are over at "
                                    f"sample {self._sim.index}: no more samples")
 
-    def _on_command(self, msg: Any, what: str, scale: float) -> None:
-        try:
-            command = motor_sample_from_msg(msg)
-        except MessageError as exc:
-            self.diagnose(WARN, f"rejected {what}: {exc}")
-            return
-        command = MotorSample(command.stamp_ns, command.value * scale)
+    def _on_command(self, stamp_ns: int, command: float) -> None:
+        """A command (:func:`pisc_plant.command.plant_command`) answering ``stamp_ns``."""
         self._check_publishers()
         if not self._started:
             return
-        answers = self._watchdog.fresh(command.stamp_ns)
-        if command.stamp_ns != self._stamp_ns:
+        answers = self._watchdog.fresh(stamp_ns)
+        if stamp_ns != self._stamp_ns:
             self._stale += 1
             if self._lockstep or answers is None:
                 # lockstep only takes the awaited sample; on the wall clock a command older
@@ -318,8 +317,8 @@ class PlantNode(PiscNode):
                 return
         # while another publisher is there, nothing on the topic drives the motor, nor do
         # answers to samples from before its departure was seen (PublisherPin.admits)
-        admitted = self._pin.admits(command.stamp_ns)
-        value = command.value if admitted else 0.0
+        admitted = self._pin.admits(stamp_ns)
+        value = command if admitted else 0.0
         if admitted:
             resumed = self._watchdog.answer(answers)
             if resumed is not None:
