@@ -9,7 +9,11 @@ import os
 import pty
 import re
 import select
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import pytest
 
@@ -95,3 +99,68 @@ def test_lines_above_the_bar_clear_it_first_and_arrive_whole(terminal):
 def test_a_negative_total_is_refused():
     with pytest.raises(ValueError, match="total -1: a count of steps"):
         progress_bar(-1, "row")
+
+
+# --- the commands -----------------------------------------------------------------------
+
+BIN = Path(sys.executable).parent
+
+
+def _run(argv: list[str], cwd: Path, terminal: bool) -> tuple[str, str]:
+    """(stdout, stderr) of a command whose stdout is a pipe and whose stderr is a pipe or,
+    with ``terminal``, a pseudo-terminal (read while the command runs: a full pty blocks
+    its writer)."""
+    if not terminal:
+        done = subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=900)
+        assert done.returncode == 0, done.stderr
+        return done.stdout, done.stderr
+    master, slave = pty.openpty()
+    with tempfile.TemporaryFile("w+") as stdout:
+        process = subprocess.Popen(argv, cwd=cwd, stdout=stdout, stderr=slave, text=True)
+        os.close(slave)
+        chunks = []
+        try:
+            while process.poll() is None:
+                chunks.append(_drain(master))
+            chunks.append(_drain(master))
+            process.wait(timeout=900)
+        finally:
+            if process.poll() is None:
+                process.kill()
+            os.close(master)
+        assert process.returncode == 0, "".join(chunks)
+        stdout.seek(0)
+        return stdout.read(), "".join(chunks)
+
+
+def _figures(text: str) -> list[str]:
+    """The table rows without their wall-time column (the one figure a run changes)."""
+    rows = []
+    for line in text.splitlines():
+        if re.match(r"(exprk4|rk4|solve_ivp|control) ", line):
+            head, wall, *rest = line[:50], *line[50:].split()
+            rows.append(" ".join([head.strip(), *rest]))
+    return rows
+
+
+@pytest.mark.integration
+def test_pisc_integrators_bar_on_a_terminal_only_and_the_same_figures(tmp_path):
+    argv = [str(BIN / "pisc_integrators"), "--duration", "0.05", "--conservative-duration",
+            "0.5", "--quick", "--png", str(tmp_path / "wp.png")]
+    piped, piped_err = _run(argv, tmp_path, terminal=False)
+    shown, bar = _run(argv, tmp_path, terminal=True)
+    # through a pipe: not a character of a bar, the tables on stdout
+    assert piped_err == ""
+    rows = _figures(piped)
+    # playback: 7 exprk4 + 5 rk4 counts + 4 methods x 2 tolerances; conservative: 7 + 5 + 2
+    assert len(rows) == 20 + 14, piped
+    assert "run/s" not in piped and "\r" not in piped
+    # on a terminal: a bar counting the integrations, the references' included:
+    # playback 2 + 20 rows, conservative 1 + 14 rows
+    counts = [int(n) for n in re.findall(r"\| *(\d+)/37 \[", bar)]
+    assert "integrators" in bar and counts and counts == sorted(counts), bar
+    assert 0 < counts[-1] <= 37
+    assert re.search(r"\r +\r$", bar)  # erased at the end
+    # and stdout holds the same figures, nothing of the bar
+    assert _figures(shown) == rows
+    assert "\r" not in shown

@@ -18,6 +18,7 @@ refused.
 from __future__ import annotations
 
 import argparse
+import io
 import math
 import sys
 import time
@@ -34,6 +35,7 @@ from pisc_sim.configuration import GraphConfig, load_graph_config
 from pisc_control.catch import catch_gain
 from pisc_control.swing_up import SwingUpParams, gain_condition
 from pisc_msgs_py.config import ConfigError, parse_overrides
+from pisc_msgs_py.progress import progress_bar
 from pisc_model.dynamics import linearise_upright
 from pisc_model.params import RigParams
 
@@ -121,26 +123,6 @@ def spec_section6_checks() -> list[SpecCheck]:
                                    ("x", 10.194, f[0]), ("x_dot", 9.1743, f[1])):
         checks.append(SpecCheck("seed 001", f"F coefficient of {name}", published, value))
     return checks
-
-
-def _progress_printer(stream: TextIO, what: str) -> Callable[[int, int], None]:
-    tty = stream.isatty()
-    last = [-1]
-
-    def report(k: int, n: int) -> None:
-        percent = 100 * k // n
-        if tty:
-            if percent != last[0]:
-                stream.write(f"\r{what}: {percent:3d} % ({k}/{n} cycles)")
-                if k == n:
-                    stream.write("\n")
-                stream.flush()
-        elif percent // 10 != last[0] // 10 or k == n:
-            stream.write(f"{what}: {percent} % ({k}/{n} cycles)\n")
-            stream.flush()
-        last[0] = percent
-
-    return report
 
 
 def _model_section(report: Report, config: GraphConfig) -> tuple[Any, Any, dict]:
@@ -367,10 +349,11 @@ def build_report(
                        f"{_complex_list(cfg.supervisor.catch.pole_set)}")
             for x0 in roa_x0_m:
                 what = f"region of attraction '{name}' x0 = {x0:+g} m"
-                printer = _progress_printer(progress, what) if progress else None
-                maps.append(roa.region_of_attraction(cfg, theta, rate, x0_m=x0,
-                                                     duration_s=roa_duration_s, label=name,
-                                                     progress=printer))
+                # a bar of the batch's cycles on ``progress`` when it is a terminal
+                with progress_bar(0, "cycle", what, stream=progress or io.StringIO()) as bar:
+                    maps.append(roa.region_of_attraction(
+                        cfg, theta, rate, x0_m=x0, duration_s=roa_duration_s, label=name,
+                        progress=lambda k, n: bar.to(k, n)))
                 report.add("    " + maps[-1].summary())
         report.add("Caught at once: in catch from the first sample and |theta| < 0.05 rad over "
                    "the last 0.5 s without a fault; caught later: by the swing-up and the "

@@ -24,6 +24,7 @@ import dataclasses
 import math
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -71,7 +72,27 @@ def _scipy_grid(quick: bool) -> list[tuple[str, float]]:
     return [(m, r) for m in wp.SCIPY_METHODS for r in rtols]
 
 
-def playback_table(scene: Scene, commands: np.ndarray, quick: bool, out) -> list[wp.Result]:
+def _control_rtols(quick: bool) -> tuple[float, ...]:
+    return RTOLS[1::2] if quick else RTOLS
+
+
+def runs(scene: Scene, quick: bool, conservative: bool) -> int:
+    """How many integrations :func:`playback_table` (``conservative`` False) or
+    :func:`conservative_table` makes for ``scene``: the reference (and the playback's
+    check), then one per row."""
+    own = sum(len(counts) for _, counts in wp.methods_for(scene.config.plant))
+    if conservative:
+        return 1 + own + len(_control_rtols(quick))
+    return 2 + own + len(_scipy_grid(quick))
+
+
+def _nothing(n: int) -> None:
+    pass
+
+
+def playback_table(scene: Scene, commands: np.ndarray, quick: bool, out,
+                   done: Callable[[int], None] = _nothing) -> list[wp.Result]:
+    """The open-loop playback's table on ``out``; ``done(1)`` after each integration."""
     period = scene.config.loop.period_s
     i0 = scene.config.initial
     default = Plant(scene.config.plant)
@@ -80,8 +101,10 @@ def playback_table(scene: Scene, commands: np.ndarray, quick: bool, out) -> list
           f"state {', '.join(default.state_names)}", file=out, flush=True)
     reference = wp.playback_scipy(default, y0, commands, period, "DOP853", REFERENCE_RTOL,
                                   REFERENCE_RTOL * 1e-3)
+    done(1)
     check = wp.playback(wp.with_integrator(scene.config.plant, "exprk4", 64), y0, commands,
                         period)
+    done(1)
     print(f"reference: solve_ivp DOP853 rtol {REFERENCE_RTOL:.0e} ({reference.wall_s:.1f} s); "
           f"exprk4 at 64 steps/period differs from it by "
           f"{check.error(reference.states):.1e}", file=out, flush=True)
@@ -92,10 +115,12 @@ def playback_table(scene: Scene, commands: np.ndarray, quick: bool, out) -> list
             r = wp.playback(wp.with_integrator(scene.config.plant, method, n), y0, commands,
                             period)
             results.append(r)
+            done(1)
             print(_row(r, reference.states, None), file=out, flush=True)
     for method, rtol in _scipy_grid(quick):
         r = wp.playback_scipy(default, y0, commands, period, method, rtol, rtol * 1e-3)
         results.append(r)
+        done(1)
         print(_row(r, reference.states, None), file=out, flush=True)
     own = default.config.integrator
     mine = next(r for r in results if r.method == own.method
@@ -115,7 +140,9 @@ def playback_table(scene: Scene, commands: np.ndarray, quick: bool, out) -> list
     return [reference, *results]
 
 
-def conservative_table(scene: Scene, quick: bool, out) -> list[wp.Result]:
+def conservative_table(scene: Scene, quick: bool, out,
+                       done: Callable[[int], None] = _nothing) -> list[wp.Result]:
+    """The conservative scene's table on ``out``; ``done(1)`` after each integration."""
     period = scene.config.loop.period_s
     plant = Plant(scene.config.plant)
     i0 = scene.config.initial
@@ -126,6 +153,7 @@ def conservative_table(scene: Scene, quick: bool, out) -> list[wp.Result]:
           f"{period * 1e3:g} ms", file=out, flush=True)
     reference = wp.playback_control(plant, y0, scene.duration_s, period, REFERENCE_RTOL,
                                     REFERENCE_RTOL * 1e-3)
+    done(1)
     print(f"reference: input_output_response DOP853 rtol {REFERENCE_RTOL:.0e} "
           f"({reference.wall_s:.1f} s), energy drift "
           f"{wp.energy_drift(plant, reference.states):.1e}", file=out)
@@ -135,11 +163,13 @@ def conservative_table(scene: Scene, quick: bool, out) -> list[wp.Result]:
         for k in counts:
             r = wp.playback(wp.with_integrator(scene.config.plant, method, k), y0, zeros, period)
             results.append(r)
+            done(1)
             print(_row(r, reference.states, wp.energy_drift(plant, r.states)), file=out,
                   flush=True)
-    for rtol in (RTOLS[1::2] if quick else RTOLS):
+    for rtol in _control_rtols(quick):
         r = wp.playback_control(plant, y0, scene.duration_s, period, rtol, rtol * 1e-3)
         results.append(r)
+        done(1)
         print(_row(r, reference.states, wp.energy_drift(plant, r.states)), file=out, flush=True)
     own = scene.config.plant.integrator
     mine = next(r for r in results if r.method == own.method
@@ -197,19 +227,27 @@ def main(argv: list[str] | None = None) -> int:
                         ("--conservative-duration", args.conservative_duration)):
         if value is not None and not (math.isfinite(value) and value >= 0.01):
             parser.error(f"{name} {value}: must be at least one period (0.01 s)")
+    from pisc_msgs_py.progress import progress_bar
+
     start = time.perf_counter()
     try:
         scene = load_scene(args.scene)
-        commands = _commands(scene, args.bag, args.duration)
-        panels = [(f"playback: {scene.name}",
-                   playback_table(scene, commands, args.quick, sys.stdout))]
+        conservative = None
         if args.conservative != "none":
             conservative = load_scene(args.conservative)
             if args.conservative_duration is not None:
                 conservative = dataclasses.replace(conservative,
                                                    duration_s=args.conservative_duration)
-            panels.append((f"conservative: {conservative.name}",
-                           conservative_table(conservative, args.quick, sys.stdout)))
+        commands = _commands(scene, args.bag, args.duration)
+        total = runs(scene, args.quick, False) + (
+            runs(conservative, args.quick, True) if conservative is not None else 0)
+        with progress_bar(total, "run", "integrators") as bar:
+            out = bar.above(sys.stdout)
+            panels = [(f"playback: {scene.name}",
+                       playback_table(scene, commands, args.quick, out, bar))]
+            if conservative is not None:
+                panels.append((f"conservative: {conservative.name}",
+                               conservative_table(conservative, args.quick, out, bar)))
     except ConfigError as exc:
         print(f"pisc_integrators: {exc}", file=sys.stderr)
         return 2

@@ -22,7 +22,7 @@ when the work ends, so a terminal keeps only the command's figures.
 from __future__ import annotations
 
 import io
-import shutil
+import os
 import sys
 from typing import IO, Any
 
@@ -50,20 +50,23 @@ class progress_bar:  # noqa: N801 (a context manager used like a function)
         from tqdm import tqdm
 
         stream = self.stream if self.stream is not None else sys.stderr
-        width = min(shutil.get_terminal_size((100, 24)).columns, 120)
+        columns, rows = _size(stream)
         # disable=None: tqdm draws only when the stream is a terminal (isatty)
         self.bar = tqdm(total=self.total, unit=self.unit, desc=self.desc or None,
-                        disable=None, leave=False, file=stream, ncols=width,
+                        disable=None, leave=False, file=stream, ncols=columns, nrows=rows,
                         dynamic_ncols=False)
         return self
 
     def __call__(self, n: int = 1) -> None:
         self.bar.update(n)
 
-    def to(self, done: int) -> None:
-        """Set the count done so far (work that reports totals, not increments)."""
+    def to(self, done: int, total: int | None = None) -> None:
+        """Set the count done so far (work that reports totals, not increments), and the
+        total when the work tells it only as it runs (a bar begun with ``total`` 0)."""
         if self.bar.disable:
             return
+        if total is not None:
+            self.bar.total = total
         self.bar.n = done
         self.bar.refresh()
 
@@ -80,6 +83,17 @@ class progress_bar:  # noqa: N801 (a context manager used like a function)
 
     def __exit__(self, *exc: object) -> None:
         self.bar.close()
+
+
+def _size(stream: IO[str]) -> tuple[int, int]:
+    """(columns, rows) of the bar: the terminal's, at most 120 columns; 100 x 24 when it
+    tells none. A terminal that reports 0 x 0 (a pseudo-terminal nobody sized, as under
+    ``script`` or a container's exec) would otherwise make tqdm draw nothing at all."""
+    try:
+        columns, rows = os.get_terminal_size(stream.fileno())
+    except (AttributeError, OSError, ValueError):
+        columns, rows = 0, 0
+    return (min(columns, 120) if columns > 0 else 100), (rows if rows > 0 else 24)
 
 
 class _Above(io.TextIOBase):
