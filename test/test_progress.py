@@ -164,3 +164,15 @@ def test_pisc_integrators_bar_on_a_terminal_only_and_the_same_figures(tmp_path):
     # and stdout holds the same figures, nothing of the bar
     assert _figures(shown) == rows
     assert "\r" not in shown
+
+
+def test_set_up_names_each_kernel_step_before_it_compiles_then_its_seconds():
+    """./pisc set-up runs ``python -m pisc_plant.warm run``: the step's name and number
+    come first, so a first compile's minutes are not spent silent; then its seconds."""
+    from pisc_plant.warm import warm_up
+
+    said: list[str] = []
+    total = warm_up("run", said.append)
+    assert said[0] == "  kernel full + RC filters: one rig (1/1) ..."
+    assert re.fullmatch(r" \d+\.\d s\n", said[1]), said
+    assert len(said) == 2 and float(said[1].split()[0]) <= total + 0.05

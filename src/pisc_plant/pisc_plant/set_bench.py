@@ -17,6 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from pisc_msgs_py.progress import progress_bar
 from pisc_plant.plant import Plant, PlantConfig, plant_set
 
 __all__ = ["main"]
@@ -80,12 +81,19 @@ def main(rigs: int = 10_000, periods: int = 400, repeats: int = 3) -> None:
     print(f"pisc_plant.set_bench: {rigs} rigs x {periods} periods of {period * 1e3:g} ms, "
           f"{base.integrator.method} at {base.integrator.substeps} steps a period, best of "
           f"{repeats} runs taken in turn")
-    # the first period compiles the kernels unless numba's cache has them
-    first = {name: _seconds(step, y0, 1)[0] for name, step in cases.items()}
-    best = {name: np.full(2, np.inf) for name in cases}
-    for _ in range(repeats):  # in turn, so that a machine's changing load meets them all
+    # a bar of the timed runs on stderr when it is a terminal (one update between runs,
+    # outside the timed spans)
+    with progress_bar(len(cases) * (1 + repeats), "run", "set_bench") as bar:
+        # the first period compiles the kernels unless numba's cache has them
+        first = {}
         for name, step in cases.items():
-            best[name] = np.minimum(best[name], _seconds(step, y0, periods))
+            first[name] = _seconds(step, y0, 1)[0]
+            bar(1)
+        best = {name: np.full(2, np.inf) for name in cases}
+        for _ in range(repeats):  # in turn, so that a machine's changing load meets them all
+            for name, step in cases.items():
+                best[name] = np.minimum(best[name], _seconds(step, y0, periods))
+                bar(1)
     reference = best["uniform"]
     print(f"  {'':34s} {'wall':>8s} {'processor':>10s}   ns per rig and period")
     for name, seconds in best.items():

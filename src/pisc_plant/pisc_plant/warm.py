@@ -78,13 +78,21 @@ def steps(scope: str) -> Iterator[tuple[str, Callable[[], None]]]:
 
 
 def warm_up(scope: str = "all", say: Callable[[str], None] | None = None) -> float:
-    """Compile (or load from the cache) the entry points of ``scope``; seconds in all."""
+    """Compile (or load from the cache) the entry points of ``scope``; seconds in all.
+
+    ``say`` receives text, not lines: each step's name and number before it compiles
+    (``"  kernel full + RC filters: one rig (1/3) ..."``), so that a terminal shows what
+    the minutes of a first compile are spent on, then its seconds and the line's end
+    (``" 41.2 s\\n"``)."""
     start = time.perf_counter()
-    for what, compile_it in steps(scope):
+    todo = list(steps(scope))
+    for number, (what, compile_it) in enumerate(todo, 1):
+        if say is not None:
+            say(f"  kernel {what} ({number}/{len(todo)}) ...")
         began = time.perf_counter()
         compile_it()
         if say is not None:
-            say(f"  kernel {what}: {time.perf_counter() - began:.1f} s")
+            say(f" {time.perf_counter() - began:.1f} s\n")
     return time.perf_counter() - start
 
 
@@ -96,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"pisc_plant.warm: compiling the plant kernel for '{scope}' (minutes the first "
           "time, then loaded from numba's cache)", flush=True)
-    total = warm_up(scope, lambda line: print(line, flush=True))
+    total = warm_up(scope, lambda text: print(text, end="", flush=True))
     print(f"pisc_plant.warm: done in {total:.1f} s", flush=True)
     return 0
 
