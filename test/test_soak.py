@@ -21,6 +21,7 @@ from pisc_bringup.soak import (
     Sample,
     Targets,
     children_of,
+    expected_cycles,
     fault_schedule,
     latency_figures,
     main,
@@ -50,6 +51,56 @@ def test_latency_figures_are_numpys_linear_percentiles_and_count_cycles_over_the
 def test_latency_figures_refuse_an_empty_run():
     with pytest.raises(ValueError, match="no complete cycle"):
         latency_figures([], 0.005)
+
+
+# -- cycles expected over the span ------------------------------------------------------
+
+P_NS = 5_000_000
+
+
+def arrivals(frames: int, seed: int = 1, lost: tuple[int, ...] = ()) -> np.ndarray:
+    """Arrival stamps of a driver run: each frame on the 5 ms grid plus a lateness of
+    0.5-1.0 ms (the reader's usual delay), the frames ``lost`` missing."""
+    rng = np.random.default_rng(seed)
+    grid = 1_000_000_000 + np.arange(frames, dtype=np.int64) * P_NS
+    stamps = grid + rng.integers(500_000, 1_000_000, frames)
+    return np.delete(stamps, list(lost))
+
+
+def test_grid_stamps_count_the_span_in_periods_whatever_periods_were_skipped():
+    # the simulated plant: stamps on the grid; its wall timer skipped 40 periods
+    stamps = np.concatenate([np.arange(1000), np.arange(1040, 4001)]) * P_NS
+    assert expected_cycles(stamps, 0.005) == 4001
+
+
+def test_a_first_sample_that_arrived_late_does_not_shorten_the_span():
+    # 4001 frames, every one received; the first read came 8 ms late (issue 15: a 20 s
+    # driver run counted 4003 cycles against 4002 expected)
+    stamps = arrivals(4001)
+    stamps[0] += 8_000_000
+    stamps[1] = stamps[0] + 1000  # the same read completed the second frame
+    assert round((stamps[-1] - stamps[0]) / P_NS) + 1 == 3999  # the old rule
+    assert expected_cycles(stamps, 0.005) == 4001
+
+
+def test_a_backlog_at_the_start_and_a_late_last_sample_are_counted_right():
+    stamps = arrivals(4001)
+    stamps[:6] = stamps[5] + 20_000_000 + np.arange(6) * 1000  # one read, 20 ms late
+    stamps[-1] += 2_000_000  # the last one 2 ms later than usual
+    assert expected_cycles(stamps, 0.005) == 4001
+
+
+def test_frames_lost_are_expected_cycles_that_did_not_complete():
+    stamps = arrivals(4001, lost=(7, 2000, 3998))  # one at each end and one inside
+    assert len(stamps) == 3998
+    assert expected_cycles(stamps, 0.005) == 4001
+
+
+def test_never_fewer_cycles_expected_than_samples_and_none_without_samples():
+    stamps = np.arange(10, dtype=np.int64) * 1000  # ten samples in 9 us: all of them
+    assert expected_cycles(stamps, 0.005) == 10
+    with pytest.raises(ValueError, match="no samples"):
+        expected_cycles([], 0.005)
 
 
 # -- the fault schedule ------------------------------------------------------------------

@@ -12,7 +12,8 @@ node process, the recorder, the virtual rig). Then it reads the bag and prints:
 * sample-to-voltage latency median, p99, p99.9, max and cycles over the 5 ms period,
   per cycle as :mod:`pisc_bringup.summary` computes it (the voltage's publish time minus
   its sample's, both from the bag);
-* cycles completed against those expected over the run's span (span / period + 1);
+* cycles completed against those expected over the run's span (its periods + 1, from the
+  stamps, robust to a late first or last sample: :func:`expected_cycles`);
 * CPU seconds and % of one core per process, over the window from 10 s after the first
   cycle to the last one (start-up and the final read of the bag are outside it);
 * resident memory per process at 10 s and at the end, and the growth;
@@ -56,7 +57,7 @@ import numpy as np
 
 from pisc_msgs_py.processes import DomainClaim, console_command
 
-__all__ = ["FaultSchedule", "Recovery", "Sample", "Targets", "fault_schedule",
+__all__ = ["FaultSchedule", "Recovery", "Sample", "Targets", "expected_cycles", "fault_schedule",
            "latency_figures", "main", "missed_targets", "observer_check", "parse_args",
            "recoveries", "usage_over"]
 
@@ -94,6 +95,44 @@ def latency_figures(latencies_ms: Sequence[float], period_s: float = PERIOD_S
             "max_ms": float(np.max(values)),
             "over_period": int(np.sum(values > period_s * 1e3)),
             "cycles": int(values.size)}
+
+
+def expected_cycles(stamps_ns: Sequence[int], period_s: float = PERIOD_S,
+                    window: int = 200) -> int:
+    """Cycles the run's span holds: its frame periods + 1, from the samples' stamps.
+
+    With the simulated plant a stamp is the sample's time on the period grid and this is
+    ``(last - first) / period + 1``. Through the driver a stamp is the frame's arrival
+    (``DriverCore.receive``): its time on the device's grid plus a lateness >= 0 (the
+    reader was busy; frames one read completes are stamped 1 us apart), so the plain span
+    is short by a period when the first sample arrived more than half a period later than
+    the last (a 20 s run counted 4003 cycles against 4002 "expected", issue 15). Here:
+
+    * the start is ``min(s_j - j T)`` over the first ``window`` samples: sample ``j`` was
+      sent at least ``j`` periods after the first, and arrived no earlier than it was
+      sent, so each term bounds the first sample's on-time stamp from above, and the
+      least one is it (a late or lost sample only raises its term);
+    * the end is the last stamp less its lateness relative to the last ``window``
+      samples: the median of ``s_last - s_j - (n - 1 - j) T`` wrapped into
+      [-T/2, T/2) (frames lost or periods the plant skipped are whole periods and drop
+      out; the last sample of a burst is its newest frame, late by less than a period);
+    * never fewer than the samples: each sample is a frame of its own period.
+
+    The median assumes most of the last ``window`` samples arrived on time (true of
+    every run measured: median latency < 1 ms).
+    """
+    s = np.sort(np.asarray(stamps_ns, dtype=np.int64))
+    n = s.size
+    if n == 0:
+        raise ValueError("no samples: no span to count")
+    period_ns = round(period_s * 1e9)
+    head = np.arange(min(window, n))
+    start = int(np.min(s[head] - head * period_ns))
+    tail = np.arange(max(0, n - window), n)
+    lateness = s[-1] - s[tail] - (n - 1 - tail) * period_ns
+    wrapped = (lateness + period_ns // 2) % period_ns - period_ns // 2
+    end = int(s[-1] - np.median(wrapped))
+    return max(n, round((end - start) / period_ns) + 1)
 
 
 @dataclass(frozen=True)
@@ -662,8 +701,9 @@ def analyse(options: SoakOptions, out: Path, record: RunRecord) -> dict[str, Any
             raise RuntimeError(f"latency {key}: {figures[key + '_ms']} here, "
                                f"{summary.latency_ms[key]} in the run summary")
     first, last = stamps[0], stamps[-1]
-    expected = round((last - first) * 1e-9 / PERIOD_S) + 1
-    inside = sum(first <= s <= last for s in joints)
+    inside_stamps = [s for s in joints if first <= s <= last]
+    expected = expected_cycles(inside_stamps, PERIOD_S)
+    inside = len(inside_stamps)
     t0 = first * 1e-9
     report: dict[str, Any] = {
         "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
