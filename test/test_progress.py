@@ -80,6 +80,18 @@ def test_a_terminal_shows_the_count_the_unit_and_the_label(terminal):
     assert re.search(r"\r +\r", read())
 
 
+def test_a_total_told_late_is_shown_with_the_count(terminal):
+    """The region of attraction and pisc_batch_bench learn the cycles' count only from
+    the batch's first progress call: the bar begins without a total."""
+    stream, read = terminal
+    with progress_bar(0, "cycle", "batch", stream=stream) as bar:
+        bar.to(1, 101)
+        time.sleep(0.15)  # tqdm redraws at most every 0.1 s
+        bar.to(51, 101)
+        shown = read()
+    assert re.search(r"batch: +50%\|.*\| 51/101 ", shown), repr(shown)
+
+
 def test_lines_above_the_bar_clear_it_first_and_arrive_whole(terminal):
     stream, read = terminal
     rows = io.StringIO()

@@ -44,9 +44,15 @@ def main(argv: list[str] | None = None) -> int:
     integ = cfg.plant.integrator
     starts = np.linspace(-0.1, 0.1, args.rigs)
     simulate_batch(cfg, starts, 0.01)  # compile or load every path this size takes
-    start = time.perf_counter()
-    outcome = simulate_batch(cfg, starts, args.duration, hold_start_s=min(6.0, args.duration))
-    wall = time.perf_counter() - start
+    from pisc_msgs_py.progress import progress_bar
+
+    # a bar of the cycles on stderr when it is a terminal (one call a cycle, all rigs)
+    with progress_bar(0, "cycle", "batch") as bar:
+        start = time.perf_counter()
+        outcome = simulate_batch(cfg, starts, args.duration,
+                                 hold_start_s=min(6.0, args.duration),
+                                 progress=lambda k, n: bar.to(k, n))
+        wall = time.perf_counter() - start
     periods = int(round(args.duration / cfg.loop.period_s)) + 1
     plant = Plant(cfg.plant)
     y = plant.initial_state(starts)

@@ -67,8 +67,7 @@ class progress_bar:  # noqa: N801 (a context manager used like a function)
             return
         if total is not None:
             self.bar.total = total
-        self.bar.n = done
-        self.bar.refresh()
+        self.bar.update(done - self.bar.n)  # redrawn at most every 0.1 s, as by __call__
 
     def describe(self, text: str) -> None:
         """Replace the bar's label (e.g. the best result so far)."""
