@@ -36,27 +36,17 @@ from typing import Any
 
 import numpy as np
 
-from pisc_bringup.bag import BagError, BagMessage, read_bag
-from pisc_bringup.summary import HoldCriteria, RunSummary, summarise
+from pisc_bringup.bag import BagError, BagMessage
+from pisc_bringup.summary import (
+    HoldCriteria,
+    RunSummary,
+    RunTables,
+    summarise_tables,
+    tables_of,
+    tables_of_bag,
+)
 from pisc_control.current_loop import CurrentLoopParams
 from pisc_msgs_py.config import ConfigError, load_params_file
-from pisc_msgs_py.convert import (
-    MessageError,
-    joint_sample_from_msg,
-    mode_from_msg,
-    motor_sample_from_msg,
-    state_from_msg,
-    true_state_from_msg,
-)
-from pisc_msgs_py.topics import (
-    CURRENT_SETPOINT,
-    JOINT_STATES,
-    MODE,
-    MOTOR_CURRENT,
-    SIM_STATE,
-    STATE,
-    VOLTAGE,
-)
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
 from pisc_model.params import LoopParams
@@ -102,59 +92,45 @@ class RunTrace:
 def trace_from_messages(messages: Iterable[BagMessage], label: str) -> RunTrace:
     """Cycles of a run; :class:`BagError` if the bag has none or a message is malformed
     (the caller names the bag)."""
-    tables: dict[str, dict[int, Any]] = {name: {} for name in (
-        JOINT_STATES.name, STATE.name, MOTOR_CURRENT.name, CURRENT_SETPOINT.name,
-        VOLTAGE.name, SIM_STATE.name)}
-    modes: list[tuple[int, Mode]] = []
-    for m in messages:
-        try:
-            if m.topic == JOINT_STATES.name:
-                s = joint_sample_from_msg(m.message)
-                tables[m.topic].setdefault(s.stamp_ns, (s.position_m, s.angle_rad))
-            elif m.topic == STATE.name:
-                e = state_from_msg(m.message)
-                tables[m.topic].setdefault(e.stamp_ns, (e.velocity_mps, e.rate_radps))
-            elif m.topic in (MOTOR_CURRENT.name, CURRENT_SETPOINT.name, VOLTAGE.name):
-                v = motor_sample_from_msg(m.message)
-                tables[m.topic].setdefault(v.stamp_ns, v.value)
-            elif m.topic == SIM_STATE.name:
-                ts = true_state_from_msg(m.message)
-                tables[m.topic].setdefault(ts.stamp_ns, (ts.position_m, ts.angle_rad))
-            elif m.topic == MODE.name:
-                r = mode_from_msg(m.message)
-                modes.append((r.stamp_ns, r.mode))
-        except MessageError as exc:
-            raise BagError(f"{m.topic}: {exc}") from None
-    needed = (JOINT_STATES.name, STATE.name, MOTOR_CURRENT.name, CURRENT_SETPOINT.name)
-    stamps = sorted(s for s in tables[VOLTAGE.name]
-                    if all(s in tables[name] for name in needed))
-    if not stamps:
+    return trace_from_tables(tables_of(messages), label)
+
+
+def trace_from_tables(tables: RunTables, label: str) -> RunTrace:
+    """Cycles of a run, the first message of each stamp counting (:class:`BagError` if
+    there is none): a cycle is complete when its sample, estimate, current, set-point and
+    voltage were all recorded."""
+    picked = {name: getattr(tables, name).pick("first")
+              for name in ("joints", "state", "current", "setpoint", "voltage", "true")}
+    stamps = picked["voltage"][0]
+    for name in ("joints", "state", "current", "setpoint"):
+        stamps = stamps[np.isin(stamps, picked[name][0])]
+    if not len(stamps):
         raise BagError("no complete control cycle (joint_states, state, current, "
                        "setpoint and voltage of one stamp)")
-    modes.sort(key=lambda r: r[0])
-    in_force, k = [], 0
-    current = modes[0][1] if modes else Mode.SWING_UP
-    for stamp in stamps:
-        while k < len(modes) and modes[k][0] <= stamp:
-            current = modes[k][1]
-            k += 1
-        in_force.append(current)
-    t0 = stamps[0]
 
-    def col(name: str, index: int | None = None) -> np.ndarray:
-        table = tables[name]
-        return np.array([table[s] if index is None else table[s][index] for s in stamps])
+    def col(name: str, index: int = 0) -> np.ndarray:
+        unique, rows = picked[name]
+        return getattr(tables, name).values[rows[np.searchsorted(unique, stamps)], index]
 
-    has_true = all(s in tables[SIM_STATE.name] for s in stamps)
+    # the mode in force at each cycle: the newest report at or before its stamp (the
+    # first report before any)
+    modes = sorted(tables.modes, key=lambda r: r[0])
+    if modes:
+        newest = np.searchsorted(np.array([r[0] for r in modes]), stamps, side="right") - 1
+        in_force = [modes[max(k, 0)][1] for k in newest.tolist()]
+    else:
+        in_force = [Mode.SWING_UP] * len(stamps)
+    t0 = int(stamps[0])
+    has_true = bool(np.all(np.isin(stamps, picked["true"][0])))
     return RunTrace(
         label=label,
-        t=(np.array(stamps) - t0) * 1e-9,
-        x=col(JOINT_STATES.name, 0), theta=col(JOINT_STATES.name, 1),
-        x_dot=col(STATE.name, 0), theta_dot=col(STATE.name, 1),
-        i=col(MOTOR_CURRENT.name), i_d=col(CURRENT_SETPOINT.name), u=col(VOLTAGE.name),
+        t=(stamps - t0) * 1e-9,
+        x=col("joints", 0), theta=col("joints", 1),
+        x_dot=col("state", 0), theta_dot=col("state", 1),
+        i=col("current"), i_d=col("setpoint"), u=col("voltage"),
         mode=in_force,
-        true_x=col(SIM_STATE.name, 0) if has_true else None,
-        true_theta=col(SIM_STATE.name, 1) if has_true else None,
+        true_x=col("true", 0) if has_true else None,
+        true_theta=col("true", 1) if has_true else None,
         start_ns=t0,
     )
 
@@ -214,8 +190,14 @@ def _limits(bag: Path) -> tuple[float, float, float]:
 def analyse_messages(messages: Sequence[BagMessage], label: str, period_s: float,
                      voltage_limit_v: float, current_limit_a: float,
                      hold: HoldCriteria = HoldCriteria()) -> RunAnalysis:
-    trace = trace_from_messages(messages, label)  # names a malformed message
-    summary = summarise(messages, period_s, hold)
+    return analyse_tables(tables_of(messages), label, period_s, voltage_limit_v,
+                          current_limit_a, hold)
+
+
+def analyse_tables(tables: RunTables, label: str, period_s: float, voltage_limit_v: float,
+                   current_limit_a: float, hold: HoldCriteria = HoldCriteria()) -> RunAnalysis:
+    trace = trace_from_tables(tables, label)
+    summary = summarise_tables(tables, period_s, hold)
     # the state the summary judged by: the simulator's where recorded, else measured
     x = trace.true_x if summary.state_source == "true" else trace.x
     theta = trace.true_theta if summary.state_source == "true" else trace.theta
@@ -253,9 +235,9 @@ def analyse_bag(bag: str | Path, label: str | None = None) -> RunAnalysis:
     """Read a bag and compute its metrics; :class:`BagError` names what is wrong."""
     bag = Path(bag)
     period, vm, im = _limits(bag)
-    messages = list(read_bag(bag))
+    tables = tables_of_bag(bag)  # its errors name the bag
     try:
-        return analyse_messages(messages, label or bag.name, period, vm, im)
+        return analyse_tables(tables, label or bag.name, period, vm, im)
     except BagError as exc:
         raise BagError(f"{bag}: {exc}") from None
 
@@ -265,9 +247,8 @@ def write_csv(trace: RunTrace, path: Path) -> None:
     with path.open("w", newline="") as stream:
         writer = csv.writer(stream)
         writer.writerow(CSV_COLUMNS)
-        columns = [trace.column(c) for c in CSV_COLUMNS]
-        for row in zip(*columns, strict=True):
-            writer.writerow([repr(float(v)) for v in row])
+        rows = np.column_stack([trace.column(c) for c in CSV_COLUMNS]).tolist()
+        writer.writerows([repr(v) for v in row] for row in rows)
 
 
 # file name, title, unit, measured column(s), true-state column (if any)
@@ -287,6 +268,26 @@ _STYLES = {"x": "C0", "x_dot": "C0", "theta": "C0", "theta_dot": "C0", "i_d": "C
 _LABELS = {"x": "x measured", "x_dot": "x_dot estimated (4.7)", "theta": "theta measured",
            "theta_dot": "theta_dot estimated (4.9)", "i": "i measured",
            "i_d": "i_d desired (4.2)", "u": "u commanded (3.47)"}
+
+
+PLOT_POINTS = 4000  # a line of more points is drawn decimated (about 5 per pixel column)
+
+
+def decimate(t: np.ndarray, y: np.ndarray,
+             points: int = PLOT_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """(t, y) for drawing: unchanged up to ``points`` samples, else the smallest and the
+    largest sample of each of ``points // 2`` equal runs, in time order, so every peak
+    stays on the plot (min-max decimation) while matplotlib draws a bounded number."""
+    n = len(t)
+    if n <= points:
+        return t, y
+    runs = points // 2
+    k = -(-n // runs)  # samples per run (the last one padded with the last sample)
+    padded = np.concatenate([y, np.full(runs * k - n, y[-1])]).reshape(runs, k)
+    first = np.arange(runs) * k
+    picked = np.unique(np.minimum(np.concatenate(
+        [first + padded.argmin(axis=1), first + padded.argmax(axis=1)]), n - 1))
+    return t[picked], y[picked]
 
 
 def _shade_modes(axes: Any, trace: RunTrace, period_s: float) -> None:
@@ -315,11 +316,11 @@ def write_plots(traces: Sequence[RunTrace], out_dir: Path, period_s: float = 0.0
             suffix = f" ({trace.label})" if len(traces) > 1 else ""
             for column in columns:
                 colour = _STYLES[column] if n == 0 else ("C1" if column != "i_d" else "C4")
-                axes.plot(trace.t, trace.column(column), dash, color=colour, linewidth=0.9,
-                          label=_LABELS[column] + suffix)
+                axes.plot(*decimate(trace.t, trace.column(column)), dash, color=colour,
+                          linewidth=0.9, label=_LABELS[column] + suffix)
             if true_column and len(traces) == 1 and trace.column(true_column) is not None:
-                axes.plot(trace.t, trace.column(true_column), ":", color="k", linewidth=0.8,
-                          label=f"{columns[0]} true (simulator)")
+                axes.plot(*decimate(trace.t, trace.column(true_column)), ":", color="k",
+                          linewidth=0.8, label=f"{columns[0]} true (simulator)")
         handles, _ = axes.get_legend_handles_labels()
         handles += [Patch(color=MODE_COLOURS[m], label=f"mode {m.value}")
                     for m in Mode if m in traces[0].mode]

@@ -21,7 +21,6 @@ import sys
 from collections.abc import Callable
 
 from pisc_bringup.bag import BagError
-from pisc_bringup.graph import GraphError
 from pisc_msgs_py.config import ConfigError
 
 __all__ = ["main"]
@@ -40,17 +39,25 @@ SUBCOMMANDS = {
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     parser = argparse.ArgumentParser(prog="pisc_bag", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    # only the chosen subcommand's module is imported: `analyse` need not load rclpy
+    # (play, replay) nor matplotlib's animation writers (animate)
+    chosen = next((a for a in argv if not a.startswith("-")), None)
     runners: dict[str, Callable[[argparse.Namespace], int]] = {}
     for name, (module_name, help_text) in SUBCOMMANDS.items():
-        module = importlib.import_module(module_name)
-        module.add_arguments(sub.add_parser(name, help=help_text, description=help_text))
-        runners[name] = module.run
+        sub_parser = sub.add_parser(name, help=help_text, description=help_text)
+        if name == chosen:
+            module = importlib.import_module(module_name)
+            module.add_arguments(sub_parser)
+            runners[name] = module.run
     args = parser.parse_args(argv)
+    graph = sys.modules.get("pisc_bringup.graph")  # loaded by the commands that run one
+    errors = (BagError,) if graph is None else (BagError, graph.GraphError)
     try:
         return runners[args.command](args)
-    except (BagError, GraphError) as exc:
+    except errors as exc:
         print(f"pisc_bag {args.command}: {exc}", file=sys.stderr)
         return 2
     except ConfigError as exc:

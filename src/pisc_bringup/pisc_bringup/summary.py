@@ -21,23 +21,29 @@ import numpy as np
 
 from pisc_bringup.bag import BagError, BagMessage, read_bag
 from pisc_msgs_py.convert import (
+    MessageError,
     joint_sample_from_msg,
     mode_from_msg,
     motor_sample_from_msg,
+    state_from_msg,
     true_state_from_msg,
 )
 from pisc_msgs_py.topics import (
     CURRENT_SETPOINT,
+    JOINT_NAMES,
     JOINT_STATES,
     MODE,
     MOTOR_CURRENT,
+    MOTOR_JOINT,
     SIM_STATE,
+    STATE,
     VOLTAGE,
 )
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
 
-__all__ = ["HoldCriteria", "RunSummary", "summarise", "summarise_bag"]
+__all__ = ["HoldCriteria", "RunSummary", "RunTables", "Table", "summarise", "summarise_bag",
+           "summarise_tables", "tables_of", "tables_of_bag"]
 
 
 @dataclass(frozen=True)
@@ -114,46 +120,156 @@ def _percentiles(values: np.ndarray) -> dict[str, float]:
     }
 
 
+@dataclass
+class Table:
+    """One topic's numbers in file order: header stamps, publish times (:data:`NO_TIME`
+    where a message has none) and values, one row per message."""
+
+    stamp_ns: np.ndarray  # int64
+    publish_ns: np.ndarray  # int64
+    values: np.ndarray  # float64, (n, k)
+
+    def pick(self, which: str) -> tuple[np.ndarray, np.ndarray]:
+        """(sorted unique stamps, index of the message kept for each): the ``first`` or
+        the ``last`` in file order (a lockstep plant that sends a sample again records
+        it twice)."""
+        if which == "first":
+            return np.unique(self.stamp_ns, return_index=True)
+        unique, index = np.unique(self.stamp_ns[::-1], return_index=True)
+        return unique, len(self.stamp_ns) - 1 - index
+
+
+NO_TIME = np.iinfo(np.int64).min
+
+
+@dataclass
+class RunTables:
+    """What the summary and the analysis read from a run, by topic (see :func:`tables_of`)."""
+
+    joints: Table  # position: x, theta
+    state: Table  # velocity: x_dot, theta_dot
+    current: Table  # effort: i
+    setpoint: Table  # i_d
+    voltage: Table  # u
+    true: Table  # position: x, theta (the simulator's; empty on the rig)
+    modes: list[tuple[int, Mode, str]]  # (stamp, mode, reason) in file order
+
+
+# topic -> (RunTables field, JointState field, number of joints read)
+TABLE_TOPICS = {
+    JOINT_STATES.name: ("joints", "position", 2),
+    STATE.name: ("state", "velocity", 2),
+    MOTOR_CURRENT.name: ("current", "effort", 1),
+    CURRENT_SETPOINT.name: ("setpoint", "effort", 1),
+    VOLTAGE.name: ("voltage", "effort", 1),
+    SIM_STATE.name: ("true", "position", 2),
+}
+
+
+def tables_of(messages: Iterable[BagMessage], where: str = "") -> RunTables:
+    """The tables of decoded messages; :class:`BagError` names a malformed one (after
+    ``where``)."""
+    rows: dict[str, list[tuple[int, int, tuple[float, ...]]]] = {t: [] for t in TABLE_TOPICS}
+    modes: list[tuple[int, Mode, str]] = []
+    for m in messages:
+        try:
+            if m.topic == JOINT_STATES.name:
+                s = joint_sample_from_msg(m.message)
+                values: tuple[float, ...] = (s.position_m, s.angle_rad)
+            elif m.topic == STATE.name:
+                e = state_from_msg(m.message)
+                s, values = e, (e.velocity_mps, e.rate_radps)
+            elif m.topic in (MOTOR_CURRENT.name, CURRENT_SETPOINT.name, VOLTAGE.name):
+                s = motor_sample_from_msg(m.message)
+                values = (s.value,)
+            elif m.topic == SIM_STATE.name:
+                s = true_state_from_msg(m.message)
+                values = (s.position_m, s.angle_rad)
+            elif m.topic == MODE.name:
+                r = mode_from_msg(m.message)
+                modes.append((r.stamp_ns, r.mode, r.reason))
+                continue
+            else:
+                continue
+        except MessageError as exc:
+            raise BagError(f"{where}{m.topic}: {exc}") from None
+        rows[m.topic].append((s.stamp_ns, NO_TIME if m.publish_time_ns is None
+                              else m.publish_time_ns, values))
+    tables = {}
+    for topic, (name, _, k) in TABLE_TOPICS.items():
+        r = rows[topic]
+        tables[name] = Table(np.array([x[0] for x in r], dtype=np.int64),
+                             np.array([x[1] for x in r], dtype=np.int64),
+                             np.array([x[2] for x in r], dtype=np.float64).reshape(len(r), k))
+    return RunTables(**tables, modes=modes)
+
+
+def tables_of_bag(directory: str | Path) -> RunTables:
+    """The tables of a bag, read as columns (:mod:`pisc_bringup.bag_columns`) where it
+    can be done without guessing, else message by message (:func:`tables_of`, whose
+    errors name the bag and the message); :class:`BagError` says what is wrong."""
+    from pisc_bringup.bag_columns import FastPathRefused, read_columns
+
+    try:
+        columns, others = read_columns(directory, list(TABLE_TOPICS), [MODE.name])
+    except FastPathRefused:
+        return tables_of(read_bag(directory, [*TABLE_TOPICS, MODE.name]), f"{directory}: ")
+    tables = {}
+    for topic, (name, field_name, k) in TABLE_TOPICS.items():
+        c = columns[topic]
+        expected = {"joints": JOINT_NAMES, "state": JOINT_NAMES, "true": (*JOINT_NAMES, MOTOR_JOINT)
+                    }.get(name, (MOTOR_JOINT,))
+        # every field the message path's converter reads (and checks)
+        needed = {"state": ("position", "velocity"), "true": ("position", "velocity", "effort")
+                  }.get(name, (field_name,))
+        if len(c) and (c.names != expected or any(f not in c.values for f in needed)):
+            return tables_of(read_bag(directory, [*TABLE_TOPICS, MODE.name]),
+                             f"{directory}: ")
+        values = (c.values[field_name][:, :k] if len(c) else np.zeros((0, k)))
+        tables[name] = Table(c.stamp_ns, c.publish_ns, np.ascontiguousarray(values))
+    modes = []
+    for topic, _, _, msg in others:
+        try:
+            r = mode_from_msg(msg)
+        except MessageError as exc:
+            raise BagError(f"{directory}: {topic}: {exc}") from None
+        modes.append((r.stamp_ns, r.mode, r.reason))
+    return RunTables(**tables, modes=modes)
+
+
 def summarise(
     messages: Iterable[BagMessage], period_s: float, hold: HoldCriteria = HoldCriteria()
 ) -> RunSummary:
-    joints: dict[int, tuple[float, float, int | None]] = {}
-    true: dict[int, tuple[float, float]] = {}
-    current: dict[int, float] = {}
-    setpoint: dict[int, float] = {}
-    voltage_pub: dict[int, int | None] = {}
-    modes: list[tuple[int, Mode, str]] = []
-    for m in messages:
-        if m.topic == JOINT_STATES.name:
-            s = joint_sample_from_msg(m.message)
-            joints[s.stamp_ns] = (s.position_m, s.angle_rad, m.publish_time_ns)
-        elif m.topic == SIM_STATE.name:
-            s = true_state_from_msg(m.message)
-            true[s.stamp_ns] = (s.position_m, s.angle_rad)
-        elif m.topic == MOTOR_CURRENT.name:
-            s = motor_sample_from_msg(m.message)
-            current[s.stamp_ns] = s.value
-        elif m.topic == CURRENT_SETPOINT.name:
-            s = motor_sample_from_msg(m.message)
-            setpoint[s.stamp_ns] = s.value
-        elif m.topic == VOLTAGE.name:
-            s = motor_sample_from_msg(m.message)
-            voltage_pub[s.stamp_ns] = m.publish_time_ns
-        elif m.topic == MODE.name:
-            r = mode_from_msg(m.message)
-            modes.append((r.stamp_ns, r.mode, r.reason))
+    """The summary of a run's decoded messages (:func:`summarise_tables`)."""
+    return summarise_tables(tables_of(messages), period_s, hold)
+
+
+def _at(unique: np.ndarray, index: np.ndarray, stamps: np.ndarray) -> np.ndarray:
+    """Rows of ``table`` for ``stamps`` (each one of ``unique``)."""
+    return index[np.searchsorted(unique, stamps)]
+
+
+def summarise_tables(tables: RunTables, period_s: float,
+                     hold: HoldCriteria = HoldCriteria()) -> RunSummary:
+    # the last message of each stamp counts
+    j_stamps, j_index = tables.joints.pick("last")
+    v_stamps, v_index = tables.voltage.pick("last")
     # A cycle is complete when its voltage was recorded.
-    stamps = sorted(s for s in joints if s in voltage_pub)
-    if not stamps:
+    stamps = np.intersect1d(j_stamps, v_stamps)
+    if not len(stamps):
         raise BagError("no complete control cycle (joint_states with its voltage) in the bag")
-    t0 = stamps[0]
-    t = (np.array(stamps) - t0) * 1e-9
-    source = "true" if all(s in true for s in stamps) else "measured"
-    xs = np.array([(true if source == "true" else joints)[s][0] for s in stamps])
-    thetas = np.array([(true if source == "true" else joints)[s][1] for s in stamps])
+    t0 = int(stamps[0])
+    t = (stamps - t0) * 1e-9
+    t_stamps, t_index = tables.true.pick("last")
+    source = "true" if np.all(np.isin(stamps, t_stamps)) else "measured"
+    if source == "true":
+        rows = tables.true.values[_at(t_stamps, t_index, stamps)]
+    else:
+        rows = tables.joints.values[_at(j_stamps, j_index, stamps)]
+    xs, thetas = rows[:, 0].copy(), rows[:, 1].copy()
     th_up = wrap_to_upright(thetas)
 
-    modes.sort(key=lambda r: r[0])
+    modes = sorted(tables.modes, key=lambda r: r[0])
     catches = [s for s, mode, _ in modes if mode is Mode.CATCH]
     first_catch = (catches[0] - t0) * 1e-9 if catches else None
     caught_at = None
@@ -167,14 +283,17 @@ def summarise(
     hold_x = float(np.max(np.abs(xs[late]))) if late.any() else math.inf
     held = bool(late.any() and hold_theta < hold.theta_rad and hold_x < hold.x_m)
 
-    tracked = [s for s in stamps if s in setpoint and s in current]
-    errors = np.array([setpoint[s] - current[s] for s in tracked])
+    s_stamps, s_index = tables.setpoint.pick("last")
+    c_stamps, c_index = tables.current.pick("last")
+    tracked = stamps[np.isin(stamps, s_stamps) & np.isin(stamps, c_stamps)]
+    errors = (tables.setpoint.values[_at(s_stamps, s_index, tracked), 0]
+              - tables.current.values[_at(c_stamps, c_index, tracked), 0])
     rms = float(np.sqrt(np.mean(errors**2))) if len(errors) else math.nan
 
-    latencies = np.array([
-        (voltage_pub[s] - joints[s][2]) * 1e-6 for s in stamps
-        if voltage_pub[s] is not None and joints[s][2] is not None
-    ])
+    v_pub = tables.voltage.publish_ns[_at(v_stamps, v_index, stamps)]
+    j_pub = tables.joints.publish_ns[_at(j_stamps, j_index, stamps)]
+    timed = (v_pub != NO_TIME) & (j_pub != NO_TIME)
+    latencies = (v_pub[timed] - j_pub[timed]) * 1e-6
     return RunSummary(
         duration_s=float(t[-1]),
         cycles=len(stamps),
@@ -199,4 +318,5 @@ def summarise(
 
 def summarise_bag(directory: str | Path, period_s: float,
                   hold: HoldCriteria = HoldCriteria()) -> RunSummary:
-    return summarise(read_bag(directory), period_s, hold)
+    """The summary of a bag, read as columns where it can be (:func:`tables_of_bag`)."""
+    return summarise_tables(tables_of_bag(directory), period_s, hold)
