@@ -30,6 +30,7 @@ setup(
             'pisc_batch_bench = pisc_bringup.batch_bench:main',
             'pisc_bag = pisc_bringup.bag_cli:main',
             'pisc_robustness = pisc_bringup.robustness_cli:main',
+            'pisc_feasibility = pisc_bringup.feasibility_cli:main',
             'pisc_tune = pisc_bringup.tune_cli:main',
             'pisc_identify = pisc_bringup.identify_cli:main',
             'pisc_soak = pisc_bringup.soak:main',

@@ -1,0 +1,186 @@
+"""pisc_feasibility: can any controller swing up and hold the rigs of a distribution?
+(issue 13; docs/feasibility.md)
+
+    pisc_feasibility --distribution thesis-rig --draws 100 --seed 1
+
+For each draw (the same draws as ``pisc_robustness CONFIG --distribution D --seed S``):
+the exact plant (its own m, l, I, M, motor and friction, its own start; no noise, no
+latency) is searched for a voltage sequence that is caught by 3.0 s and held within the
+benchmark's rules (:mod:`pisc_analysis.feasibility`). Prints the fraction of draws with
+a witness and its Clopper-Pearson 95 % interval, split by pivot friction (fifths of its
+range) and by the search that found it, and every draw without one; ``--csv FILE``
+writes one row a draw. A witness proves a draw feasible; a search that fails proves
+nothing unless the energy bound says so (column ``bound``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+PROG = "pisc_feasibility"
+PIVOT = "friction.pivot_viscous_nms"
+INITIAL = ("initial.x_m", "initial.x_dot_mps", "initial.theta_rad", "initial.theta_dot_radps")
+
+
+def _limit(text: str) -> float:
+    """A current limit in A, or 'none' (infinite: the voltage alone limits the current)."""
+    if text == "none":
+        return math.inf
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: a current in A or 'none'") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: the current limit must be positive")
+    return value
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", default="default", metavar="NAME|FILE",
+                        help="configuration giving the nominal plant, the safe range, the "
+                        "catch region and the limits (default: %(default)s)")
+    parser.add_argument("--distribution", default="thesis-rig", metavar="NAME|FILE",
+                        help="a shipped distribution or a distribution file "
+                        "(default: %(default)s)")
+    parser.add_argument("--draws", type=int, default=100, metavar="N",
+                        help="draws (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=1, metavar="S",
+                        help="seed of the draws and of each draw's search (default: "
+                        "%(default)s)")
+    parser.add_argument("--first", type=int, default=0, metavar="K",
+                        help="start at draw K of the seed's sequence (default: %(default)s)")
+    parser.add_argument("--current-limit", type=_limit, default=None, metavar="A|none",
+                        help="the current limit (default: the configuration's "
+                        "current_loop.current_limit_a); 'none': the voltage alone limits it")
+    parser.add_argument("--rounds", type=int, default=4, metavar="N",
+                        help="rounds of the feedback search (default: %(default)s)")
+    parser.add_argument("--restarts", type=int, default=1, metavar="N",
+                        help="shooting restarts when feedback finds nothing (default: "
+                        "%(default)s)")
+    parser.add_argument("--csv", type=Path, metavar="FILE", help="write one row a draw")
+    args = parser.parse_args(argv)
+    for name in ("draws", "rounds"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} {getattr(args, name)}: at least 1")
+    for name in ("first", "restarts"):
+        if getattr(args, name) < 0:
+            parser.error(f"--{name} {getattr(args, name)}: 0 or more")
+    if args.csv is not None and not args.csv.parent.is_dir():
+        parser.error(f"--csv {args.csv}: directory {args.csv.parent} does not exist")
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+    import numpy as np
+
+    from pisc_analysis.feasibility import Limits, clopper_pearson, exact_plant, find_witness, make_rig
+    from pisc_bringup.robustness import Criteria, prepare
+    from pisc_bringup.uncertainty import load_distribution
+    from pisc_msgs_py.config import ConfigError
+    from pisc_sim.configuration import load_graph_config
+
+    try:
+        config, _ = load_graph_config(args.config)
+        distribution = load_distribution(args.distribution, config)
+        draws = distribution.draw(args.first + args.draws, args.seed)[args.first:]
+        config, base = prepare(config, distribution)
+    except ConfigError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
+    criteria = Criteria()
+    sup = config.supervisor
+    limits = Limits(
+        voltage_v=min(config.current_loop.voltage_limit_v, base.actuator.full_scale_v),
+        current_a=(config.current_loop.current_limit_a if args.current_limit is None
+                   else None if math.isinf(args.current_limit) else args.current_limit),
+        x_min_m=sup.safety.x_min_m, x_max_m=sup.safety.x_max_m,
+        catch_by_s=criteria.catch_by_s, duration_s=criteria.duration_s,
+        hold_start_s=criteria.hold_start_s, hold_theta_rad=criteria.theta_rad,
+        hold_x_m=criteria.x_m, k_va=sup.switching.k_va, delta_s=sup.switching.delta_s)
+    pivot_range = distribution.range(PIVOT)
+    lo, hi = (pivot_range.value_range if pivot_range is not None
+              else (base.friction.pivot_viscous_nms,) * 2)
+    print(f"distribution {distribution.name} (digest {distribution.digest}), draws "
+          f"{args.first}..{args.first + args.draws - 1} of seed {args.seed}")
+    print(f"limits: |u| <= {limits.voltage_v} V, |i| <= "
+          f"{'(voltage only)' if limits.current_a is None else f'{limits.current_a} A'}, "
+          f"x in [{limits.x_min_m}, {limits.x_max_m}] m, in the catch region "
+          f"(theta^2 + {limits.k_va} theta_dot^2 < {limits.delta_s}) for good by "
+          f"{limits.catch_by_s} s, |theta| < {limits.hold_theta_rad} rad and |x| < "
+          f"{limits.hold_x_m} m from {limits.hold_start_s} s to {limits.duration_s} s")
+    rows = []
+    start = time.perf_counter()
+    for k in range(draws.n):
+        index = args.first + k
+        values = draws.one(k)
+        physical = {n: v for n, v in values.items() if n.split(".")[0] in
+                    ("rig", "motor", "friction")}
+        try:
+            plant = exact_plant(base, physical)
+        except ValueError as exc:
+            print(f"{PROG}: draw {index}: {exc}", file=sys.stderr)
+            return 2
+        rig = make_rig(plant, *(values.get(n, getattr(config.initial, n.split(".")[1]))
+                                for n in INITIAL))
+        began = time.perf_counter()
+        found = find_witness(rig, limits, np.random.default_rng([args.seed, index]),
+                             rounds=args.rounds, restarts=args.restarts)
+        pivot = values.get(PIVOT, base.friction.pivot_viscous_nms)
+        row = {"draw": index, "feasible": found.feasible, "how": found.how,
+               "caught_at_s": found.verdict.caught_at_s if found.verdict else math.nan,
+               "largest_x_m": found.verdict.largest_x_m if found.verdict else math.nan,
+               "reason": found.verdict.reason if found.verdict and not found.feasible else "",
+               "bound_needed_j": found.bound.needed_j,
+               "bound_largest_gain_j": found.bound.largest_gain_j,
+               "bound": found.bound.infeasible, "tried": found.tried,
+               "seconds": time.perf_counter() - began, **values}
+        rows.append(row)
+        print(f"draw {index}: {'feasible' if found.feasible else found.how} "
+              f"({found.how if found.feasible else row['reason']}), pivot {pivot:.2e} N m s, "
+              f"R {values.get('motor.resistance_ohm', math.nan):.1f} ohm, "
+              f"{row['seconds']:.1f} s", flush=True)
+        if args.csv is not None:
+            with args.csv.open("w", newline="") as out:
+                writer = csv.DictWriter(out, fieldnames=list(rows[0]))
+                writer.writeheader()
+                writer.writerows(rows)
+    wall = time.perf_counter() - start
+    print("\n".join(summary(rows, lo, hi, clopper_pearson)))
+    print(f"wall time {wall:.0f} s")
+    return 0
+
+
+def summary(rows: list[dict], lo: float, hi: float, interval) -> list[str]:
+    """The fraction feasible overall, by fifths of the pivot friction's range, by how."""
+    def line(name: str, part: list[dict]) -> str:
+        n = len(part)
+        if n == 0:
+            return f"{name}: no draws"
+        wins = sum(r["feasible"] for r in part)
+        a, b = interval(wins, n)
+        return (f"{name}: {wins} of {n} = {100 * wins / n:.1f} % "
+                f"(95 % interval {100 * a:.1f} .. {100 * b:.1f} %)")
+
+    out = [line("witness found", rows)]
+    edges = [lo + (hi - lo) * j / 5 for j in range(6)]
+    for j in range(5):
+        part = [r for r in rows if edges[j] <= r.get(PIVOT, lo) <= edges[j + 1]
+                and (j == 4 or r.get(PIVOT, lo) < edges[j + 1])]
+        out.append("  " + line(f"pivot friction {edges[j]:.1e} .. {edges[j + 1]:.1e} N m s",
+                               part))
+    hows = {}
+    for r in rows:
+        hows[r["how"]] = hows.get(r["how"], 0) + 1
+    out.append("by search: " + ", ".join(f"{h} {n}" for h, n in sorted(hows.items())))
+    proved = sum(r["bound"] for r in rows)
+    out.append(f"proved infeasible by the energy bound: {proved}")
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,163 @@
+"""The feasibility study of issue 13 (pisc_analysis.feasibility, pisc_feasibility): a
+witness found for the nominal rig meets every rule when re-simulated on the plant, a
+rig made infeasible on purpose is refused by its energy bound, and bad input is refused
+by name."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pisc_analysis import feasibility as F
+from pisc_sim.configuration import load_graph_config
+
+
+@pytest.fixture(scope="module")
+def nominal() -> F.PlantConfig:
+    config, _ = load_graph_config("default")
+    return F.exact_plant(config.plant)
+
+
+def test_exact_plant_is_the_ideal_measured_unquantised_rig(nominal):
+    plant = F.exact_plant(nominal, {"rig.pendulum_com_m": 0.08, "friction.pivot_viscous_nms": 5e-5})
+    assert plant.rig.pendulum_com_m == 0.08
+    assert plant.friction.pivot_viscous_nms == 5e-5
+    assert plant.actuator.command_levels == 0 and plant.actuator.command_delay_s == 0.0
+    assert plant.models.sensors == "ideal" and not plant.models.sensor_filters
+    assert plant.models.armature == "full"
+    rig = F.make_rig(plant, 0.01, 0.0, math.pi, 0.0)
+    # unquantised: 1.234 V is applied as such (the 7-bit bridge would give 1.1741 V)
+    y = F.rollout(rig, np.full(1, 1.234))
+    i_quasi = (1.234 - plant.motor.back_emf_v_s_per_rad / plant.motor.wheel_radius_m
+               * y[-1, 1]) / plant.motor.resistance_ohm
+    assert y[-1, 4] == pytest.approx(i_quasi, rel=2e-3)
+
+
+def test_exact_plant_refuses_unknown_and_invalid_parameters(nominal):
+    with pytest.raises(ValueError, match=r"rig.pendulum_length: unknown parameter \(known in 'rig'"):
+        F.exact_plant(nominal, {"rig.pendulum_length": 0.1})
+    with pytest.raises(ValueError, match=r"noise.x_std_m: not a plant parameter"):
+        F.exact_plant(nominal, {"noise.x_std_m": 0.1})
+    with pytest.raises(ValueError, match=r"rig.cart_mass_kg = -1.0: "):
+        F.exact_plant(nominal, {"rig.cart_mass_kg": -1.0})
+
+
+def test_limits_refuse_inconsistent_rules():
+    with pytest.raises(ValueError, match=r"catch_by_s \(7.0\) < hold_start_s \(6.0\)"):
+        F.Limits(catch_by_s=7.0)
+    with pytest.raises(ValueError, match=r"safe range \[0.1, 0.2\] m must contain x = 0"):
+        F.Limits(x_min_m=0.1, x_max_m=0.2)
+    with pytest.raises(ValueError, match=r"current_a = 0.0: must be positive"):
+        F.Limits(current_a=0.0)
+
+
+def test_the_optimiser_swings_the_nominal_rig_up_and_the_witness_meets_every_rule(nominal):
+    """Known feasible (the default configuration catches it): a witness is found, and
+    re-simulated here from its voltages alone it stays inside the safe range, within
+    the voltage and current limits, reaches the catch region by 3 s and holds."""
+    limits = F.Limits()
+    rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
+    found = F.find_witness(rig, limits, np.random.default_rng(3))
+    assert found.feasible and found.how in ("feedback", "shooting")
+    u = found.voltages
+    assert u.shape == (2000,)
+    y = F.rollout(F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0), u)
+    t = np.arange(2001) * 0.005
+    assert np.all(np.abs(u) <= 11.47)
+    assert np.all((y[:, 0] >= -0.225) & (y[:, 0] <= 0.125))
+    assert np.max(np.abs(y[:, 4])) <= 0.9 * 1.02
+    theta = F.wrap(y[:, 2])
+    region = theta**2 + 0.0015 * y[:, 3] ** 2 < 0.2363
+    assert region[t >= 3.0].all()
+    assert np.max(np.abs(theta[t >= 6.0])) < 0.05 and np.max(np.abs(y[t >= 6.0, 0])) < 0.02
+    assert found.verdict.ok and found.verdict.caught_at_s <= 3.0
+    # the check agrees with the batch check the search uses
+    ok, badness = F.check(limits, u[None, :], y[None], 0.005)
+    assert ok[0] and badness[0] == 0.0
+
+
+def test_verify_names_what_a_sequence_misses(nominal):
+    rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
+    verdict = F.verify(rig, F.Limits(), np.zeros(2000))
+    assert not verdict.ok and verdict.reason.startswith("never in the catch region for good")
+    assert math.isinf(verdict.caught_at_s)
+    pushed = F.verify(rig, F.Limits(), np.full(2000, 6.0))
+    assert "cart left the safe range at" in pushed.reason
+    ok, badness = F.check(F.Limits(), np.zeros((1, 2000)), F.rollout(rig, np.zeros((1, 2000))),
+                          0.005)
+    assert not ok[0] and badness[0] > 10.0  # never caught ranks worse than late
+    with pytest.raises(ValueError, match=r"voltages: 2000 values expected"):
+        F.verify(rig, F.Limits(), np.zeros(10))
+
+
+def test_the_hold_catches_a_pendulum_near_upright_and_centres_the_cart(nominal):
+    rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
+    start = np.array([[0.05, 0.1, 0.1, -0.5, 0.0], [-0.03, -0.05, -0.08, 0.2, 0.0]])
+    volts, states = F.hold_from(rig, F.Limits(), start, 800)
+    end = states[:, -1]
+    assert np.all(np.abs(F.wrap(end[:, 2])) < 0.01) and np.all(np.abs(end[:, 0]) < 0.01)
+    assert np.all(states[..., 0] > -0.225) and np.all(states[..., 0] < 0.125)
+
+
+def test_a_rig_made_infeasible_on_purpose_is_refused_with_its_energy_bound(nominal):
+    """A 5 mA current limit against a pivot friction of 1e-3 N m s: whatever the input,
+    the pendulum gains at most (m l a_b)^2 T / (4 b_p) in 3 s, below the 2 m g l it needs."""
+    viscous = replace(nominal, models=replace(nominal.models, friction="viscous"))
+    plant = F.exact_plant(viscous, {"friction.pivot_viscous_nms": 1e-3})
+    limits = F.Limits(current_a=0.005)
+    rig = F.make_rig(plant, 0.0, 0.0, math.pi, 0.0)
+    bound = F.energy_bound(rig, limits)
+    mgl = 0.01055 * 9.81 * 0.0865
+    assert bound.needed_j == pytest.approx(2 * mgl)
+    w = 2 * rig.omega0
+    a1 = rig.a1
+    f_bound = (0.0637 / 0.032 * 0.005 + rig.ml * w * w + a1 * 9.81 / 2 + a1 * 1e-3 * w / rig.ml
+               + plant.motor.viscous_friction_nms / 0.032**2 * 11.47 * 0.032 / 0.0637)
+    assert bound.accel_bound_mps2 == pytest.approx(f_bound / (rig.a2 - a1))
+    assert bound.largest_gain_j == pytest.approx(
+        (rig.ml * bound.accel_bound_mps2) ** 2 * 3.0 / (4 * 1e-3))
+    assert bound.infeasible and bound.largest_gain_j < 0.5 * bound.needed_j
+    found = F.find_witness(rig, limits, np.random.default_rng(0))
+    assert not found.feasible and found.how == "bound" and found.voltages is None
+    # the nominal rig's budget is unbounded without pivot friction: nothing is proved
+    free = F.energy_bound(F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0), F.Limits())
+    assert math.isinf(free.largest_gain_j) and not free.infeasible
+
+
+def test_clopper_pearson_interval():
+    assert F.clopper_pearson(0, 10) == (0.0, pytest.approx(1 - 0.025 ** 0.1))
+    assert F.clopper_pearson(10, 10) == (pytest.approx(0.025 ** 0.1), 1.0)
+    low, high = F.clopper_pearson(95, 100)
+    assert low == pytest.approx(0.8872, abs=1e-4) and high == pytest.approx(0.9836, abs=1e-4)
+    with pytest.raises(ValueError, match=r"11 successes of 10"):
+        F.clopper_pearson(11, 10)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--draws", "0"], "--draws 0: at least 1"),
+    (["--current-limit", "-1"], "the current limit must be positive"),
+    (["--distribution", "no-such-distribution"], "no-such-distribution"),
+])
+def test_the_command_refuses_bad_input_by_name(args, message, capsys, tmp_path):
+    from pisc_bringup.feasibility_cli import main
+
+    out = tmp_path / "rows.csv"
+    try:
+        code = main([*args, "--csv", str(out)])
+    except SystemExit as exc:
+        code = exc.code
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.bench
+def test_bench_feasibility_of_ten_draws(capsys):
+    """Prints the fraction of the first 10 draws of seed 1 with a witness."""
+    from pisc_bringup.feasibility_cli import main
+
+    assert main(["--draws", "10", "--seed", "1"]) == 0
+    print(capsys.readouterr().out)
