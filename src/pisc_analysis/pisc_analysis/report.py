@@ -295,22 +295,32 @@ def build_report(
     progress: TextIO | None = None,
 ) -> Report:
     """The whole report; plots go to ``out_dir`` (none when None); ``grid = 0`` skips the
-    region of attraction."""
+    region of attraction. ``progress`` (stderr for the command) shows a bar of the steps,
+    and one of each region of attraction's cycles, when it is a terminal."""
+    maps = (1 + len(compare)) * len(roa_x0_m) if grid > 0 else 0
+    stream = progress or io.StringIO()
+    with progress_bar(3 + maps, "step", "pisc_analysis", stream=stream) as steps:
+        return _build_report(config_name, overrides, out_dir, grid, roa_duration_s, roa_x0_m,
+                             compare, stream, steps)
+
+
+def _build_report(config_name: str, overrides: dict[str, Any] | None, out_dir: Path | None,
+                  grid: int, roa_duration_s: float, roa_x0_m: Sequence[float],
+                  compare: Sequence[str], stream: TextIO, steps: progress_bar) -> Report:
     started = time.perf_counter()
     config, _ = load_graph_config(config_name, overrides)
     report = Report()
-    say = (lambda text: (progress.write(text + "\n"), progress.flush())) if progress else (
-        lambda text: None)
     report.add(f"PISC analysis of configuration '{config_name}'"
                + (f" with {overrides}" if overrides else ""))
     rig = config.supervisor.rig
     report.add(f"rig: M = {rig.cart_mass_kg} kg, m = {rig.pendulum_mass_kg} kg, "
                f"l = {rig.pendulum_com_m} m, I = {rig.pendulum_inertia_kgm2} kg m^2, "
                f"g = {rig.gravity_mps2} m/s^2; a1 = {rig.a1:.6g} kg, a2 = {rig.a2:.6g} kg")
-    say("deriving the equations of motion (sympy)...")
+    steps.describe("equations of motion (sympy)")
     system, s, values = _model_section(report, config)
     a, b, k = _linear_section(report, config, system, s, values)
-    say("stability tests...")
+    steps(1)
+    steps.describe("stability tests")
     _stability_section(report, config, system, values, a, b, k)
 
     report.section("8. SPEC section 6: published numbers, computed here")
@@ -324,7 +334,8 @@ def build_report(
                "K2 -3.6696 is -3.66946 here), (3.29) and the seed 001 poles to their printed "
                "digits")
 
-    say("seed comparisons...")
+    steps(1)
+    steps.describe("seed comparisons")
     report.section("9. Linear vs nonlinear closed loops (seed 000 section 7, seed 001 section 5)")
     for name, comparison in (("seed000", comparisons.seed000_comparison()),
                              ("seed001", comparisons.seed001_comparison())):
@@ -334,6 +345,7 @@ def build_report(
                 comparison, Path(out_dir) / f"{name}_linear_vs_nonlinear.png"))
     report.add("Seed 000's result holds: the responses are close and differ most in the "
                "transient (largest x difference in the first second), not in steady state.")
+    steps(1)
 
     if grid > 0:
         report.section("10. Region of attraction of the catch (sampled, quantised, saturated "
@@ -349,11 +361,13 @@ def build_report(
                        f"{_complex_list(cfg.supervisor.catch.pole_set)}")
             for x0 in roa_x0_m:
                 what = f"region of attraction '{name}' x0 = {x0:+g} m"
-                # a bar of the batch's cycles on ``progress`` when it is a terminal
-                with progress_bar(0, "cycle", what, stream=progress or io.StringIO()) as bar:
+                steps.describe(what)
+                # and a bar of the batch's cycles below the steps'
+                with progress_bar(0, "cycle", "cycles", stream=stream) as bar:
                     maps.append(roa.region_of_attraction(
                         cfg, theta, rate, x0_m=x0, duration_s=roa_duration_s, label=name,
                         progress=lambda k, n: bar.to(k, n)))
+                steps(1)
                 report.add("    " + maps[-1].summary())
         report.add("Caught at once: in catch from the first sample and |theta| < 0.05 rad over "
                    "the last 0.5 s without a fault; caught later: by the swing-up and the "
