@@ -4,7 +4,8 @@
 commands it received and the time (ROS time, integer nanoseconds) of each event:
 
 * ``receive(data, now)``: parse, convert each frame to SI (SPEC section 4), stamp it
-  with its arrival ``now``;
+  with its arrival (a backlog that one read completes: a period apart, the newest
+  ``now``);
 * ``command(stamp, voltage, now)``: the byte answering a frame (SPEC section 4), unless
   the command is older than ``driver.command_max_age_periods`` periods or older than
   one already sent;
@@ -49,6 +50,7 @@ from pisc_model.params import ActuatorParams, SensorParams
 __all__ = ["DriverCore", "DriverParams", "Measurement", "Trip", "ZERO"]
 
 ZERO = 0x00  # the command byte of zero voltage
+READS_KEPT = 16  # reads whose times are kept: a frame is confirmed within a few reads
 
 
 @dataclass(frozen=True)
@@ -123,6 +125,7 @@ class DriverCore:
         self.parser = FrameParser(sensors, period_s, params.parser)
         self._count: int | None = None  # unwrapped encoder count
         self._stamp_ns: int | None = None  # stamp of the newest sample
+        self._read_ns: dict[float, int] = {}  # the latest reads' times: seconds -> ns
         self.last_frame_ns: int | None = None
         self.sent_stamp_ns: int | None = None  # stamp of the newest command sent
         self.sent_byte = ZERO
@@ -145,18 +148,34 @@ class DriverCore:
         self.second_answers = 0  # commands answering a sample already answered (dropped)
 
     def receive(self, data: bytes, now_ns: int) -> list[Measurement]:
-        """Bytes read at ``now_ns`` -> the samples they completed, stamped ``now_ns``.
+        """Bytes read at ``now_ns`` -> the samples they completed, each stamped with its
+        arrival.
 
-        A stamp keys a control cycle, so it must be unique: when one read completes
-        several frames (the reader was late), each later frame is stamped 1 us after the
-        one before.
+        A frame whose bytes all came in an earlier read (it waited for the byte that
+        confirmed it) is stamped with that read's time. Frames whose last byte came in
+        this read are stamped ``now_ns``, except a backlog: when one read completes
+        several frames, the reader was late and the device sent them a period apart, so
+        each is stamped a period before the one after it (the newest ``now_ns``). Then an
+        answer to a frame that waited in the port is as old as that frame is, and the age
+        rule (``command``) refuses it: a stall of the reader no longer sends the rig
+        voltages computed from states up to the stall's length old (issue 15, a soak
+        under load: after a 178 ms stall the rig got -6.7 .. -4.5 V towards the end stop
+        for 8 ms, answers to frames 170-145 ms old), nor makes the newest frame's answer
+        look no fresher than theirs. A stamp keys a control cycle, so it is unique
+        and increasing: at least 1 us after the one before.
         """
         out = []
-        for frame in self.parser.feed(data, now_ns * 1e-9):
+        now_s = now_ns * 1e-9
+        frames = self.parser.feed(data, now_s)
+        for k, frame in enumerate(frames):
             self._count = (frame.count if self._count is None
                            else unwrap_count(self._count, frame.count))
             x, theta, current = frame_to_si(self.sensors, frame, self._count)
-            stamp = now_ns if self._stamp_ns is None else max(now_ns, self._stamp_ns + 1000)
+            if frame.arrival_s is not None and frame.arrival_s < now_s:
+                arrival = self._read_ns.get(frame.arrival_s, now_ns)
+            else:  # completed by this read: a period before each frame after it
+                arrival = now_ns - (len(frames) - 1 - k) * self.period_ns
+            stamp = arrival if self._stamp_ns is None else max(arrival, self._stamp_ns + 1000)
             self._stamp_ns = stamp
             index = self._frames + len(out)
             self.watchdog.sample(index, stamp)
@@ -167,6 +186,9 @@ class DriverCore:
                 self._trip = Trip(index, self.watchdog.answered, stamp,
                                   self.watchdog.stamp_of(index - 1) or stamp)
             out.append(Measurement(stamp, x, theta, current))
+        self._read_ns[now_s] = now_ns  # for frames this read begins and a later one ends
+        while len(self._read_ns) > READS_KEPT:
+            del self._read_ns[next(iter(self._read_ns))]
         if out:
             self.last_frame_ns = now_ns
             self.silent = False

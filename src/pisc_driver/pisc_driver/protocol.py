@@ -24,6 +24,7 @@ driver passes each read's arrival time; see docs/driver-protocol.md.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
 from dataclasses import dataclass, field
@@ -73,6 +74,8 @@ class Frame:
     current_code: int
     count: int  # signed 16-bit, wraps every 65536 counts
     offset: int = field(default=-1, compare=False)
+    # arrival of the frame's last byte as fed to :meth:`FrameParser.feed` (None: not given)
+    arrival_s: float | None = field(default=None, compare=False)
 
 
 def wrap_count(count: int) -> int:
@@ -335,7 +338,8 @@ class FrameParser:
     # -- buffer ------------------------------------------------------------------------
 
     def _take(self, p: int) -> Frame:
-        frame = decode_frame(self._buf[p:p + FRAME_LENGTH], self._base + p)
+        frame = dataclasses.replace(decode_frame(self._buf[p:p + FRAME_LENGTH], self._base + p),
+                                    arrival_s=self._times[p + FRAME_LENGTH - 1])
         self._last_count = frame.count
         self._last_time = self._times[p]
         self._last_offset = frame.offset

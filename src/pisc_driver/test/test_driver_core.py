@@ -31,13 +31,41 @@ def test_each_frame_becomes_a_sample_in_si_stamped_at_arrival():
     # bytes came more than driver.frame_gap_s apart is refused: test_protocol)
     samples = c.receive(data[10:14], 1000 * MS + 300_000)
     samples += c.receive(data[14:], 1005 * MS)
-    # the chunk that confirms the first frame also completes the second: stamps stay unique
-    assert [s.stamp_ns for s in samples] == [1000 * MS + 300_000, 1000 * MS + 301_000,
-                                             1005 * MS]
+    # the chunk that confirms the first frame also completes the second: the first is
+    # stamped with the read its bytes came in, the second with its own
+    assert [s.stamp_ns for s in samples] == [1000 * MS, 1000 * MS + 300_000, 1005 * MS]
     x, theta, i = decode(SensorParams(), 401, 781, 3)
     assert samples[1].position_m == pytest.approx(float(x), abs=0)
     assert samples[1].angle_rad == pytest.approx(math.pi + 3 * math.pi / 2000, rel=1e-12)
     assert samples[1].current_a == pytest.approx(float(i), abs=0)
+
+
+def test_a_backlog_one_read_completes_is_stamped_a_period_apart_ending_at_the_read():
+    c = core()
+    second = frame(400, 780, 1)
+    assert [s.stamp_ns for s in c.receive(frame(400, 780, 0) + second[:4], 1000 * MS)
+            ] == [1000 * MS]
+    assert [s.stamp_ns for s in c.receive(second[4:], 1000 * MS + 300_000)
+            ] == [1000 * MS + 300_000]
+    # the reader stalls 30 ms: six frames wait in the port and come in one read
+    backlog = b"".join(frame(400, 780, n) for n in range(2, 8))
+    samples = c.receive(backlog, 1030 * MS)
+    assert [s.stamp_ns for s in samples] == [1030 * MS - k * 5 * MS for k in range(5, -1, -1)]
+    # an answer is as old as the frame it answers: those to the frames that waited more
+    # than two periods are refused; before, each was stamped 1 us after the one before
+    # and the rig got voltages computed from states up to the stall's length old
+    assert c.command(samples[0].stamp_ns, -6.0, 1031 * MS) is None
+    assert c.command(samples[3].stamp_ns, -6.0, 1031 * MS) is None
+    assert c.command(samples[4].stamp_ns, 11.47, 1031 * MS) == 0x7F
+    assert c.command(samples[5].stamp_ns, 11.47, 1032 * MS) == 0x7F
+    assert c.stale_commands == 2
+
+
+def test_backlog_stamps_never_go_back_past_the_newest_sample():
+    c = core()
+    c.receive(frame(400, 780, 0) + frame(400, 780, 1), 1000 * MS)  # stamps 995, 1000 ms
+    samples = c.receive(frame(400, 780, 2) + frame(400, 780, 3), 1002 * MS)
+    assert [s.stamp_ns for s in samples] == [1000 * MS + 1000, 1002 * MS]
 
 
 def test_the_16_bit_count_is_unwrapped_across_its_wrap():
