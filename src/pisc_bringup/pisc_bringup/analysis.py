@@ -41,6 +41,7 @@ from pisc_bringup.summary import (
     HoldCriteria,
     RunSummary,
     RunTables,
+    member,
     summarise_tables,
     tables_of,
     tables_of_bag,
@@ -103,7 +104,7 @@ def trace_from_tables(tables: RunTables, label: str) -> RunTrace:
               for name in ("joints", "state", "current", "setpoint", "voltage", "true")}
     stamps = picked["voltage"][0]
     for name in ("joints", "state", "current", "setpoint"):
-        stamps = stamps[np.isin(stamps, picked[name][0])]
+        stamps = stamps[member(stamps, picked[name][0])]
     if not len(stamps):
         raise BagError("no complete control cycle (joint_states, state, current, "
                        "setpoint and voltage of one stamp)")
@@ -117,11 +118,12 @@ def trace_from_tables(tables: RunTables, label: str) -> RunTrace:
     modes = sorted(tables.modes, key=lambda r: r[0])
     if modes:
         newest = np.searchsorted(np.array([r[0] for r in modes]), stamps, side="right") - 1
-        in_force = [modes[max(k, 0)][1] for k in newest.tolist()]
+        kinds = [mode for _, mode, _ in modes]
+        in_force = [kinds[k] for k in np.maximum(newest, 0).tolist()]
     else:
         in_force = [Mode.SWING_UP] * len(stamps)
     t0 = int(stamps[0])
-    has_true = bool(np.all(np.isin(stamps, picked["true"][0])))
+    has_true = bool(np.all(member(stamps, picked["true"][0])))
     return RunTrace(
         label=label,
         t=(stamps - t0) * 1e-9,
@@ -245,10 +247,10 @@ def analyse_bag(bag: str | Path, label: str | None = None) -> RunAnalysis:
 def write_csv(trace: RunTrace, path: Path) -> None:
     """The thesis's log columns, one row per cycle, each value exactly (``repr``)."""
     with path.open("w", newline="") as stream:
-        writer = csv.writer(stream)
-        writer.writerow(CSV_COLUMNS)
-        rows = np.column_stack([trace.column(c) for c in CSV_COLUMNS]).tolist()
-        writer.writerows([repr(v) for v in row] for row in rows)
+        csv.writer(stream).writerow(CSV_COLUMNS)
+        # what csv.writer writes for these rows (no value needs quoting), column by column
+        columns = [map(repr, trace.column(c).tolist()) for c in CSV_COLUMNS]
+        stream.writelines(",".join(row) + "\r\n" for row in zip(*columns, strict=True))
 
 
 # file name, title, unit, measured column(s), true-state column (if any)

@@ -42,8 +42,8 @@ from pisc_msgs_py.topics import (
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
 
-__all__ = ["HoldCriteria", "RunSummary", "RunTables", "Table", "summarise", "summarise_bag",
-           "summarise_tables", "tables_of", "tables_of_bag"]
+__all__ = ["HoldCriteria", "RunSummary", "RunTables", "Table", "member", "summarise",
+           "summarise_bag", "summarise_tables", "tables_of", "tables_of_bag"]
 
 
 @dataclass(frozen=True)
@@ -133,13 +133,27 @@ class Table:
         """(sorted unique stamps, index of the message kept for each): the ``first`` or
         the ``last`` in file order (a lockstep plant that sends a sample again records
         it twice)."""
-        if which == "first":
-            return np.unique(self.stamp_ns, return_index=True)
-        unique, index = np.unique(self.stamp_ns[::-1], return_index=True)
-        return unique, len(self.stamp_ns) - 1 - index
+        stamps = self.stamp_ns
+        if np.all(stamps[1:] > stamps[:-1]):  # the usual case: each once, in order
+            return stamps, np.arange(len(stamps))
+        order = np.argsort(stamps, kind="stable")  # equal stamps stay in file order
+        ordered = stamps[order]
+        change = ordered[1:] != ordered[:-1]
+        keep = (np.concatenate([[True], change]) if which == "first"
+                else np.concatenate([change, [True]]))
+        return ordered[keep], order[keep]
 
 
 NO_TIME = np.iinfo(np.int64).min
+
+
+def member(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+    """Which of ``values`` are in ``sorted_set`` (sorted, unique): ``np.isin`` by binary
+    search, without its hashing."""
+    if not len(sorted_set):
+        return np.zeros(len(values), dtype=bool)
+    at = np.minimum(np.searchsorted(sorted_set, values), len(sorted_set) - 1)
+    return sorted_set[at] == values
 
 
 @dataclass
@@ -261,7 +275,7 @@ def summarise_tables(tables: RunTables, period_s: float,
     t0 = int(stamps[0])
     t = (stamps - t0) * 1e-9
     t_stamps, t_index = tables.true.pick("last")
-    source = "true" if np.all(np.isin(stamps, t_stamps)) else "measured"
+    source = "true" if np.all(member(stamps, t_stamps)) else "measured"
     if source == "true":
         rows = tables.true.values[_at(t_stamps, t_index, stamps)]
     else:
@@ -285,7 +299,7 @@ def summarise_tables(tables: RunTables, period_s: float,
 
     s_stamps, s_index = tables.setpoint.pick("last")
     c_stamps, c_index = tables.current.pick("last")
-    tracked = stamps[np.isin(stamps, s_stamps) & np.isin(stamps, c_stamps)]
+    tracked = stamps[member(stamps, s_stamps) & member(stamps, c_stamps)]
     errors = (tables.setpoint.values[_at(s_stamps, s_index, tracked), 0]
               - tables.current.values[_at(c_stamps, c_index, tracked), 0])
     rms = float(np.sqrt(np.mean(errors**2))) if len(errors) else math.nan
