@@ -139,7 +139,9 @@ BY_NAME = {u.name: u for u in UNKNOWNS}
 DEFAULT_FIT = {
     "excitation": ("R", "L", "J_m", "cart_coulomb", "cart_viscous", "pivot_viscous",
                    "current_offset"),
-    "free_swing": ("l", "I", "pivot_viscous"),
+    # the swing fixes (I + m l^2) / (m l) and c / (m l) only (l and I apart need the
+    # cart's reaction, which its friction holds still): l from the base, as measured
+    "free_swing": ("I", "pivot_viscous"),
     "none": ("R", "L", "J_m", "cart_coulomb", "cart_viscous", "pivot_viscous",
              "current_offset"),
 }
@@ -721,6 +723,19 @@ class Problem:
         out[:, :-1][cycle] = change
         return out, math.sqrt(e2)
 
+    def row_codes(self) -> tuple[np.ndarray, np.ndarray]:
+        """(the measured code, the channel) of every residual row: ADC codes of the IR
+        and current readings, encoder counts of the angle (each rounded: noisy or
+        off-grid readings are taken at their nearest code)."""
+        s = self.sensors
+        m = self.seg.measured
+        codes = np.stack([(m[..., 0] - s.adc_ref_low_v) / s.adc_lsb_v - 0.5,
+                          (m[..., 1] - s.encoder_zero_rad) / s.encoder_rad_per_count,
+                          (m[..., 2] - s.adc_ref_low_v) / s.adc_lsb_v - 0.5], axis=-1)
+        channel = np.broadcast_to(np.arange(3), m.shape)
+        return (np.rint(codes).reshape(-1)[self.rows].astype(np.int64),
+                channel.reshape(-1)[self.rows])
+
     def segment_rows(self, s: int) -> slice:
         return slice(self.row_edges[s], self.row_edges[s + 1])
 
@@ -779,6 +794,9 @@ class Result:
     def value(self, key: str) -> float | None:
         return next((e.value for e in self.estimates if e.unknown.key == key), None)
 
+
+#: Passes of the per-cycle timing for a run on the wall clock (each a fit of its own)
+TIMING_ROUNDS = 2
 
 #: A segment whose residual RMS exceeds this many times the median segment's is left out
 OUTLIER = 4.0
@@ -839,13 +857,44 @@ def _covariance(problem: Problem, jac: np.ndarray, r: np.ndarray) -> tuple[np.nd
         scores.append(h)
     scores = np.array(scores)
     meat = scores.T @ scores * ((n_seg - 1) / max(n_seg, 1))
-    return inverse @ meat @ inverse, max(n_seg - 1, 1)
+    return inverse @ (meat + quantisation_meat(problem, jac)) @ inverse, max(n_seg - 1, 1)
+
+
+def quantisation_meat(problem: Problem, jac: np.ndarray) -> np.ndarray:
+    """The quantisation floor of the covariance's meat: ``sigma_q^2 sum_c s_c s_c^T``.
+
+    A quantised sensor's error is a function of the true value: every sample a channel
+    reads at one code shares (nearly) the same error ``e_c``, uniform over the step
+    (``sigma_q^2 = 1/12`` of a step squared). A signal held at one level (the current at
+    its limit, the pendulum hanging still) is at the same code in every segment, so its
+    error is the same in all of them: the estimate moves by ``-B^-1 J^T dr`` and the
+    sandwich over segments, which sees only what differs between segments, never sees
+    it. Taking each (channel, code) as one such error, independent of the others,
+    adds ``B^-1 (sigma_q^2 sum_c s_c s_c^T) B^-1`` to the covariance, where
+    ``s_c = sum over the rows read at code c of w J_row`` (``w`` the channel's weight:
+    the rows are weighted residuals, so an error of ``e`` steps moves a row by ``w e``).
+    It over-counts an error that varies within a code (a moving signal) and is then
+    small, since those rows' terms partly cancel; for a held level it is what the
+    intervals missed (docs/identification.md, "Uncertainty")."""
+    codes, channel = problem.row_codes()
+    weight = problem.weights[channel]
+    group = np.unique(np.column_stack([channel, codes]), axis=0, return_inverse=True)[1]
+    group = np.asarray(group).reshape(-1)
+    sums = np.zeros((int(group.max()) + 1, jac.shape[1]))
+    np.add.at(sums, group, jac * weight[:, None])
+    return QUANTISATION_RMS ** 2 * (sums.T @ sums)
 
 
 def identify(recordings: Sequence[Recording], fit: Sequence[Unknown], base: PlantConfig,
              segment_s: float = 1.0, max_evaluations: int = 100,
-             progress: Callable[[str], None] | None = None, timing_rounds: int = 2) -> Result:
+             progress: Callable[[str], None] | None = None,
+             timing_rounds: int = TIMING_ROUNDS,
+             on_evaluation: Callable[[int, int, int], None] | None = None) -> Result:
     """Fit ``fit`` to the recordings, from ``base``'s values; see the module's notes.
+
+    ``progress`` receives a line of text per pass; ``on_evaluation(pass, passes,
+    evaluations)`` is called after every evaluation of the residuals (``pass`` counts
+    from 0, ``evaluations`` within the pass): a progress bar's hook.
 
     Raises :class:`IdentifyError` for input that cannot serve (no voltage to excite what
     is asked, no usable segment) and :class:`FitError` when the fit fails.
@@ -894,13 +943,26 @@ def identify(recordings: Sequence[Recording], fit: Sequence[Unknown], base: Plan
     low, high = problem.bounds()
     z = np.clip(problem.initial(), low, high)
 
+    passes = 2 + (timing_rounds if any(r.wall_clock for r in recordings) else 0)
+    done_passes = 0
+
     def solve(z: np.ndarray, what: str) -> np.ndarray:
-        nonlocal evaluations
+        nonlocal evaluations, done_passes
         say(f"fitting {', '.join(u.key for u in fitted)} over {segments.count} segments "
             f"({what})")
+        count = 0
+
+        def residuals(z: np.ndarray) -> np.ndarray:
+            nonlocal count
+            out = problem.residuals(z)
+            count += 1
+            if on_evaluation is not None:
+                on_evaluation(done_passes, passes, count)
+            return out
+
         try:
             solution = least_squares(
-                problem.residuals, z, jac=problem.jacobian, bounds=(low, high),
+                residuals, z, jac=problem.jacobian, bounds=(low, high),
                 method="trf", x_scale="jac", ftol=1e-9, xtol=1e-9, gtol=1e-9,
                 max_nfev=max_evaluations)
         except IdentifyError:
@@ -913,7 +975,8 @@ def identify(recordings: Sequence[Recording], fit: Sequence[Unknown], base: Plan
         if solution.status <= 0:
             raise FitError(
                 f"the fit did not converge within {max_evaluations} evaluations "
-                f"({solution.message.rstrip('.')})")
+                f"({solution.message.rstrip('.')})" + _inseparable(problem, solution.x))
+        done_passes += 1
         return solution.x
 
     def reweight(z: np.ndarray) -> None:
@@ -965,6 +1028,26 @@ def identify(recordings: Sequence[Recording], fit: Sequence[Unknown], base: Plan
                   segments, list(recordings), problem.predictions(z), base, evaluations,
                   time.perf_counter() - started, cycles, float(values["delay"]),
                   timing_spread_s=timing_spread, fitted=estimates)
+
+
+def _inseparable(problem: Problem, z: np.ndarray) -> str:
+    """For a fit that did not converge: the pairs of parameters whose estimates correlate
+    beyond 0.95 at its last point (Gauss-Newton's (J^T J)^-1), the usual reason (a valley
+    along which the cost barely changes), as text to add to the error."""
+    try:
+        jac = problem.jacobian(z)
+        cov = np.linalg.pinv(jac.T @ jac, rcond=1e-14, hermitian=True)
+    except (IdentifyError, np.linalg.LinAlgError, ValueError):
+        return ""
+    d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    corr = cov / np.outer(d, d)
+    pairs = [f"{problem.fit[a].key} and {problem.fit[b].key} (correlation {corr[a, b]:+.3f})"
+             for a in range(problem.p) for b in range(a + 1, problem.p)
+             if abs(corr[a, b]) > 0.95]
+    if not pairs:
+        return ""
+    return ("; these data cannot tell apart " + ", ".join(pairs)
+            + ": fit one of each pair, the other known (--fit, --config)")
 
 
 def _base_value(base: PlantConfig, u: Unknown) -> float:

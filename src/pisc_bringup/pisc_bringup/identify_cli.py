@@ -4,8 +4,9 @@
                   [--out FILE] [--plot FILE] [--segment S] [--max-evaluations N]
 
 Fits the parameters named by ``--fit`` (default: what the bags' experiments excite:
-R, L, J_m, cart_coulomb, cart_viscous for an excitation, l, I, pivot_viscous for a
-free swing, and delay for a run on the wall clock) so that the plant, driven by the
+R, L, J_m, cart_coulomb, cart_viscous, pivot_viscous, current_offset for an excitation,
+I and pivot_viscous for a free swing with l from the base, and delay for a run on the wall
+clock) so that the plant, driven by the
 recorded voltages, predicts what the sensors measured (:mod:`pisc_bringup.identify`).
 Prints each estimate with its 95 % interval, the residual against the sensors'
 resolution and the pairs of parameters the data cannot separate; writes a parameter
@@ -80,10 +81,22 @@ def main(argv: list[str] | None = None) -> int:
     plot = args.plot or args.out.with_suffix(".png")
     print(f"{PROG}: {len(recordings)} recording(s), base {base_name}; fitting "
           f"{', '.join(u.key for u in fit)}", flush=True)
+    from pisc_msgs_py.progress import progress_bar
+
+    passes = 2 + (idf.TIMING_ROUNDS if any(r.wall_clock for r in recordings) else 0)
     try:
-        result = idf.identify(recordings, fit, base, segment_s=args.segment,
-                              max_evaluations=args.max_evaluations,
-                              progress=lambda text: print(f"  {text}", flush=True))
+        # a bar over the fit's passes, labelled with the pass's evaluations (stderr, only
+        # on a terminal); the passes' lines go to stdout as before
+        with progress_bar(passes, "pass", "fit") as bar:
+
+            def evaluated(done: int, total: int, evaluations: int) -> None:
+                bar.to(done)
+                bar.describe(f"pass {done + 1}/{total}: {evaluations} evaluations")
+
+            result = idf.identify(recordings, fit, base, segment_s=args.segment,
+                                  max_evaluations=args.max_evaluations,
+                                  progress=lambda text: print(f"  {text}", flush=True),
+                                  on_evaluation=evaluated)
     except idf.FitError as exc:
         return fail(1, str(exc))
     except idf.IdentifyError as exc:

@@ -280,3 +280,51 @@ def test_graph_topics_carry_what_identification_reads():
     from pisc_bringup.graph import RUN_TOPICS
 
     assert {JOINT_STATES, MOTOR_CURRENT, VOLTAGE} <= set(RUN_TOPICS) <= set(GRAPH_TOPICS)
+
+
+# -- the intervals' quantisation floor, the progress hook, a fit that cannot converge -------
+
+
+def test_the_quantisation_floor_adds_the_rows_of_one_code_coherently():
+    # rows 0-2: the current read at code 512 (a held level: one shared error); rows 3-4:
+    # the encoder at two counts; row 5: the IR channel. Each group's error is one uniform
+    # draw over its step, so its rows' Jacobian rows add before they are squared.
+    from types import SimpleNamespace
+
+    jac = np.array([[1.0, 0.0], [1.0, 0.5], [1.0, -0.5], [0.0, 2.0], [0.0, -2.0], [3.0, 1.0]])
+    problem = SimpleNamespace(
+        weights=np.array([2.0, 1.0, 0.5]),  # IR, encoder, current
+        row_codes=lambda: (np.array([512, 512, 512, 7, 8, 300]),
+                           np.array([2, 2, 2, 1, 1, 0])))
+    meat = idf.quantisation_meat(problem, jac)
+    held = 0.5 * np.array([3.0, 0.0])  # the current's weight times its three rows' sum
+    counts = [np.array([0.0, 2.0]), np.array([0.0, -2.0])]  # two counts: apart
+    ir = 2.0 * np.array([3.0, 1.0])
+    want = (np.outer(held, held) + sum(np.outer(c, c) for c in counts) + np.outer(ir, ir)) / 12
+    assert meat == pytest.approx(want)
+    # the held level's three rows count as one error: 9 times one row's share, not 3 times
+    assert meat[0, 0] == pytest.approx((0.5 ** 2 * 9 + 2.0 ** 2 * 9) / 12)
+
+
+def test_the_intervals_include_the_quantisation_floor(excitation_log):
+    # noise-free quantised sensors: every estimate's variance is at least the floor's
+    config, log = excitation_log
+    fit = idf.parse_fit("R,J_m,cart_coulomb,cart_viscous")
+    calls = []
+    result = idf.identify([recording_of(log)], fit, config.plant,
+                          on_evaluation=lambda *a: calls.append(a))
+    # the hook: every evaluation of both passes (lockstep: no timing passes), in order
+    assert calls[0] == (0, 2, 1) and {c[0] for c in calls} == {0, 1}
+    assert all(c[1] == 2 for c in calls) and len(calls) >= result.iterations
+    segments = result.segments
+    problem = idf.Problem(segments, config.plant, fit,
+                          {**{e.unknown.key: e.value for e in result.fitted},
+                           "delay": 0.0, "current_offset": 0.0})
+    z = np.array([e.value / e.unknown.scale for e in result.fitted])
+    problem.weights = 1.0 / np.maximum(result.residual_rms, idf.QUANTISATION_RMS)
+    jac = problem.jacobian(z)
+    inverse = np.linalg.pinv(jac.T @ jac)
+    floor = np.diag(inverse @ idf.quantisation_meat(problem, jac) @ inverse)
+    std = np.array([e.std / e.unknown.scale for e in result.fitted])
+    assert np.all(std ** 2 >= 0.99 * floor), (std ** 2, floor)
+    assert np.all(floor > 0.0)
