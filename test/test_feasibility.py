@@ -161,3 +161,21 @@ def test_bench_feasibility_of_ten_draws(capsys):
 
     assert main(["--draws", "10", "--seed", "1"]) == 0
     print(capsys.readouterr().out)
+
+
+def test_the_batch_check_and_verify_agree_on_the_catch_time(nominal):
+    """check() ranks the search's candidates; verify() decides. On the same sequences
+    they agree on pass or fail, and a run still outside the region at 10 s ranks as
+    never caught (worse than any late catch)."""
+    limits = F.Limits()
+    rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
+    gains = F.Gains.from_unit(np.random.default_rng(5).random((9, 6)), limits)
+    volts, states = F.feedback_rollouts(rig, limits, gains, 2000)
+    ok, badness = F.check(limits, volts, states, 0.005)
+    for j in range(6):
+        verdict = F.verify(rig, limits, volts[j])
+        assert verdict.ok == ok[j]
+        if not verdict.ok and math.isfinite(verdict.caught_at_s):
+            assert badness[j] >= max(verdict.caught_at_s - 3.0, 0.0) - 1e-12
+    never = F.check(limits, np.zeros((1, 2000)), F.rollout(rig, np.zeros((1, 2000))), 0.005)[1]
+    assert never[0] > limits.duration_s

@@ -394,10 +394,10 @@ def check(limits: Limits, voltages: np.ndarray, states: np.ndarray, period_s: fl
     t = np.arange(steps + 1) * period_s
     region = th**2 + limits.k_va * states[..., THETA_DOT] ** 2
     outside = region >= limits.delta_s
-    # the last sample outside the catch region; the stay that lasts starts after it
-    last_out = np.where(outside.any(axis=-1),
-                        steps - np.argmax(outside[..., ::-1], axis=-1), 0)
-    caught = np.where(last_out > steps, np.inf, t[np.minimum(last_out, steps)])
+    # the stay that lasts starts at the sample after the last one outside the region
+    start = np.where(outside.any(axis=-1),
+                     steps + 1 - np.argmax(outside[..., ::-1], axis=-1), 0)
+    caught = np.where(start > steps, np.inf, t[np.minimum(start, steps)])
     late = np.where(np.isinf(caught), limits.duration_s + np.min(region, axis=-1),
                     np.maximum(caught - limits.catch_by_s, 0.0))
     over = (np.max(np.maximum(x - limits.x_max_m, 0.0), axis=-1)

@@ -28,6 +28,16 @@ PIVOT = "friction.pivot_viscous_nms"
 INITIAL = ("initial.x_m", "initial.x_dot_mps", "initial.theta_rad", "initial.theta_dot_radps")
 
 
+def _indices(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: draw numbers separated by commas") from None
+    if any(v < 0 for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: draw numbers are 0 or more")
+    return values
+
+
 def _limit(text: str) -> float:
     """A current limit in A, or 'none' (infinite: the voltage alone limits the current)."""
     if text == "none":
@@ -54,8 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1, metavar="S",
                         help="seed of the draws and of each draw's search (default: "
                         "%(default)s)")
-    parser.add_argument("--first", type=int, default=0, metavar="K",
-                        help="start at draw K of the seed's sequence (default: %(default)s)")
+    parser.add_argument("--only", type=_indices, metavar="K,K,...",
+                        help="search only these draws of the N (numbered from 0; a draw's "
+                        "values depend on N, as in pisc_robustness)")
     parser.add_argument("--current-limit", type=_limit, default=None, metavar="A|none",
                         help="the current limit (default: the configuration's "
                         "current_loop.current_limit_a); 'none': the voltage alone limits it")
@@ -69,9 +80,11 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("draws", "rounds"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} {getattr(args, name)}: at least 1")
-    for name in ("first", "restarts"):
-        if getattr(args, name) < 0:
-            parser.error(f"--{name} {getattr(args, name)}: 0 or more")
+    if args.restarts < 0:
+        parser.error(f"--restarts {args.restarts}: 0 or more")
+    if args.only and max(args.only) >= args.draws:
+        parser.error(f"--only: draw {max(args.only)} is not among the {args.draws} draws "
+                     "(0 .. N-1)")
     if args.csv is not None and not args.csv.parent.is_dir():
         parser.error(f"--csv {args.csv}: directory {args.csv.parent} does not exist")
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -87,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config, _ = load_graph_config(args.config)
         distribution = load_distribution(args.distribution, config)
-        draws = distribution.draw(args.first + args.draws, args.seed)[args.first:]
+        draws = distribution.draw(args.draws, args.seed)
         config, base = prepare(config, distribution)
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
@@ -105,8 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     pivot_range = distribution.range(PIVOT)
     lo, hi = (pivot_range.value_range if pivot_range is not None
               else (base.friction.pivot_viscous_nms,) * 2)
-    print(f"distribution {distribution.name} (digest {distribution.digest}), draws "
-          f"{args.first}..{args.first + args.draws - 1} of seed {args.seed}")
+    indices = args.only if args.only else list(range(draws.n))
+    print(f"distribution {distribution.name} (digest {distribution.digest}), "
+          f"{len(indices)} of {draws.n} draws of seed {args.seed}")
     print(f"limits: |u| <= {limits.voltage_v} V, |i| <= "
           f"{'(voltage only)' if limits.current_a is None else f'{limits.current_a} A'}, "
           f"x in [{limits.x_min_m}, {limits.x_max_m}] m, in the catch region "
@@ -115,9 +129,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{limits.hold_x_m} m from {limits.hold_start_s} s to {limits.duration_s} s")
     rows = []
     start = time.perf_counter()
-    for k in range(draws.n):
-        index = args.first + k
-        values = draws.one(k)
+    for index in indices:
+        values = draws.one(index)
         physical = {n: v for n, v in values.items() if n.split(".")[0] in
                     ("rig", "motor", "friction")}
         try:
