@@ -723,18 +723,34 @@ class Problem:
         out[:, :-1][cycle] = change
         return out, math.sqrt(e2)
 
-    def row_codes(self) -> tuple[np.ndarray, np.ndarray]:
-        """(the measured code, the channel) of every residual row: ADC codes of the IR
-        and current readings, encoder counts of the angle (each rounded: noisy or
-        off-grid readings are taken at their nearest code)."""
+    def row_codes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(the measured code, the channel, whether it is held) of every residual row:
+        ADC codes of the IR and current readings, encoder counts of the angle (each
+        rounded: noisy or off-grid readings are taken at their nearest code); a row of
+        the position or the angle is held when its channel reads the same code for at
+        least :data:`HELD_SAMPLES` samples in a row (a level, not a signal passing
+        through the code); every current row is: the PI loop (3.47) drives the current
+        it reads to the set-point, so the true current settles where the loop leaves it
+        relative to the code's edges, and the error returns in the voltages."""
         s = self.sensors
         m = self.seg.measured
-        codes = np.stack([(m[..., 0] - s.adc_ref_low_v) / s.adc_lsb_v - 0.5,
-                          (m[..., 1] - s.encoder_zero_rad) / s.encoder_rad_per_count,
-                          (m[..., 2] - s.adc_ref_low_v) / s.adc_lsb_v - 0.5], axis=-1)
+        codes = np.rint(np.stack([(m[..., 0] - s.adc_ref_low_v) / s.adc_lsb_v - 0.5,
+                                  (m[..., 1] - s.encoder_zero_rad) / s.encoder_rad_per_count,
+                                  (m[..., 2] - s.adc_ref_low_v) / s.adc_lsb_v - 0.5],
+                                 axis=-1)).astype(np.int64)
+        mask = self.seg.mask
+        # runs of one code along each segment's samples, per channel: (n, 3, length)
+        c, v = codes.transpose(0, 2, 1), mask.transpose(0, 2, 1)
+        start = np.ones(c.shape, dtype=bool)
+        start[..., 1:] = (c[..., 1:] != c[..., :-1]) | (v[..., 1:] != v[..., :-1])
+        run = np.cumsum(start.reshape(-1)) - 1
+        held = (np.bincount(run)[run] >= HELD_SAMPLES).reshape(c.shape).transpose(0, 2, 1)
         channel = np.broadcast_to(np.arange(3), m.shape)
-        return (np.rint(codes).reshape(-1)[self.rows].astype(np.int64),
-                channel.reshape(-1)[self.rows])
+        # the current loop acts on the code it reads: its quantisation error comes back
+        # in the voltage, so every current reading's error is tied to its code
+        held = held | (channel == 2)
+        return (codes.reshape(-1)[self.rows], channel.reshape(-1)[self.rows],
+                held.reshape(-1)[self.rows])
 
     def segment_rows(self, s: int) -> slice:
         return slice(self.row_edges[s], self.row_edges[s + 1])
@@ -794,6 +810,10 @@ class Result:
     def value(self, key: str) -> float | None:
         return next((e.value for e in self.estimates if e.unknown.key == key), None)
 
+
+#: A channel reading one code for at least this many samples in a row holds a level (50 ms:
+#: the excitation's bit), whose quantisation error every such sample shares
+HELD_SAMPLES = 10
 
 #: Passes of the per-cycle timing for a run on the wall clock (each a fit of its own)
 TIMING_ROUNDS = 2
@@ -871,17 +891,22 @@ def quantisation_meat(problem: Problem, jac: np.ndarray) -> np.ndarray:
     sandwich over segments, which sees only what differs between segments, never sees
     it. Taking each (channel, code) as one such error, independent of the others,
     adds ``B^-1 (sigma_q^2 sum_c s_c s_c^T) B^-1`` to the covariance, where
-    ``s_c = sum over the rows read at code c of w J_row`` (``w`` the channel's weight:
-    the rows are weighted residuals, so an error of ``e`` steps moves a row by ``w e``).
-    It over-counts an error that varies within a code (a moving signal) and is then
-    small, since those rows' terms partly cancel; for a held level it is what the
-    intervals missed (docs/identification.md, "Uncertainty")."""
-    codes, channel = problem.row_codes()
-    weight = problem.weights[channel]
-    group = np.unique(np.column_stack([channel, codes]), axis=0, return_inverse=True)[1]
+    ``s_c = sum over the held rows read at code c of w J_row`` (``w`` the channel's
+    weight: the rows are weighted residuals, so an error of ``e`` steps moves a row by
+    ``w e``). Only held rows count (:meth:`Problem.row_codes`: the code read for at
+    least :data:`HELD_SAMPLES` samples in a row): a signal passing through a code, or
+    swinging about it, reads it at true values spread over the step, whose errors are
+    not shared (the sandwich sees them), and counting them as one error would swamp
+    what depends on them (J_m, through the swinging pendulum's encoder)."""
+    codes, channel, held = problem.row_codes()
+    if not held.any():
+        return np.zeros((jac.shape[1], jac.shape[1]))
+    weight = problem.weights[channel[held]]
+    group = np.unique(np.column_stack([channel[held], codes[held]]), axis=0,
+                      return_inverse=True)[1]
     group = np.asarray(group).reshape(-1)
     sums = np.zeros((int(group.max()) + 1, jac.shape[1]))
-    np.add.at(sums, group, jac * weight[:, None])
+    np.add.at(sums, group, jac[held] * weight[:, None])
     return QUANTISATION_RMS ** 2 * (sums.T @ sums)
 
 

@@ -8,7 +8,7 @@ each, identified, and the estimates and their 95 % intervals compared with the t
 ``--via driver`` (default) records each run as on the rig: ``pisc_virtual_rig`` on a
 pseudo-terminal with the drawn plant as its parameter file, ``pisc_graph --scene
 excitation --driver PORT`` (both under SCHED_FIFO, as ``test/test_driver.py`` runs them),
-in real time; ``--via lockstep`` simulates the same experiment in this process (the pure
+in real time, on a ROS domain it claims (unless ROS_DOMAIN_ID is set); ``--via lockstep`` simulates the same experiment in this process (the pure
 closed loop, the graph's cores), with the distribution's command latency and
 measurement noise. The hidden plant of each draw: the motor's R, L, J_m and b_m, the
 cart's Coulomb and viscous friction and the pivot's friction from the distribution
@@ -236,6 +236,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"identify_bench: {exc}", file=sys.stderr)
         return 2
     base, _, _ = load_run_config("default")
+    claim = None
+    if args.via == "driver" and "ROS_DOMAIN_ID" not in os.environ:
+        # a ROS domain of its own: another graph on this machine (a test, a soak) must not
+        # hear these runs, nor they it
+        from pisc_msgs_py.processes import DomainClaim
+
+        claim = DomainClaim()
+        os.environ["ROS_DOMAIN_ID"] = str(claim.domain_id)
     outcomes = []
     with tempfile.TemporaryDirectory(prefix="identify-bench-") as tmp:
         where = args.keep or Path(tmp)
@@ -257,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
             outcomes.append(outcome)
             print(format_outcome(outcome), flush=True)
     print(summary(outcomes))
+    if claim is not None:
+        claim.release()
     return 0
 
 

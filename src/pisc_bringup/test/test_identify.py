@@ -285,17 +285,20 @@ def test_graph_topics_carry_what_identification_reads():
 # -- the intervals' quantisation floor, the progress hook, a fit that cannot converge -------
 
 
-def test_the_quantisation_floor_adds_the_rows_of_one_code_coherently():
-    # rows 0-2: the current read at code 512 (a held level: one shared error); rows 3-4:
-    # the encoder at two counts; row 5: the IR channel. Each group's error is one uniform
-    # draw over its step, so its rows' Jacobian rows add before they are squared.
+def test_the_quantisation_floor_adds_the_held_rows_of_one_code_coherently():
+    # rows 0-2: the current held at code 512 (one shared error); rows 3-4: the encoder
+    # held at two counts; row 5: the IR channel held; row 6: the IR passing through
+    # code 300 (not held: its error is its own, the sandwich's). Each held group's error
+    # is one uniform draw over its step, so its rows' Jacobian rows add before squaring.
     from types import SimpleNamespace
 
-    jac = np.array([[1.0, 0.0], [1.0, 0.5], [1.0, -0.5], [0.0, 2.0], [0.0, -2.0], [3.0, 1.0]])
+    jac = np.array([[1.0, 0.0], [1.0, 0.5], [1.0, -0.5], [0.0, 2.0], [0.0, -2.0], [3.0, 1.0],
+                    [5.0, 5.0]])
     problem = SimpleNamespace(
         weights=np.array([2.0, 1.0, 0.5]),  # IR, encoder, current
-        row_codes=lambda: (np.array([512, 512, 512, 7, 8, 300]),
-                           np.array([2, 2, 2, 1, 1, 0])))
+        row_codes=lambda: (np.array([512, 512, 512, 7, 8, 300, 300]),
+                           np.array([2, 2, 2, 1, 1, 0, 0]),
+                           np.array([True] * 6 + [False])))
     meat = idf.quantisation_meat(problem, jac)
     held = 0.5 * np.array([3.0, 0.0])  # the current's weight times its three rows' sum
     counts = [np.array([0.0, 2.0]), np.array([0.0, -2.0])]  # two counts: apart
@@ -304,6 +307,26 @@ def test_the_quantisation_floor_adds_the_rows_of_one_code_coherently():
     assert meat == pytest.approx(want)
     # the held level's three rows count as one error: 9 times one row's share, not 3 times
     assert meat[0, 0] == pytest.approx((0.5 ** 2 * 9 + 2.0 ** 2 * 9) / 12)
+
+
+def test_held_rows_are_runs_of_one_code(excitation_log):
+    config, log = excitation_log
+    segments = idf.make_segments([recording_of(log)], config.plant.sensors, 0.005)
+    fit = idf.parse_fit("R")
+    problem = idf.Problem(segments, config.plant, fit, {"R": 14.0, "delay": 0.0,
+                                                        "current_offset": 0.0})
+    codes, channel, held = problem.row_codes()
+    assert len(codes) == len(problem.rows) and held.any() and not held.all()
+    # the current: every row (its loop ties each reading's error to its code)
+    assert held[channel == 2].all()
+    # the position and the angle: runs of one code at least HELD_SAMPLES long, rebuilt by
+    # hand along the first segment
+    for c in (0, 1):
+        first = codes[channel == c][:segments.size[0]]
+        runs = np.split(first, np.flatnonzero(np.diff(first)) + 1)
+        want = np.concatenate([np.full(len(r), len(r) >= idf.HELD_SAMPLES) for r in runs])
+        assert np.array_equal(held[channel == c][:segments.size[0]], want)
+        assert want.any() or c == 1
 
 
 def test_the_intervals_include_the_quantisation_floor(excitation_log):
