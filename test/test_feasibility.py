@@ -140,6 +140,8 @@ def test_clopper_pearson_interval():
     (["--draws", "0"], "--draws 0: at least 1"),
     (["--current-limit", "-1"], "the current limit must be positive"),
     (["--distribution", "no-such-distribution"], "no-such-distribution"),
+    (["--set", "safety.x_top_m=0.5"], "safety.x_top_m"),
+    (["--draws", "5", "--only", "2,5"], "--only: draw 5 is not among the 5 draws"),
 ])
 def test_the_command_refuses_bad_input_by_name(args, message, capsys, tmp_path):
     from pisc_bringup.feasibility_cli import main

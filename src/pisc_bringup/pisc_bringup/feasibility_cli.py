@@ -67,6 +67,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", type=_indices, metavar="K,K,...",
                         help="search only these draws of the N (numbered from 0; a draw's "
                         "values depend on N, as in pisc_robustness)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="override a parameter of the configuration (repeatable), e.g. "
+                        "safety.x_max_m=0.5 with track.max_m=0.51 for a longer track")
     parser.add_argument("--current-limit", type=_limit, default=None, metavar="A|none",
                         help="the current limit (default: the configuration's "
                         "current_loop.current_limit_a); 'none': the voltage alone limits it")
@@ -94,11 +97,11 @@ def main(argv: list[str] | None = None) -> int:
     from pisc_analysis.feasibility import Limits, clopper_pearson, exact_plant, find_witness, make_rig
     from pisc_bringup.robustness import Criteria, prepare
     from pisc_bringup.uncertainty import load_distribution
-    from pisc_msgs_py.config import ConfigError
+    from pisc_msgs_py.config import ConfigError, parse_overrides
     from pisc_sim.configuration import load_graph_config
 
     try:
-        config, _ = load_graph_config(args.config)
+        config, _ = load_graph_config(args.config, parse_overrides(args.set))
         distribution = load_distribution(args.distribution, config)
         draws = distribution.draw(args.draws, args.seed)
         config, base = prepare(config, distribution)
@@ -121,6 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     indices = args.only if args.only else list(range(draws.n))
     print(f"distribution {distribution.name} (digest {distribution.digest}), "
           f"{len(indices)} of {draws.n} draws of seed {args.seed}")
+    for item in args.set:
+        print(f"  --set {item}")
     print(f"limits: |u| <= {limits.voltage_v} V, |i| <= "
           f"{'(voltage only)' if limits.current_a is None else f'{limits.current_a} A'}, "
           f"x in [{limits.x_min_m}, {limits.x_max_m}] m, in the catch region "
