@@ -726,12 +726,12 @@ class Problem:
     def row_codes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(the measured code, the channel, whether it is held) of every residual row:
         ADC codes of the IR and current readings, encoder counts of the angle (each
-        rounded: noisy or off-grid readings are taken at their nearest code); a row of
-        the position or the angle is held when its channel reads the same code for at
-        least :data:`HELD_SAMPLES` samples in a row (a level, not a signal passing
-        through the code); every current row is: the PI loop (3.47) drives the current
-        it reads to the set-point, so the true current settles where the loop leaves it
-        relative to the code's edges, and the error returns in the voltages."""
+        rounded: noisy or off-grid readings are taken at their nearest code); a row is
+        held when its channel reads the same code for at least :data:`HELD_SAMPLES`
+        samples in a row (a level, not a signal passing through the code). Counting
+        every current reading as held (the PI loop (3.47) acts on the code it reads)
+        made R's intervals cover through the driver but widened J_m's past
+        :data:`IDENTIFIABLE` (docs/identification.md, "The quantisation floor")."""
         s = self.sensors
         m = self.seg.measured
         codes = np.rint(np.stack([(m[..., 0] - s.adc_ref_low_v) / s.adc_lsb_v - 0.5,
@@ -746,9 +746,6 @@ class Problem:
         run = np.cumsum(start.reshape(-1)) - 1
         held = (np.bincount(run)[run] >= HELD_SAMPLES).reshape(c.shape).transpose(0, 2, 1)
         channel = np.broadcast_to(np.arange(3), m.shape)
-        # the current loop acts on the code it reads: its quantisation error comes back
-        # in the voltage, so every current reading's error is tied to its code
-        held = held | (channel == 2)
         return (codes.reshape(-1)[self.rows], channel.reshape(-1)[self.rows],
                 held.reshape(-1)[self.rows])
 

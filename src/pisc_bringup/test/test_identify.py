@@ -317,16 +317,12 @@ def test_held_rows_are_runs_of_one_code(excitation_log):
                                                         "current_offset": 0.0})
     codes, channel, held = problem.row_codes()
     assert len(codes) == len(problem.rows) and held.any() and not held.all()
-    # the current: every row (its loop ties each reading's error to its code)
-    assert held[channel == 2].all()
-    # the position and the angle: runs of one code at least HELD_SAMPLES long, rebuilt by
-    # hand along the first segment
-    for c in (0, 1):
+    # runs of one code at least HELD_SAMPLES long, rebuilt by hand along the first segment
+    for c in (0, 1, 2):
         first = codes[channel == c][:segments.size[0]]
         runs = np.split(first, np.flatnonzero(np.diff(first)) + 1)
         want = np.concatenate([np.full(len(r), len(r) >= idf.HELD_SAMPLES) for r in runs])
         assert np.array_equal(held[channel == c][:segments.size[0]], want)
-        assert want.any() or c == 1
 
 
 def test_the_intervals_include_the_quantisation_floor(excitation_log):
