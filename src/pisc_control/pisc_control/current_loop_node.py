@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from pisc_control.current_loop import CurrentLoopParams, CurrentLoopState, current_loop_cycle
@@ -43,18 +44,19 @@ class CurrentLoopNode(PiscNode):
                 self.section(flat, "current_loop"))
 
     def _on_force(self, msg: Any) -> None:
-        force = self.parse(msg, cart_force_from_msg, "cart_force")
-        if force is None or self._answers.resend(force.stamp_ns):
-            return
-        pair = self._pairs.add_first(force.stamp_ns, force)
-        if pair:
-            self._cycle(*pair)
+        self._pair(self.parse(msg, cart_force_from_msg, "cart_force"), self._pairs.add_first)
 
     def _on_current(self, msg: Any) -> None:
-        current = self.parse(msg, motor_sample_from_msg, "motor current")
-        if current is None or self._answers.resend(current.stamp_ns):
+        self._pair(self.parse(msg, motor_sample_from_msg, "motor current"),
+                   self._pairs.add_second)
+
+    def _pair(self, item: CartForce | MotorSample | None,
+              add: Callable[[int, Any], tuple[CartForce, MotorSample] | None]) -> None:
+        """One half of a cycle: a resent stamp gets its first answer again; the half
+        that completes a pair runs the cycle."""
+        if item is None or self._answers.resend(item.stamp_ns):
             return
-        pair = self._pairs.add_second(current.stamp_ns, current)
+        pair = add(item.stamp_ns, item)
         if pair:
             self._cycle(*pair)
 

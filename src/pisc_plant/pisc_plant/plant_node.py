@@ -274,20 +274,13 @@ class PlantNode(PiscNode):
         if self._stopping():
             return
         self._watch_duration(msg)
-        if self._sim.plant.force_input:
-            return
-        command = self.parse(msg, motor_sample_from_msg, "voltage command", WARN)
-        if command is not None:
-            self._on_command(command.stamp_ns,
-                             plant_command(self._sim.plant.config, voltage_v=command.value))
+        if not self._sim.plant.force_input:
+            self._on_command(msg, "voltage command", "voltage_v")
 
     def _on_setpoint(self, msg: Any) -> None:
         if self._stopping():
             return
-        command = self.parse(msg, motor_sample_from_msg, "current set-point", WARN)
-        if command is not None:
-            self._on_command(command.stamp_ns,
-                             plant_command(self._sim.plant.config, setpoint_a=command.value))
+        self._on_command(msg, "current set-point", "setpoint_a")
 
     def _watch_duration(self, msg: Any) -> None:
         """The run's end, by pisc_graph's own rule (a voltage stamped ``duration_s`` after
@@ -303,8 +296,14 @@ class PlantNode(PiscNode):
             self.get_logger().info(f"the run's {self._sim_params.duration_s} s are over at "
                                    f"sample {self._sim.index}: no more samples")
 
-    def _on_command(self, stamp_ns: int, command: float) -> None:
-        """A command (:func:`pisc_plant.command.plant_command`) answering ``stamp_ns``."""
+    def _on_command(self, msg: Any, what: str, value_name: str) -> None:
+        """A message of the topic that drives the plant; ``value_name`` is the argument of
+        :func:`pisc_plant.command.plant_command` its value is (set-point or voltage)."""
+        sample = self.parse(msg, motor_sample_from_msg, what, WARN)
+        if sample is None:
+            return
+        stamp_ns = sample.stamp_ns
+        command = plant_command(self._sim.plant.config, **{value_name: sample.value})
         self._check_publishers()
         if not self._started:
             return
