@@ -255,8 +255,11 @@ def main(argv: list[str] | None = None) -> int:
                     recording = record_lockstep(truth, args.duration, overrides, args.seed + k)
                 else:
                     bag = where / f"draw-{k:03d}"
-                    if not (args.keep and (bag / "metadata.yaml").exists()):
-                        bag = record_driver(truth, args.duration, overrides, bag)
+                    # a draw recorded again (the machine did not keep time) is draw-NNN-A
+                    kept = sorted(p for p in where.glob(f"draw-{k:03d}*")
+                                  if (p / "metadata.yaml").exists()) if args.keep else []
+                    bag = kept[-1] if kept else record_driver(truth, args.duration,
+                                                              overrides, bag)
                     recording = idf.read_recording(bag)
                 outcome.result, outcome.wall_s = identify_one(recording, args.fit)
                 judge(outcome, base.plant)
