@@ -344,8 +344,11 @@ class PlantNode(PiscNode):
         matched = self._command_sub.get_publisher_count()
         if not self._pin.needs_look(matched):
             return
+        # before the first sample no answer to any sample can be queued: nothing to fence
+        # off when a publisher the graph did not name yet turns out to be the pinned one
+        newest_ns = self._stamp_ns if self._started else -1
         change = self._pin.look(matched, listed_publishers(self, self._command_topic.name),
-                                self._stamp_ns)
+                                newest_ns)
         if change is None:
             return
         if change.intruders:
