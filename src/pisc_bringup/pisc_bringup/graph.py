@@ -54,6 +54,7 @@ exits 0 when it ran without a fault, 1 when it faulted.
 from __future__ import annotations
 
 import argparse
+import collections
 import ctypes
 import importlib
 import math
@@ -821,36 +822,88 @@ def _normal_scheduling() -> None:  # pragma: no cover - runs in the child before
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
+STDERR_TAIL_LINES = 200  # of a child's standard error, kept for the message on its failure
+
+
 def _spawn(args: list[str], env: dict[str, str], stdout: int,
            normal_scheduling: bool = False) -> subprocess.Popen:
+    """Start a child; a thread reads its standard error as it comes and keeps the last
+    :data:`STDERR_TAIL_LINES` lines. (Read only when stopping it, the pipe filled on a
+    long run: 344 lines of the driver's faults in a 10-minute soak blocked its reader
+    thread in ``write`` at 163 s, and the run never ended.)"""
     preexec = _normal_scheduling if normal_scheduling else _die_with_parent
-    return subprocess.Popen(args, env=env, stdout=stdout, stderr=subprocess.PIPE,
-                            preexec_fn=preexec if sys.platform == "linux" else None)
+    child = subprocess.Popen(args, env=env, stdout=stdout, stderr=subprocess.PIPE,
+                             preexec_fn=preexec if sys.platform == "linux" else None)
+    tail: collections.deque[bytes] = collections.deque(maxlen=STDERR_TAIL_LINES)
+    stream, child.stderr = child.stderr, None  # the thread's alone: communicate() skips it
+    reader = threading.Thread(target=_drain, args=(stream, tail), daemon=True,
+                              name=f"stderr of {Path(args[0]).name}")
+    reader.start()
+    child.pisc_stderr = (tail, reader)  # type: ignore[attr-defined]
+    return child
+
+
+def _drain(stream: Any, tail: collections.deque[bytes]) -> None:
+    with stream:
+        for line in iter(stream.readline, b""):
+            tail.append(line)
+
+
+def _stderr_of(child: subprocess.Popen) -> bytes:
+    """What a child that has exited wrote on its standard error (the last lines)."""
+    tail, reader = child.pisc_stderr  # type: ignore[attr-defined]
+    reader.join(timeout=5.0)
+    return b"".join(tail)
+
+
+def _cpu_ticks(pid: int) -> int | None:
+    """User + system clock ticks a process has used (Linux), None when unknown."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+        return int(fields[11]) + int(fields[12])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+STOP_PATIENCE_S = 20.0  # a stopping child that uses no CPU for this long is killed
+STOP_LIMIT_S = 600.0  # and one still busy after this long
 
 
 def _stop(child: subprocess.Popen) -> tuple[str, str]:
-    """SIGTERM a child (SIGINT may be ignored in background jobs) and wait for it.
+    """SIGTERM a child (SIGINT may be ignored in background jobs) and wait for it: while
+    it keeps using the CPU (a recorder finishing a long bag on a loaded machine), up to
+    :data:`STOP_LIMIT_S`; SIGKILL once it used none for :data:`STOP_PATIENCE_S`.
 
     Returns (what went wrong or "", its standard output).
     """
     if child.poll() is None:
         child.send_signal(signal.SIGTERM)
-    try:
-        out, err = child.communicate(timeout=20)
-    except subprocess.TimeoutExpired:
-        child.kill()
-        out, err = child.communicate()
+    started = time.monotonic()
+    ticks = _cpu_ticks(child.pid)
+    while True:
+        try:
+            out, _ = child.communicate(timeout=STOP_PATIENCE_S)
+            break
+        except subprocess.TimeoutExpired:
+            now = _cpu_ticks(child.pid)
+            if (ticks is None or now is None or now == ticks
+                    or time.monotonic() - started > STOP_LIMIT_S):
+                child.kill()
+                out, _ = child.communicate()
+                break
+            ticks = now
     output = out.decode(errors="replace") if out else ""
     if child.returncode not in (0, -signal.SIGTERM):
         return (f"{Path(child.args[0]).name} exited with status {child.returncode}: "
-                f"{(err or b'').decode(errors='replace').strip()}"), output
+                f"{_stderr_of(child).decode(errors='replace').strip()}"), output
     return "", output
 
 
 def _check_recorder(recorder: subprocess.Popen) -> None:
     if recorder.poll() is not None:
-        _, err = recorder.communicate()
-        raise GraphError(f"pisc_record exited: {err.decode(errors='replace').strip()}")
+        recorder.communicate()
+        raise GraphError(f"pisc_record exited: "
+                         f"{_stderr_of(recorder).decode(errors='replace').strip()}")
 
 
 def _recorder_ready(watcher: Node, recorder: subprocess.Popen, recorded: Sequence[Topic],

@@ -1,0 +1,70 @@
+"""pisc_graph's child processes: their standard error is read as it comes, and a child
+that is stopping is waited for while it works (issue 15: a faulted 10-minute soak froze
+when the driver's unread stderr pipe filled; issue 16: a recorder finishing a 10-minute
+bag on a loaded machine was killed after 20 s)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+
+import pytest
+
+from pisc_bringup import graph
+
+
+def _child(code: str, tmp_path):
+    return graph._spawn([sys.executable, "-c", code], dict(os.environ), graph.subprocess.PIPE)
+
+
+def test_a_child_writing_much_to_stderr_is_not_blocked_and_its_last_lines_are_kept(tmp_path):
+    done = tmp_path / "done"
+    # 400 KB of log lines, then a file: with the pipe unread it would block at 64 KB
+    code = ("import sys, pathlib\n"
+            "for k in range(4000): print(f'line {k} ' + 'x' * 90, file=sys.stderr, flush=True)\n"
+            f"pathlib.Path({str(done)!r}).write_text('ok')\n"
+            "print('bye', file=sys.stderr); sys.exit(3)")
+    child = _child(code, tmp_path)
+    deadline = time.monotonic() + 60
+    while not done.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert done.exists()
+    problem, _ = graph._stop(child)
+    assert problem.startswith(f"{os.path.basename(sys.executable)} exited with status 3: ")
+    lines = problem.split(": ", 1)[1].splitlines()
+    assert lines[-1] == "bye" and len(lines) == graph.STDERR_TAIL_LINES
+    assert lines[0].startswith("line 3801 ")
+
+
+def test_a_stopping_child_is_waited_for_while_it_works_and_killed_when_idle(tmp_path,
+                                                                            monkeypatch):
+    monkeypatch.setattr(graph, "STOP_PATIENCE_S", 1.0)
+    # on SIGTERM it computes for 3 s more (a recorder finishing a long bag), then ends
+    busy = _child("import signal, time\n"
+                  "asked = []\n"
+                  "signal.signal(signal.SIGTERM, lambda *a: asked.append(time.monotonic()))\n"
+                  "print('ready', flush=True)\n"
+                  "while not asked: time.sleep(0.01)\n"
+                  "while time.monotonic() < asked[0] + 3: pass\n", tmp_path)
+    assert busy.stdout.readline() == b"ready\n"
+    started = time.monotonic()
+    problem, _ = graph._stop(busy)
+    assert problem == "" and busy.returncode == 0 and time.monotonic() - started >= 2.0
+    # ignores SIGTERM and sleeps: no CPU for the patience, so it is killed
+    idle = _child("import signal, time\nsignal.signal(signal.SIGTERM, lambda *a: None)\n"
+                  "print('waiting', flush=True)\ntime.sleep(60)", tmp_path)
+    assert idle.stdout.readline() == b"waiting\n"
+    problem, _ = graph._stop(idle)
+    assert idle.returncode == -signal.SIGKILL
+    assert problem.startswith(f"{os.path.basename(sys.executable)} exited with status -9")
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="/proc")
+def test_cpu_ticks_grow_with_work():
+    before = graph._cpu_ticks(os.getpid())
+    end = time.process_time() + 0.3
+    while time.process_time() < end:
+        pass
+    assert graph._cpu_ticks(os.getpid()) > before
