@@ -21,7 +21,6 @@ from pisc_bringup.markers import MarkerFeed, MarkerScene, MarkersParams, RigFram
 from pisc_control.supervisor import SafetyParams
 from pisc_msgs_py.base_node import WARN, PiscNode, run_node
 from pisc_msgs_py.convert import (
-    MessageError,
     cart_force_from_msg,
     joint_sample_from_msg,
     mode_from_msg,
@@ -75,27 +74,21 @@ class MarkersNode(PiscNode):
         self._sample(msg, joint_sample_from_msg, False)
 
     def _sample(self, msg: Any, convert: Any, true_state: bool) -> None:
-        try:
-            s = convert(msg)
-        except MessageError as exc:
-            self.diagnose(WARN, f"rejected state sample: {exc}")
+        s = self.parse(msg, convert, "state sample", WARN)
+        if s is None:
             return
         self._publish(self._feed.on_state(s.stamp_ns, s.position_m, s.angle_rad, true_state,
                                           self._true_state_published))
 
     def _on_force(self, msg: Any) -> None:
-        try:
-            f = cart_force_from_msg(msg)
-        except MessageError as exc:
-            self.diagnose(WARN, f"rejected cart force: {exc}")
+        f = self.parse(msg, cart_force_from_msg, "cart force", WARN)
+        if f is None:
             return
         self._publish(self._feed.on_force(f.stamp_ns, f.force_n))
 
     def _on_mode(self, msg: Any) -> None:
-        try:
-            report = mode_from_msg(msg)
-        except MessageError as exc:
-            self.diagnose(WARN, f"rejected mode: {exc}")
+        report = self.parse(msg, mode_from_msg, "mode", WARN)
+        if report is None:
             return
         self._feed.on_mode(report.stamp_ns, report.mode)
 
