@@ -95,16 +95,12 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
     from pisc_analysis.feasibility import Limits, clopper_pearson, exact_plant, find_witness, make_rig
-    from pisc_bringup.robustness import Criteria, prepare
-    from pisc_bringup.uncertainty import load_distribution
-    from pisc_msgs_py.config import ConfigError, parse_overrides
-    from pisc_sim.configuration import load_graph_config
+    from pisc_bringup.robustness import Criteria, load_benchmark
+    from pisc_msgs_py.config import ConfigError
 
     try:
-        config, _ = load_graph_config(args.config, parse_overrides(args.set))
-        distribution = load_distribution(args.distribution, config)
-        draws = distribution.draw(args.draws, args.seed)
-        config, base = prepare(config, distribution)
+        config, distribution, draws, base = load_benchmark(
+            args.config, args.set, args.distribution, args.draws, args.seed)
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2

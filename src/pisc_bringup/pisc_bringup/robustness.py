@@ -29,7 +29,7 @@ from pisc_msgs_py.config import from_flat, to_flat
 from pisc_model.params import InitialParams
 from pisc_plant.plant import PlantConfig, plant_set
 
-__all__ = ["CHUNK_DRAWS", "FAILURES", "Criteria", "Outcomes", "base_plant",
+__all__ = ["CHUNK_DRAWS", "FAILURES", "Criteria", "Outcomes", "base_plant", "load_benchmark",
            "binomial_interval", "evaluate", "evaluate_chunk", "prepare", "rerun_command",
            "success_by_value"]
 
@@ -186,6 +186,23 @@ def prepare(config: GraphConfig, distribution: Distribution) -> tuple[GraphConfi
         flat = {**to_flat(config.initial, "initial"), **distribution.plant}
         config = replace(config, initial=from_flat(InitialParams, flat, "initial"))
     return config, base_plant(config, distribution)
+
+
+def load_benchmark(config_name: str, overrides: Sequence[str], distribution_name: str,
+                   n: int, seed: int) -> tuple[GraphConfig, Distribution, Draws, PlantConfig]:
+    """What a study over a distribution starts from (pisc_robustness, pisc_feasibility):
+    the configuration ``config_name`` with ``overrides`` (``NAME=VALUE``), the
+    distribution read against it, its ``n`` draws from ``seed``, and :func:`prepare`'s
+    configuration and base plant. :class:`ConfigError` names what is wrong."""
+    from pisc_bringup.uncertainty import load_distribution
+    from pisc_msgs_py.config import parse_overrides
+    from pisc_sim.configuration import load_graph_config
+
+    config, _ = load_graph_config(config_name, parse_overrides(list(overrides)))
+    distribution = load_distribution(distribution_name, config)
+    draws = distribution.draw(n, seed)
+    config, plant = prepare(config, distribution)
+    return config, distribution, draws, plant
 
 
 def success_by_value(values: np.ndarray, success: np.ndarray, bins: int = 10,

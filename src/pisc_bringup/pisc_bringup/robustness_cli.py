@@ -85,20 +85,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--worst {args.worst}: 0 or more")
 
     from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
-    from pisc_sim.configuration import config_path, load_graph_config
-    from pisc_bringup.robustness import CHUNK_DRAWS, Criteria, evaluate, prepare
-    from pisc_bringup.uncertainty import load_distribution
+    from pisc_sim.configuration import config_path
+    from pisc_bringup.robustness import CHUNK_DRAWS, Criteria, evaluate, load_benchmark
     from pisc_control.supervisor import Supervisor
     from pisc_msgs_py.config import ConfigError, parse_overrides
     from pisc_msgs_py.progress import progress_bar
 
     try:
-        overrides = parse_overrides(args.set)
-        config, _ = load_graph_config(args.config, overrides)
+        config, distribution, draws, plant = load_benchmark(
+            args.config, args.set, args.distribution, args.draws, args.seed)
         Supervisor(config.supervisor)  # the gain condition (3.29) and the catch design
-        distribution = load_distribution(args.distribution, config)
-        draws = distribution.draw(args.draws, args.seed)
-        config, plant = prepare(config, distribution)
+        overrides = parse_overrides(args.set)  # (for the worst draws' commands)
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
