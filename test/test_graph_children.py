@@ -61,7 +61,8 @@ def test_a_stopping_child_is_waited_for_while_it_works_and_killed_when_idle(tmp_
     assert problem.startswith(f"{os.path.basename(sys.executable)} exited with status -9")
 
 
-@pytest.mark.skipif(sys.platform != "linux", reason="/proc")
+@pytest.mark.skipif(sys.platform != "linux",
+                    reason="CPU ticks are read from /proc, which only Linux has")
 def test_cpu_ticks_grow_with_work():
     before = graph._cpu_ticks(os.getpid())
     end = time.process_time() + 0.3
