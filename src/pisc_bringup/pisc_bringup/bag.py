@@ -15,7 +15,10 @@ died) rewrites the stream as an indexed file, the way rosbag2 writes MCAP: the m
 in log-time order (stable: a tie keeps the recorded order) in chunks of up to 768 KiB
 (libmcap's default, which rosbag2 uses), each followed by its message indexes, and a
 summary with the schemas, channels, statistics, one chunk index per chunk and the
-summary offsets, written by the ``mcap`` library's writer. The indexed file is written
+summary offsets, as the ``mcap`` library's writer lays them out. The stream is read and
+written a block at a time, in bounded memory (:mod:`pisc_bringup.bag_index`: a reorder
+window, and an external merge beside the bag if a message comes too late for it). The
+indexed file is written
 beside the stream (``<name>_0.mcap.tmp``), synced, and renamed over it, and
 ``metadata.yaml`` is written last (also through a rename): a finish that is
 interrupted leaves either the whole stream or the whole indexed file, and
@@ -31,9 +34,8 @@ from __future__ import annotations
 import io
 import os
 import struct
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
-from operator import attrgetter
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +53,7 @@ from rosbags.interfaces import (
 from rosbags.rosbag2.metadata import dump_qos_v8, dump_qos_v9
 from rosbags.typesys import Stores, get_typestore
 
+from pisc_bringup.bag_index import CHUNK_SIZE, MCAP_MAGIC, NotMcap, Written, write_sorted
 from pisc_msgs_py.topics import QosSpec, Topic
 
 __all__ = ["BagError", "BagMessage", "BagWriter", "RawMessage", "RepairReport", "bag_files",
@@ -58,7 +61,6 @@ __all__ = ["BagError", "BagMessage", "BagWriter", "RawMessage", "RepairReport", 
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ROSBAG2_VERSION = 9
-CHUNK_SIZE = 768 * 1024  # libmcap's default chunk size, which rosbag2 writes with
 TEMP_SUFFIX = ".tmp"  # the indexed file while it is written, beside the stream
 _NEVER = QosTime(0x7FFFFFFF, 0xFFFFFFFF)  # rmw's "infinite" duration as rosbag2 dumps it
 
@@ -159,10 +161,11 @@ class BagWriter:
         self._file.close()  # the stream: whole records, no summary
         started = time.perf_counter()
         try:
-            records = _read_records(self.path.read_bytes())
-            counts = _write_indexed(self.path, records, "pisc")
-            _write_metadata(self.directory, self.path.name, _topic_records(records, counts),
-                            *records.time_range())
+            written = _write_indexed(self.path, "pisc")
+            _write_metadata(self.directory, self.path.name,
+                            _topic_records(written.schemas, written.channels,
+                                           _topic_counts(written)),
+                            written.first_ns, written.last_ns)
         except (OSError, BagError) as exc:
             raise BagError(f"{self.path}: could not finish the bag ({exc}); `pisc_bag repair "
                            f"{self.directory}` finishes it from the recorded stream") from exc
@@ -235,9 +238,6 @@ def header_stamp_ns(data: bytes) -> int | None:
         return None
     sec, nanosec = struct.unpack_from("<iI", data, 4)
     return sec * 1_000_000_000 + nanosec
-
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 def bag_files(directory: str | Path) -> list[Path]:
@@ -338,86 +338,53 @@ def read_bag_raw(directory: str | Path,
             raise BagError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from exc
 
 
-@dataclass
-class _Records:
-    """The schemas, channels and messages of an MCAP file, read record by record."""
-
-    schemas: dict[int, Any] = field(default_factory=dict)
-    channels: dict[int, Any] = field(default_factory=dict)  # by id, in the file's order
-    messages: list[Any] = field(default_factory=list)  # mcap.records.Message, file order
-    whole_bytes: int = 0  # the file's bytes up to the end of its last whole record
-    size: int = 0
-
-    def time_range(self) -> tuple[int, int]:
-        times = [m.log_time for m in self.messages]
-        return min(times, default=0), max(times, default=0)
-
-
-def _read_records(raw: bytes) -> _Records:
-    """Whole records of an MCAP file (a stream, finished or not, or an indexed file): up
-    to the first record that is incomplete or corrupt, or to the end of the data section.
-    """
-    from mcap.records import Channel, DataEnd, Footer, Message, Schema
-    from mcap.stream_reader import StreamReader
-
-    if not raw.startswith(MCAP_MAGIC):
-        raise BagError("not an MCAP file (it does not start with the MCAP magic)")
-    records = _Records(whole_bytes=_whole_records_end(raw), size=len(raw))
-    try:
-        for record in StreamReader(io.BytesIO(raw[:records.whole_bytes]),
-                                   validate_crcs=True).records:
-            if isinstance(record, Schema):
-                records.schemas[record.id] = record
-            elif isinstance(record, Channel):
-                records.channels[record.id] = record
-            elif isinstance(record, Message):
-                records.messages.append(record)
-            elif isinstance(record, (DataEnd, Footer)):
-                break
-    except Exception:  # noqa: BLE001, S110 - whole records that do not parse end the data
-        pass
-    return records
-
-
-def _write_indexed(path: Path, records: _Records, library: str) -> dict[str, int]:
-    """Write ``records`` as an indexed MCAP file in log-time order over ``path``.
+def _write_indexed(path: Path, library: str,
+                   before_replace: Callable[[Written], None] | None = None) -> Written:
+    """Rewrite ``path`` (an MCAP file: a stream, finished or not, or an indexed file) as
+    an indexed MCAP file in log-time order, in bounded memory
+    (:func:`pisc_bringup.bag_index.write_sorted`: the whole records up to the first
+    incomplete or corrupt one).
 
     Written to ``path`` + :data:`TEMP_SUFFIX`, synced, then renamed over ``path`` (an
-    interruption leaves ``path`` as it was). Returns the messages written per topic
-    (messages of a channel that has no channel record are dropped: they cannot be read).
+    interruption leaves ``path`` as it was); ``before_replace`` is called with what was
+    written before the rename (an exception from it removes the new file and leaves
+    ``path`` alone). Messages of a channel that has no channel record before them are
+    dropped: they cannot be read.
     """
     tmp = path.with_name(path.name + TEMP_SUFFIX)
-    counts = {c.topic: 0 for c in records.channels.values()}
     with tmp.open("wb") as out:
-        writer = Writer(out, chunk_size=CHUNK_SIZE, compression=CompressionType.NONE,
-                        enable_crcs=True)
-        writer.start(profile="ros2", library=library)
-        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data)
-                      for sid, s in records.schemas.items()}
-        channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding,
-                                                    schema_ids.get(c.schema_id, 0), c.metadata)
-                       for cid, c in records.channels.items()}
-        known = [m for m in records.messages if m.channel_id in channel_ids]
-        records.messages = sorted(known, key=attrgetter("log_time"))  # stable
-        for m in records.messages:
-            writer.add_message(channel_ids[m.channel_id], m.log_time, m.data, m.publish_time,
-                               sequence=m.sequence)
-            counts[records.channels[m.channel_id].topic] += 1
-        writer.finish()
+        try:
+            written = write_sorted(path, out, library)
+        except NotMcap as exc:
+            raise BagError(str(exc)) from None
         out.flush()
         os.fsync(out.fileno())
+    if before_replace is not None:
+        try:
+            before_replace(written)
+        except BaseException:
+            tmp.unlink()
+            raise
     tmp.replace(path)
-    return counts
+    return written
 
 
-def _topic_records(records: _Records, counts: dict[str, int]) -> list[_TopicRecord]:
+def _topic_records(schemas: dict[int, Any], channels: dict[int, Any],
+                   counts: dict[str, int]) -> list[_TopicRecord]:
     topics = []
-    for c in records.channels.values():
-        schema = records.schemas.get(c.schema_id)
+    for c in channels.values():
+        schema = schemas.get(c.schema_id)
         qos = _parse_offered_qos(c.metadata.get("offered_qos_profiles", ""))
         topics.append(_TopicRecord(c.topic, schema.name if schema else "", qos,
                                    c.metadata.get("topic_type_hash", ""), counts[c.topic]))
     return topics
+
+
+def _topic_counts(written: Written) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for cid, c in written.channels.items():
+        counts[c.topic] = counts.get(c.topic, 0) + written.counts.get(cid, 0)
+    return counts
 
 
 def index_problems(path: str | Path) -> list[str]:
@@ -571,7 +538,6 @@ def repair_bag(directory: str | Path) -> RepairReport:
         with path.open("rb") as stream:
             reader = make_reader(stream)
             summary = reader.get_summary()
-        records = _Records(schemas=dict(summary.schemas), channels=dict(summary.channels))
         stats = summary.statistics
         counts = {c.topic: stats.channel_message_counts.get(cid, 0)
                   for cid, c in summary.channels.items()}
@@ -585,25 +551,30 @@ def repair_bag(directory: str | Path) -> RepairReport:
         meta_backup = _keep_broken_metadata(directory)
         times = ((stats.message_start_time, stats.message_end_time) if stats.message_count
                  else (0, 0))
-        _write_metadata(directory, path.name, _topic_records(records, counts), *times)
+        _write_metadata(directory, path.name,
+                        _topic_records(summary.schemas, summary.channels, counts), *times)
         removed = _remove(leftover)
         return RepairReport(path, None, counts, 0, (problem,), meta_backup, removed)
 
     removed = _remove(leftover)
-    records = _read_records(path.read_bytes())
-    if not records.channels:
-        raise BagError(f"{path}: no channel record survived; nothing to recover")
     backup = path.with_name(path.name + (".unindexed" if finished else ".unfinished"))
-    _link_or_copy(path, backup)
-    counts = _write_indexed(path, records, "pisc repair")
+
+    def keep_as_found(written: Written) -> None:
+        if not written.channels:
+            raise BagError(f"{path}: no channel record survived; nothing to recover")
+        _link_or_copy(path, backup)
+
+    written = _write_indexed(path, "pisc repair", keep_as_found)
+    counts = _topic_counts(written)
     problem = _metadata_problem(directory, path.name, counts)
     meta_backup = None
     if problem is not None and problem != "no metadata.yaml":
         found.append(problem)
         meta_backup = _keep_broken_metadata(directory)
-    _write_metadata(directory, path.name, _topic_records(records, counts),
-                    *records.time_range())
-    dropped = records.size - records.whole_bytes if not finished else 0
+    _write_metadata(directory, path.name,
+                    _topic_records(written.schemas, written.channels, counts),
+                    written.first_ns, written.last_ns)
+    dropped = written.size - written.whole_bytes if not finished else 0
     return RepairReport(path, backup, counts, dropped, tuple(found), meta_backup, removed)
 
 
@@ -633,22 +604,6 @@ def _link_or_copy(path: Path, backup: Path) -> None:
         os.link(path, backup)
     except OSError:
         shutil.copyfile(path, backup)
-
-
-def _whole_records_end(raw: bytes) -> int:
-    """Offset after the last whole record: each is opcode (1 byte), length (8 bytes LE), body.
-
-    The reader does not notice a record cut short (it reads what is left), so the framing
-    is walked here first and the incomplete tail is never handed to it.
-    """
-    offset = len(MCAP_MAGIC)
-    while offset + 9 <= len(raw):
-        (length,) = struct.unpack_from("<Q", raw, offset + 1)
-        end = offset + 9 + length
-        if end > len(raw):
-            break
-        offset = end
-    return offset
 
 
 def _parse_offered_qos(text: str) -> Qos:
