@@ -17,7 +17,7 @@ from pisc_bringup.analysis import _limits, analyse_bag, analyse_messages, decima
 from pisc_bringup.bag import TYPESTORE, BagError, BagWriter, read_bag, read_bag_raw
 from pisc_bringup.bag_columns import FastPathRefused, read_columns
 from pisc_bringup.summary import TABLE_TOPICS, summarise, summarise_bag, tables_of_bag
-from pisc_msgs_py.topics import GRAPH_TOPICS, JOINT_STATES, MODE, VOLTAGE
+from pisc_msgs_py.topics import CART_FORCE, GRAPH_TOPICS, JOINT_STATES, MODE, VOLTAGE
 
 pytestmark = pytest.mark.bag
 
@@ -129,6 +129,31 @@ def test_a_value_that_is_not_finite_goes_to_the_message_path_which_names_it(tmp_
     with pytest.raises(BagError) as ours:
         analyse_bag(bag)
     assert str(ours.value) == f"{bag}: {message_path.value}"
+
+
+@pytest.mark.parametrize("bag", [SWINGUP, DRIVER], ids=["lockstep", "driver"])
+def test_the_cart_force_wrenches_read_as_columns_as_the_messages(bag, tmp_path):
+    """geometry_msgs/WrenchStamped (replay reads /pisc/cart_force this way): force and
+    torque as values of x, y, z; a value that is not finite goes to the message path."""
+    columns, _ = read_columns(bag, [CART_FORCE.name], block_bytes=64 * 1024)
+    got = columns[CART_FORCE.name]
+    ours = [m for m in _messages(bag) if m.topic == CART_FORCE.name]
+    assert got.names == ("x", "y", "z") and len(got) == len(ours) > 2000
+    assert got.stamp_ns.tolist() == [
+        m.message.header.stamp.sec * 10**9 + m.message.header.stamp.nanosec for m in ours]
+    for field in ("force", "torque"):
+        assert np.array_equal(got.values[field], [
+            [getattr(getattr(m.message.wrench, field), a) for a in "xyz"] for m in ours])
+
+    def nan_force(topic, k, data):
+        if topic == CART_FORCE.name and k == 700:
+            msg = TYPESTORE.deserialize_cdr(data, CART_FORCE.type)
+            msg.wrench.force.x = float("nan")
+            return bytes(TYPESTORE.serialize_cdr(msg, CART_FORCE.type))
+        return data
+
+    with pytest.raises(FastPathRefused, match="not finite"):
+        read_columns(_copy(bag, tmp_path / "nan", nan_force), [CART_FORCE.name])
 
 
 def test_joint_names_the_bag_does_not_agree_on_are_named_by_the_message_path(tmp_path):

@@ -22,9 +22,14 @@ from pisc_bringup.bag_readers import READERS, read_every_way
 from pisc_bringup.replay import (
     COMPARED_TOPICS,
     RecordedRun,
+    StampTable,
+    bag_config,
     compare,
     load_recorded,
+    load_recorded_bag,
+    load_recorded_columns,
     replay_bag,
+    replay_cores,
 )
 from pisc_msgs_py.convert import stamp_from_msg
 from pisc_msgs_py.topics import (
@@ -89,6 +94,65 @@ def test_every_reference_bag_replays_bit_for_bit_through_the_cores(bag):
         expected = report.cycles if t.topic != MODE.name else t.compared
         assert t.compared == expected and t.compared >= 2
     assert "result: REPRODUCED (tolerance 0)" in report.format()
+
+
+def assert_columns_give_the_messages_run(bag: Path) -> RecordedRun:
+    """Replay's bounded-memory path (the bag read as columns, the run held as numpy
+    columns) gives the run the message path gives, value for value, and the same report
+    through the cores."""
+    by_messages = load_recorded(read_bag(bag), str(bag))
+    by_columns = load_recorded_columns(bag, str(bag))
+    assert list(by_columns.samples) == list(by_messages.samples)
+    assert all(type(v) is float for s in by_columns.samples[:3] for v in s[1:])
+    for topic in COMPARED_TOPICS:
+        assert dict(by_columns.outputs[topic]) == dict(by_messages.outputs[topic]), topic
+    assert isinstance(by_columns.outputs[VOLTAGE.name], StampTable)
+    assert by_columns.notes == by_messages.notes
+    cfg, _ = bag_config(bag)
+    recomputed = replay_cores(by_columns, cfg)
+    as_dicts = {topic: dict(table) for topic, table in recomputed.items()}
+    assert compare(by_columns, recomputed) == compare(by_messages, as_dicts)
+    return by_columns
+
+
+@pytest.mark.parametrize("bag", REFERENCE_BAGS, ids=lambda p: p.name)
+def test_replay_reads_the_columns_into_the_run_the_messages_give(bag):
+    assert_columns_give_the_messages_run(bag)
+
+
+def test_a_resent_sample_keeps_its_first_message_and_bad_messages_are_named(tmp_path):
+    """A stamp recorded twice keeps its first message on both paths; a message the
+    columns cannot read (joints replay does not know) goes to the message path, whose
+    error names it."""
+    import numpy as np
+
+    from pisc_bringup.bag import TYPESTORE
+
+    def joint_state(stamp: int, names: list[str], position: list[float]) -> bytes:
+        t = TYPESTORE.types
+        msg = t["sensor_msgs/msg/JointState"](
+            header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](
+                sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id=""),
+            name=names, position=np.array(position), velocity=np.array([], dtype=float),
+            effort=np.array([], dtype=float))
+        return bytes(TYPESTORE.serialize_cdr(msg, "sensor_msgs/msg/JointState"))
+
+    raw = list(read_bag_raw(SWINGUP))
+    resent = joint_state(10_000_000, ["cart", "pendulum"], [9.0, 9.0])
+    for name, extra in (("resent", (JOINT_STATES.name, resent)),
+                        ("strange", (STATE.name, joint_state(0, ["a", "b"], [0.0, 0.0])))):
+        writer = BagWriter(tmp_path / name, GRAPH_TOPICS)
+        for k, m in enumerate(raw):
+            writer.write(m.topic, m.data, m.log_time_ns, m.publish_time_ns or 0)
+            if k == len(raw) // 2:
+                writer.write(*extra, m.log_time_ns, m.log_time_ns)
+        writer.close()
+        shutil.copy(SWINGUP / "pisc_params.yaml", tmp_path / name)
+    run = assert_columns_give_the_messages_run(tmp_path / "resent")
+    assert run.samples[2][1:3] != (9.0, 9.0) and run.samples[2][0] == 10_000_000
+    with pytest.raises(BagError, match="/pisc/state: state: expected joints "
+                                       r"\['cart', 'pendulum'\], got \['a', 'b'\]"):
+        load_recorded_bag(tmp_path / "strange")
 
 
 def test_a_changed_swing_up_gain_diverges_at_the_first_sample():
@@ -196,6 +260,7 @@ def test_a_repaired_bag_whose_recording_ended_inside_a_cycle_replays_without_tha
     live.close()
     shutil.copy(SWINGUP / "pisc_params.yaml", bag)
     repair_bag(bag)
+    assert_columns_give_the_messages_run(bag)
     report = replay_bag(bag)
     note = ("dropped the incomplete last cycle, the recording ended inside it: stamp "
             f"1000000000 (t = 1.000 s) has no {MOTOR_CURRENT.name}")

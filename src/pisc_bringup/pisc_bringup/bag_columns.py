@@ -16,6 +16,8 @@ reads those as numpy columns:
   rosbags to find where its stamp and values lie (CDR, XCDR1 little endian), and every
   message of that length whose other bytes equal the first one's is read at those
   offsets, the whole block at once with numpy. Any other message is decoded on its own.
+  ``geometry_msgs/WrenchStamped`` (``/pisc/cart_force``, for replay) is read the same way:
+  its ``force`` and ``torque`` as values of the "joints" x, y, z.
 
 What comes out is what ``read_bag`` would give, per topic in file order: the header
 stamps, the publish times and, for each of ``position``, ``velocity`` and ``effort``, the
@@ -44,6 +46,7 @@ __all__ = ["BLOCK_BYTES", "FastPathRefused", "JointColumns", "read_columns"]
 
 BLOCK_BYTES = 8 * 1024 * 1024
 JOINT_STATE = "sensor_msgs/msg/JointState"
+WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
 FIELDS = ("position", "velocity", "effort")
 
 # MCAP record opcodes (MCAP specification, "Records")
@@ -59,7 +62,8 @@ class FastPathRefused(Exception):
 
 @dataclass
 class JointColumns:
-    """The ``sensor_msgs/JointState`` messages of one topic, in file order."""
+    """The ``sensor_msgs/JointState`` messages of one topic, in file order (or its
+    ``geometry_msgs/WrenchStamped``: ``force`` and ``torque`` of the joints x, y, z)."""
 
     names: tuple[str, ...]
     stamp_ns: np.ndarray  # int64, header stamps
@@ -126,6 +130,33 @@ def _joint_layout(data: bytes) -> _Layout:
         raise FastPathRefused("layout differs from rosbags' decoding")
     return _Layout(tuple(names), offsets, fixed,
                    np.frombuffer(data, dtype=np.uint8)[fixed].copy())
+
+
+def _wrench_layout(data: bytes) -> _Layout:
+    """The layout of one little-endian CDR WrenchStamped (header, force, torque: three
+    doubles each); FastPathRefused when it is not one."""
+    if len(data) < 12 or data[:2] != b"\x00\x01":
+        raise FastPathRefused("not little-endian plain CDR")
+    fixed = np.ones(len(data), dtype=bool)
+    fixed[4:12] = False  # stamp sec, nanosec
+    (n,) = struct.unpack_from("<I", data, 12)
+    pos = _align(12 + 4 + n, 8)  # after frame_id, at the first double
+    if pos + 48 != len(data):
+        raise FastPathRefused("not a WrenchStamped's length")
+    fixed[pos:pos + 48] = False
+    values = np.frombuffer(data, dtype="<f8", count=6, offset=pos)
+    # checked against rosbags' own decoding of the same bytes
+    msg = TYPESTORE.deserialize_cdr(data, WRENCH_STAMPED)
+    w = msg.wrench
+    if values.tobytes() != np.array([w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y,
+                                     w.torque.z], dtype="<f8").tobytes():
+        raise FastPathRefused("layout differs from rosbags' decoding")
+    return _Layout(("x", "y", "z"), {"force": pos, "torque": pos + 24}, fixed,
+                   np.frombuffer(data, dtype=np.uint8)[fixed].copy())
+
+
+#: the types read as columns, and how their layout is found
+_LAYOUTS = {JOINT_STATE: _joint_layout, WRENCH_STAMPED: _wrench_layout}
 
 
 class _Scan:
@@ -249,8 +280,9 @@ def read_columns(bag: str | Path, joint_topics: Sequence[str],
                  other_topics: Sequence[str] = (),
                  block_bytes: int = BLOCK_BYTES) -> tuple[dict[str, JointColumns],
                                                           list[tuple[str, int, int, Any]]]:
-    """The JointState topics ``joint_topics`` of ``bag`` as columns, and the messages of
-    ``other_topics`` decoded, as (topic, log time, publish time, message) in file order.
+    """The JointState (or WrenchStamped) topics ``joint_topics`` of ``bag`` as columns,
+    and the messages of ``other_topics`` decoded, as (topic, log time, publish time,
+    message) in file order.
 
     :class:`BagError` for a bag that cannot be read (as ``read_bag``);
     :class:`FastPathRefused` where the message path must decide.
@@ -305,13 +337,14 @@ def _columns_of_block(scan: _Scan, buf: bytes, bodies: np.ndarray,
             continue
         if topic not in parts:
             continue
-        if scan.schemas.get(sid) != JOINT_STATE:
-            raise FastPathRefused(f"{topic}: not {JOINT_STATE}")
-        _joint_block(topic, buf, starts[mine], sizes[mine], log[mine], publish[mine],
+        type_name = scan.schemas.get(sid)
+        if type_name not in _LAYOUTS:
+            raise FastPathRefused(f"{topic}: not {' or '.join(_LAYOUTS)}")
+        _joint_block(topic, type_name, buf, starts[mine], sizes[mine], log[mine], publish[mine],
                      parts[topic], layouts)
 
 
-def _joint_block(topic: str, buf: bytes, starts: np.ndarray, sizes: np.ndarray,
+def _joint_block(topic: str, type_name: str, buf: bytes, starts: np.ndarray, sizes: np.ndarray,
                  log: np.ndarray, publish: np.ndarray, part: _TopicParts,
                  layouts: dict[tuple[str, int], _Layout]) -> None:
     """Append one block's messages of a topic, kept in file order (one length at a time
@@ -321,7 +354,8 @@ def _joint_block(topic: str, buf: bytes, starts: np.ndarray, sizes: np.ndarray,
         raise FastPathRefused(f"{topic}: messages of several lengths")
     layout = layouts.get((topic, size))
     if layout is None:
-        layout = layouts[(topic, size)] = _joint_layout(bytes(buf[starts[0]:starts[0] + size]))
+        layout = layouts[(topic, size)] = _LAYOUTS[type_name](
+            bytes(buf[starts[0]:starts[0] + size]))
     if part.names is None:
         part.names = layout.names
     elif part.names != layout.names:

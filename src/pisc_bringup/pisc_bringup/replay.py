@@ -19,15 +19,24 @@ With the same configuration the outputs are the same bits (tolerance 0). A repor
 gives, per topic, how many outputs were compared, how many differ by more than the
 tolerance, the largest difference and the first divergence. The same comparison runs
 on the outputs of the real nodes over topics (:mod:`pisc_bringup.replay_node`).
+
+Memory (issue 16, item 4): :func:`replay_bag` reads the bag as columns
+(:mod:`pisc_bringup.bag_columns`) and keeps the samples and the recorded and recomputed
+outputs as numpy columns (:class:`StampTable`, :class:`Samples`: about 100 bytes a
+cycle), not as decoded messages and dictionaries (about 2 kB a cycle); a bag the
+columns cannot read without guessing goes through the messages, whose errors name the
+message. Both give the same run, so the same report.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from pisc_bringup.bag import BagError, BagMessage, bag_topics, read_bag
 from pisc_sim.closed_loop import Controllers
@@ -43,9 +52,11 @@ from pisc_msgs_py.convert import (
 from pisc_msgs_py.topics import (
     CART_FORCE,
     CURRENT_SETPOINT,
+    JOINT_NAMES,
     JOINT_STATES,
     MODE,
     MOTOR_CURRENT,
+    MOTOR_JOINT,
     STATE,
     VOLTAGE,
 )
@@ -57,9 +68,12 @@ __all__ = [
     "RecordedRun",
     "ReplayReport",
     "TopicComparison",
+    "Samples",
+    "StampTable",
     "bag_config",
     "compare",
     "load_recorded",
+    "load_recorded_bag",
     "replay_bag",
     "replay_cores",
 ]
@@ -75,15 +89,77 @@ FIELDS = {
     VOLTAGE.name: ("voltage",),
 }
 
-#: per compared topic: stamp -> values (a mode is its Mode)
-Outputs = dict[str, dict[int, tuple[Any, ...]]]
+#: per compared topic: stamp -> values (a mode is its Mode); a dict or a StampTable
+Outputs = dict[str, Mapping[int, tuple[Any, ...]]]
+
+
+class StampTable(Mapping[int, tuple[float, ...]]):
+    """stamp -> values of one topic, held as numpy columns: the stamps in increasing
+    order, one row of float values each (what a dict of tuples holds, in 16 bytes a
+    value instead of about 200)."""
+
+    def __init__(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        self.stamps = np.asarray(stamps, dtype=np.int64)
+        self.values = np.asarray(values, dtype=np.float64).reshape(len(self.stamps), -1)
+
+    @classmethod
+    def first_of(cls, stamps: np.ndarray, values: np.ndarray) -> StampTable:
+        """From messages in file order: the first message of each stamp (a resent sample
+        is answered again with the same message), as :func:`load_recorded` keeps it."""
+        unique, first = np.unique(stamps, return_index=True)
+        return cls(unique, values[first])
+
+    def _at(self, stamp: int) -> int:
+        i = int(np.searchsorted(self.stamps, stamp))
+        return i if i < len(self.stamps) and self.stamps[i] == stamp else -1
+
+    def __getitem__(self, stamp: int) -> tuple[float, ...]:
+        i = self._at(stamp)
+        if i < 0:
+            raise KeyError(stamp)
+        return tuple(self.values[i].tolist())
+
+    def __contains__(self, stamp: object) -> bool:
+        return isinstance(stamp, (int, np.integer)) and self._at(int(stamp)) >= 0
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.stamps.tolist())
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def drop_after(self, last: int) -> None:
+        """Forget the stamps after ``last``."""
+        keep = int(np.searchsorted(self.stamps, last, side="right"))
+        self.stamps, self.values = self.stamps[:keep], self.values[:keep]
+
+
+class Samples(Sequence[tuple[int, float, float, float]]):
+    """(stamp, x, theta, i) of each sample in order, held as numpy columns."""
+
+    def __init__(self, stamps: np.ndarray, x: np.ndarray, theta: np.ndarray,
+                 current: np.ndarray) -> None:
+        self.stamps, self.x, self.theta, self.current = stamps, x, theta, current
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def __getitem__(self, k: Any) -> Any:
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        return (int(self.stamps[k]), float(self.x[k]), float(self.theta[k]),
+                float(self.current[k]))
+
+    def __iter__(self) -> Iterator[tuple[int, float, float, float]]:
+        return zip(self.stamps.tolist(), self.x.tolist(), self.theta.tolist(),
+                   self.current.tolist(), strict=True)
 
 
 @dataclass(frozen=True)
 class RecordedRun:
     """The samples a run fed its controllers and the outputs they answered, by stamp."""
 
-    samples: list[tuple[int, float, float, float]]  # (stamp, x, theta, i) in order
+    samples: Sequence[tuple[int, float, float, float]]  # (stamp, x, theta, i) in order
     outputs: Outputs
     notes: list[str] = field(default_factory=list)  # what was dropped, and why
 
@@ -134,6 +210,22 @@ def load_recorded(messages: Iterable[BagMessage], where: str = "bag") -> Recorde
             reader(m.message)
         except MessageError as exc:
             raise BagError(f"{where}: {m.topic}: {exc}") from None
+    return _recorded_run(joints, currents, outputs, where)
+
+
+def _drop_after(table: Any, last: int) -> None:
+    if isinstance(table, StampTable):
+        table.drop_after(last)
+    else:
+        for s in [s for s in table if s > last]:
+            del table[s]
+
+
+def _recorded_run(joints: Mapping[int, tuple[float, float]], currents: Mapping[int, Any],
+                  outputs: Outputs, where: str) -> RecordedRun:
+    """The run from its tables (dicts from the messages, or StampTables from the
+    columns, where a current is a 1-tuple): the incomplete last cycle dropped, every
+    other sample whole (see :func:`load_recorded`)."""
     if not joints:
         raise BagError(f"{where}: no {JOINT_STATES.name} message: nothing to replay")
     if not outputs[VOLTAGE.name]:
@@ -149,15 +241,21 @@ def load_recorded(messages: Iterable[BagMessage], where: str = "bag") -> Recorde
                      + ", the recording ended inside it: " + "; ".join(
                          f"stamp {s} (t = {(s - t0) * 1e-9:.3f} s) has no {missing[s]}"
                          for s in partial))
-        for s in partial:
-            joints.pop(s, None)
-            currents.pop(s, None)
-        for table in outputs.values():
-            for s in [s for s in table if s > last]:
-                del table[s]
+        for table in (joints, currents, *outputs.values()):
+            _drop_after(table, last)
         if not outputs[VOLTAGE.name]:
             raise BagError(f"{where}: no {VOLTAGE.name} message before the incomplete last "
                            "cycle: nothing to compare with")
+    if isinstance(joints, StampTable) and isinstance(currents, StampTable):
+        both = np.isin(joints.stamps, currents.stamps)
+        if not both.all():
+            stamp = int(joints.stamps[np.argmin(both)])
+            raise BagError(f"{where}: {JOINT_STATES.name} at stamp {stamp} has no "
+                           f"{MOTOR_CURRENT.name} of the same stamp (the current loop needs "
+                           "both)")
+        current = currents.values[np.searchsorted(currents.stamps, joints.stamps), 0]
+        return RecordedRun(Samples(joints.stamps, joints.values[:, 0], joints.values[:, 1],
+                                   current), outputs, notes)
     samples = []
     for stamp in sorted(joints):
         if stamp not in currents:
@@ -168,24 +266,91 @@ def load_recorded(messages: Iterable[BagMessage], where: str = "bag") -> Recorde
     return RecordedRun(samples, outputs, notes)
 
 
+#: the columns each topic's values are read from, by topic: (type's joint names, the
+#: fields the message path checks, the field replay takes, its joint or None for all)
+_COLUMNS = {
+    JOINT_STATES.name: (JOINT_NAMES, ("position",), "position"),
+    MOTOR_CURRENT.name: ((MOTOR_JOINT,), ("effort",), "effort"),
+    STATE.name: (JOINT_NAMES, ("position", "velocity"), "velocity"),
+    CART_FORCE.name: (("x", "y", "z"), ("force",), "force"),
+    CURRENT_SETPOINT.name: ((MOTOR_JOINT,), ("effort",), "effort"),
+    VOLTAGE.name: ((MOTOR_JOINT,), ("effort",), "effort"),
+}
+
+
+def load_recorded_columns(bag: str | Path, where: str = "bag") -> RecordedRun:
+    """:func:`load_recorded` of a bag's messages, read as columns (bounded memory); the
+    same run. :class:`~pisc_bringup.bag_columns.FastPathRefused` where a message would
+    have to be decoded to say what is wrong with it."""
+    from pisc_bringup.bag_columns import FastPathRefused, read_columns
+
+    columns, modes = read_columns(bag, list(_COLUMNS), [MODE.name])
+    tables: dict[str, StampTable] = {}
+    for topic, (names, checked, taken) in _COLUMNS.items():
+        c = columns[topic]
+        if len(c) and (c.names != names or any(f not in c.values for f in checked)):
+            raise FastPathRefused(f"{topic}: not the joints or fields replay reads")
+        values = c.values[taken] if len(c) else np.zeros((0, len(names)))
+        if topic == CART_FORCE.name:
+            values = values[:, :1]  # force.x
+        tables[topic] = StampTable.first_of(c.stamp_ns, values)
+    del columns
+    mode_table: dict[int, tuple[Any, ...]] = {}
+    for _, _, _, msg in modes:
+        try:
+            report = mode_from_msg(msg)
+        except MessageError as exc:
+            raise BagError(f"{where}: {MODE.name}: {exc}") from None
+        _first(mode_table, report.stamp_ns, (report.mode,))
+    outputs: Outputs = {name: tables[name] if name != MODE.name else mode_table
+                        for name in COMPARED_TOPICS}
+    return _recorded_run(tables[JOINT_STATES.name], tables[MOTOR_CURRENT.name], outputs,
+                         where)
+
+
+def load_recorded_bag(bag: str | Path) -> RecordedRun:
+    """The recorded run of a bag: through its columns, else through its messages."""
+    from pisc_bringup.bag_columns import FastPathRefused
+
+    try:
+        return load_recorded_columns(bag, str(bag))
+    except FastPathRefused:
+        return load_recorded(read_bag(bag), str(bag))
+
+
 def replay_cores(run: RecordedRun, config: GraphConfig) -> Outputs:
-    """Every sample of ``run`` through the controller cores; outputs keyed by stamp.
+    """Every sample of ``run`` through the controller cores; outputs keyed by stamp (as
+    :class:`StampTable` columns: the samples come in increasing stamp order).
 
     The mode is reported at changes only, as the supervisor node publishes it.
     """
     controllers = Controllers(config)
-    out: Outputs = {name: {} for name in COMPARED_TOPICS}
+    n = len(run.samples)
+    stamps = np.empty(n, dtype=np.int64)
+    # per sample: x_dot, theta_dot, force, i_d, u
+    values = np.empty((n, 5), dtype=np.float64)
+    modes: dict[int, tuple[Any, ...]] = {}
     mode: Mode | None = None
-    for stamp, x, theta, current in run.samples:
+    for k, (stamp, x, theta, current) in enumerate(run.samples):
         o = controllers.step(x, theta, current)
-        out[STATE.name][stamp] = (o.x_dot, o.theta_dot)
-        out[CART_FORCE.name][stamp] = (o.force,)
+        stamps[k] = stamp
+        values[k] = (o.x_dot, o.theta_dot, o.force, o.i_d, o.voltage)
         if o.mode is not mode:
-            out[MODE.name][stamp] = (o.mode,)
+            modes[stamp] = (o.mode,)
             mode = o.mode
-        out[CURRENT_SETPOINT.name][stamp] = (o.i_d,)
-        out[VOLTAGE.name][stamp] = (o.voltage,)
-    return out
+    if n > 1 and not np.all(np.diff(stamps) > 0):  # a run made by hand: a later output wins
+        tables = [(STATE.name, 0, 2), (CART_FORCE.name, 2, 3), (CURRENT_SETPOINT.name, 3, 4),
+                  (VOLTAGE.name, 4, 5)]
+        out: Outputs = {name: {int(t): tuple(v) for t, v in zip(stamps.tolist(), values[:, a:b]
+                                                               .tolist(), strict=True)}
+                        for name, a, b in tables}
+        out[MODE.name] = modes
+        return {name: out[name] for name in COMPARED_TOPICS}
+    return {STATE.name: StampTable(stamps, values[:, 0:2]),
+            CART_FORCE.name: StampTable(stamps, values[:, 2:3]),
+            MODE.name: modes,
+            CURRENT_SETPOINT.name: StampTable(stamps, values[:, 3:4]),
+            VOLTAGE.name: StampTable(stamps, values[:, 4:5])}
 
 
 @dataclass(frozen=True)
@@ -261,6 +426,22 @@ def _difference(a: Any, b: Any) -> float:
     return math.inf if math.isnan(d) else d
 
 
+_ROWS = 8192  # stamps looked up at a time in compare()
+
+
+def _rows(table: Mapping[int, tuple[Any, ...]], keys: list[int]) -> list[Any]:
+    """``[table.get(s) for s in keys]``, for a StampTable looked up all at once."""
+    if not isinstance(table, StampTable):
+        return [table.get(s) for s in keys]
+    if not len(table):
+        return [None] * len(keys)
+    wanted = np.asarray(keys, dtype=np.int64)
+    at = np.minimum(np.searchsorted(table.stamps, wanted), len(table) - 1)
+    found = (table.stamps[at] == wanted).tolist()
+    return [tuple(row) if f else None
+            for row, f in zip(table.values[at].tolist(), found, strict=True)]
+
+
 def compare(run: RecordedRun, recomputed: Outputs, tolerance: float = 0.0,
             bag: str = "bag", how: str = "cores",
             recorded: Collection[str] | None = None) -> ReplayReport:
@@ -285,8 +466,11 @@ def compare(run: RecordedRun, recomputed: Outputs, tolerance: float = 0.0,
             keys = stamps
         compared = differ = 0
         largest, largest_at, first = 0.0, None, None
-        for stamp in keys:
-            a, b = rec.get(stamp), new.get(stamp)
+        for stamp, a, b in ((stamp, a, b) for lo in range(0, len(keys), _ROWS)
+                            for stamp, a, b in zip(keys[lo:lo + _ROWS],
+                                                   _rows(rec, keys[lo:lo + _ROWS]),
+                                                   _rows(new, keys[lo:lo + _ROWS]),
+                                                   strict=True)):
             if a is None or b is None:
                 differ += 1
                 d = Divergence(stamp, (stamp - t0) * 1e-9, FIELDS[topic][0],
@@ -335,7 +519,7 @@ def replay_bag(bag: str | Path, config: str | None = None,
                tolerance: float = 0.0) -> ReplayReport:
     """Regression replay of a bag through the controller cores."""
     cfg, source = bag_config(bag, config, overrides)
-    run = load_recorded(read_bag(bag), str(bag))
+    run = load_recorded_bag(bag)
     report = compare(run, replay_cores(run, cfg), tolerance, str(bag), "cores",
                      bag_topics(bag))
     changed = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items())
