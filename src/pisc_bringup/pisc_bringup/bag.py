@@ -161,15 +161,21 @@ class BagWriter:
         self._file.close()  # the stream: whole records, no summary
         started = time.perf_counter()
         try:
-            written = _write_indexed(self.path, "pisc")
-            _write_metadata(self.directory, self.path.name,
-                            _topic_records(written.schemas, written.channels,
-                                           _topic_counts(written)),
-                            written.first_ns, written.last_ns)
+            _finish_stream(self.directory, self.path)
         except (OSError, BagError) as exc:
             raise BagError(f"{self.path}: could not finish the bag ({exc}); `pisc_bag repair "
                            f"{self.directory}` finishes it from the recorded stream") from exc
         self.finish_s = time.perf_counter() - started
+
+
+def _finish_stream(directory: Path, path: Path) -> Written:
+    """What :meth:`BagWriter.close` does once the stream is closed: ``path`` rewritten
+    indexed and in log-time order, then ``metadata.yaml``."""
+    written = _write_indexed(path, "pisc")
+    _write_metadata(directory, path.name,
+                    _topic_records(written.schemas, written.channels, _topic_counts(written)),
+                    written.first_ns, written.last_ns)
+    return written
 
 
 @dataclass(frozen=True)
