@@ -8,42 +8,28 @@ from __future__ import annotations
 import tracemalloc
 from pathlib import Path
 
-import numpy as np
 import pytest
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from pisc_bringup import bag_index
-from pisc_bringup.bag import (
-    CHUNK_SIZE,
-    BagWriter,
-    index_problems,
-    read_bag_raw,
-    repair_bag,
-)
+from pisc_bringup.bag import CHUNK_SIZE, BagWriter, index_problems, repair_bag
+from pisc_bringup.bag_bench import recorded_messages
 from pisc_bringup.bag_readers import read_every_way
 from pisc_msgs_py.topics import GRAPH_TOPICS
 
 pytestmark = pytest.mark.bag
 
 SWINGUP = Path(__file__).resolve().parent.parent / "bags" / "default-swingup"
-PERIOD_NS = 5_000_000
 
 
-def recorded_order(seconds: int = 10, jitter_ns: int = 6_000_000,
-                   seed: int = 16) -> list[tuple[str, bytes, int, int]]:
+def recorded_order(seconds: int = 10) -> list[tuple[str, bytes, int, int]]:
     """The reference bag's messages as a recorder takes them: in log-time order but for
-    local inversions (each message taken up to ``jitter_ns`` late, as the reference bags
-    were recorded: up to 5.6 ms, 10 messages), repeated with later times for longer
-    recordings."""
-    raw = list(read_bag_raw(SWINGUP))
-    span = raw[-1].log_time_ns - raw[0].log_time_ns + PERIOD_NS
-    out = [(m.topic, m.data, m.log_time_ns + k * span, (m.publish_time_ns or 0) + k * span)
-           for k in range(max(1, seconds // 10)) for m in raw]
-    late = np.random.default_rng(seed).integers(0, jitter_ns, len(out))
-    taken = np.argsort(np.array([m[2] for m in out]) + late, kind="stable")
-    return [out[i] for i in taken]
+    local inversions (each message taken up to 6 ms late, as the reference bags were
+    recorded: up to 5.6 ms, 10 messages), repeated with later times for longer
+    recordings (what ``bag_bench`` makes)."""
+    return list(recorded_messages(SWINGUP, seconds))
 
 
 def write_stream(directory: Path, messages) -> BagWriter:

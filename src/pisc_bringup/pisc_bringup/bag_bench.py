@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "make_stream"]
+__all__ = ["main", "make_stream", "recorded_messages"]
 
 REPO = Path(__file__).resolve().parents[3]
 DEFAULT_SOURCE = REPO / "bags" / "default-swingup"
@@ -66,7 +66,7 @@ def _shifted(data: bytes, by_ns: int) -> bytes:
     return bytes(out)
 
 
-def _recorded(source: Path, seconds: float, seed: int) -> Iterator[tuple[str, bytes, int, int]]:
+def recorded_messages(source: Path, seconds: float, seed: int = 16) -> Iterator[tuple[str, bytes, int, int]]:
     """(topic, data, log time, publish time) of the stream, in a recorder's order, made
     one repetition of ``source`` at a time."""
     from pisc_bringup.bag import header_stamp_ns, read_bag_raw
@@ -99,7 +99,7 @@ def make_stream(directory: Path, source: Path, seconds: float, seed: int = 16) -
     names = set(bag_topics(source))
     writer = BagWriter(directory, [t for t in GRAPH_TOPICS if t.name in names])
     n = 0
-    for topic, data, log_time, publish_time in _recorded(source, seconds, seed):
+    for topic, data, log_time, publish_time in recorded_messages(source, seconds, seed):
         writer.write(topic, data, log_time, publish_time, flush=False)
         n += 1
     writer.flush()
