@@ -104,22 +104,30 @@ def test_the_hold_catches_a_pendulum_near_upright_and_centres_the_cart(nominal):
 
 def test_a_rig_made_infeasible_on_purpose_is_refused_with_its_energy_bound(nominal):
     """A 5 mA current limit against a pivot friction of 1e-3 N m s: whatever the input,
-    the pendulum gains at most (m l a_b)^2 T / (4 b_p) in 3 s, below the 2 m g l it needs."""
+    the pendulum gains at most (m l a_b)^2 T / (4 b_p) in 3 s, below the 1.88 m g l it
+    needs to enter the catch region."""
     viscous = replace(nominal, models=replace(nominal.models, friction="viscous"))
     plant = F.exact_plant(viscous, {"friction.pivot_viscous_nms": 1e-3})
     limits = F.Limits(current_a=0.005)
     rig = F.make_rig(plant, 0.0, 0.0, math.pi, 0.0)
     bound = F.energy_bound(rig, limits)
     mgl = 0.01055 * 9.81 * 0.0865
-    assert bound.needed_j == pytest.approx(2 * mgl)
+    # from hanging at rest to the edge of the catch region (4.1): E* = m g l (cos
+    # sqrt(0.2363) - 1) = -0.115842 m g l, so 1.884158 m g l, not the 2 m g l of upright
+    assert bound.needed_j == pytest.approx(2 * mgl + mgl * (math.cos(math.sqrt(0.2363)) - 1))
+    assert bound.needed_j == pytest.approx(1.884158 * mgl, rel=1e-6)
     w = 2 * rig.omega0
     a1 = rig.a1
-    f_bound = (0.0637 / 0.032 * 0.005 + rig.ml * w * w + a1 * 9.81 / 2 + a1 * 1e-3 * w / rig.ml
+    # the current limit with the check's 2 % tolerance: 5.1 mA
+    f_bound = (0.0637 / 0.032 * 0.0051 + rig.ml * w * w + a1 * 9.81 / 2 + a1 * 1e-3 * w / rig.ml
                + plant.motor.viscous_friction_nms / 0.032**2 * 11.47 * 0.032 / 0.0637)
     assert bound.accel_bound_mps2 == pytest.approx(f_bound / (rig.a2 - a1))
     assert bound.largest_gain_j == pytest.approx(
         (rig.ml * bound.accel_bound_mps2) ** 2 * 3.0 / (4 * 1e-3))
     assert bound.infeasible and bound.largest_gain_j < 0.5 * bound.needed_j
+    # the comparison lemma is at least as sharp: G(E) <= (m l a_b)^2 / (4 b_p) pointwise
+    assert bound.least_time_s >= bound.needed_j / ((rig.ml * bound.accel_bound_mps2) ** 2
+                                                   / (4 * 1e-3)) > 3.0
     found = F.find_witness(rig, limits, np.random.default_rng(0))
     assert not found.feasible and found.how == "bound" and found.voltages is None
     # the nominal rig's budget is unbounded without pivot friction: nothing is proved
@@ -181,3 +189,49 @@ def test_the_batch_check_and_verify_agree_on_the_catch_time(nominal):
             assert badness[j] >= max(verdict.caught_at_s - 3.0, 0.0) - 1e-12
     never = F.check(limits, np.zeros((1, 2000)), F.rollout(rig, np.zeros((1, 2000))), 0.005)[1]
     assert never[0] > limits.duration_s
+
+
+def test_the_climb_time_bound_of_the_frictionless_nominal_rig_by_hand(nominal):
+    """Without pivot friction G(E) = m l a_b max_c w |c| is reached at the bottom
+    (c = -1), w = sqrt(2 (E + 2 m g l) / J), so from hanging at rest
+    T = int dE / G = 2 sqrt(J / 2) sqrt(E* + 2 m g l) / (m l a_b) exactly. By hand:
+    J = I + m l^2 = 1.052530e-4 kg m^2, m g l = 8.952361e-3 J, E* + 2 m g l =
+    1.884158 m g l = 1.686767e-2 J, m l = 9.12575e-4 kg m; a_b = (k_m / r 0.918 A
+    + b_m / r^2 11.47 r / k_e + m l (2 omega_0)^2 + a1 g / 2) / (a2 - a1) = (1.827394
+    + 0.005627 + 0.310477 + 0.038810) / (0.486003 - 0.007912) = 4.5646 m/s^2;
+    T = 0.0145088 * 0.129876 / (9.12575e-4 * 4.5646) = 0.4524 s. The cells of energy
+    take the rate at each cell's top (a right sum of a decreasing integrand): a little
+    below it, never above."""
+    rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
+    limits = F.Limits()
+    assert F.accel_bound(rig, limits) == pytest.approx(4.5646, abs=2e-4)
+    exact = 0.4524
+    least = F.climb_time(rig, limits)
+    assert 0.95 * exact < least < exact
+    assert F.energy_bound(rig, limits).least_time_s == least and least < 3.0
+    # more cells come closer from below
+    assert least < F.climb_time(rig, limits, cells=1600) < exact
+    # already in the region: no time needed
+    assert F.climb_time(F.make_rig(nominal, 0.0, 0.0, 0.1, 0.0), limits) == 0.0
+
+
+def test_multiple_shooting_brings_a_late_catch_forward_to_a_witness(nominal):
+    """The feedback search catches the nominal rig at 1.58 s (seed 3); with the catch
+    deadline at 1.48 s none of its 48 rollouts passes. Multiple shooting from the best
+    of them, the deadline brought down by continuation, meets 1.48 s, and its sequence,
+    re-simulated alone and handed to the LQR hold, passes verify."""
+    rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
+    found, verdict, pool, _ = F.feedback_search(rig, F.Limits(), np.random.default_rng(3))
+    assert found is not None and verdict.caught_at_s == pytest.approx(1.58)
+    tight = F.Limits(catch_by_s=1.48)
+    ok, badness = F.check(tight, pool.voltages, pool.states, 0.005)
+    assert not ok.any()
+    result = F.transcribe(rig, tight, F.Pool(pool.voltages, pool.states, badness),
+                          F.Transcription(guesses=1))
+    assert result.voltages is not None and result.earliest_s == pytest.approx(1.48)
+    again = F.verify(rig, tight, result.voltages)
+    assert again.ok and again.caught_at_s <= 1.48
+    assert np.max(np.abs(result.voltages)) <= 11.47 and again.largest_current_a <= 0.918
+    with pytest.raises(ValueError, match=r"segment_periods \(30\) must be a multiple of "
+                                         r"knot_periods \(4\)"):
+        F.transcribe(rig, tight, pool, F.Transcription(knot_periods=4, segment_periods=30))

@@ -42,10 +42,11 @@ import numpy as np
 from pisc_model.params import ActuatorParams, NoiseParams
 from pisc_plant.plant import Plant, PlantConfig
 
-__all__ = ["EnergyBound", "Gains", "Limits", "Rig", "Search", "Verdict", "check",
-           "clopper_pearson", "energy_bound", "exact_plant", "feedback_rollouts",
-           "find_witness", "hold_from", "hold_gain", "make_rig", "pendulum_energy", "rollout",
-           "shoot", "verify", "wrap"]
+__all__ = ["EnergyBound", "Gains", "Limits", "Pool", "Rig", "Search", "Transcribed",
+           "Transcription", "Verdict", "accel_bound", "check", "climb_time", "clopper_pearson",
+           "energy_bound", "exact_plant", "feedback_rollouts", "feedback_search",
+           "find_witness", "hold_from", "hold_gain", "make_rig", "pendulum_energy",
+           "region_energy", "rollout", "shoot", "transcribe", "verify", "wrap"]
 
 X, X_DOT, THETA, THETA_DOT, CURRENT = range(5)
 
@@ -516,51 +517,335 @@ def shoot(rig: Rig, limits: Limits, guess: np.ndarray, per_knot: int,
     return np.asarray(result.x)
 
 
+# -- multiple shooting -------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Transcription:
+    """The settings of :func:`transcribe` (multiple shooting, the catch deadline by
+    continuation)."""
+
+    knot_periods: int = 1  # the voltage piecewise constant over knots of 1 period (5 ms)
+    segment_periods: int = 40  # a shooting segment: 0.2 s
+    tail_s: float = 0.6  # the catch region kept this long past the deadline, then the hold
+    deadline_step_s: float = 0.04  # the continuation's first step of the catch deadline
+    first_deadline_s: float = 3.5  # the latest deadline it starts from (a budget)
+    guesses: int = 2  # the best feedback rollouts it starts from
+    max_nfev: int = 40  # least-squares evaluations per deadline
+    track_margin_m: float = 0.0005
+    region_margin: float = 0.002  # below delta_s of (4.1)
+    current_margin: float = 0.99  # of the current limit
+    tolerance: float = 1e-3  # the largest residual (scaled) that counts as met
+
+
+@dataclass(frozen=True)
+class Transcribed:
+    """What :func:`transcribe` found: a witness (or None), its check, the earliest
+    deadline met with a zero residual (inf if none), candidates checked."""
+
+    voltages: np.ndarray | None
+    verdict: Verdict | None
+    earliest_s: float
+    tried: int
+
+
+# scales of the shooting nodes' states x, x_dot, theta, theta_dot, i (the unknowns are
+# the states over these)
+_NODE_SCALE = np.array([0.01, 0.1, 0.02, 0.2, 0.05])
+
+
+class _Shooting:
+    """Residuals and their Jacobian of one multiple-shooting problem: the voltage
+    piecewise constant over knots of ``knot_periods``, the horizon cut into segments of
+    ``segment_periods``, the unknowns the knot voltages and the state at the start of
+    every segment but the first (scaled by :data:`_NODE_SCALE`). A residual block per
+    segment: three hinges per sample (the safe range less a margin; the current limit;
+    from the deadline sample on, the catch region (4.1) less a margin), then the
+    continuity defect to the next node (5), or, for the last segment, the hand-over
+    hinges (4): near upright, slow, the cart near the middle, where the LQR hold takes
+    over. A zero residual is a voltage sequence meeting every rule up to the horizon."""
+
+    def __init__(self, rig: Rig, limits: Limits, settings: Transcription, horizon: int,
+                 deadline: int) -> None:
+        self.rig, self.limits, self.s = rig, limits, settings
+        self.kp, self.seg = settings.knot_periods, settings.segment_periods
+        self.nseg = horizon // self.seg
+        self.kps = self.seg // self.kp
+        self.nknots = self.nseg * self.kps
+        self.horizon, self.deadline = horizon, deadline
+        self.hi = limits.x_max_m - settings.track_margin_m
+        self.lo = limits.x_min_m + settings.track_margin_m
+        self.i_max = (math.inf if limits.current_a is None
+                      else settings.current_margin * limits.current_a)
+        self.region = limits.delta_s - settings.region_margin
+        self.block = 3 * self.seg + 5
+
+    def split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        knots = z[: self.nknots].reshape(self.nseg, self.kps)
+        nodes = z[self.nknots:].reshape(self.nseg - 1, 5) * _NODE_SCALE
+        return knots, np.vstack([self.rig.y0[None, :], nodes])
+
+    def segments(self, starts: np.ndarray, knots: np.ndarray) -> np.ndarray:
+        # batches of at most 256 rigs: the kernel's single-thread path (kernel.CHUNK),
+        # several times faster per rig than its threaded one on a shared 2-core machine
+        volts = _expand(knots, self.kp)
+        return np.concatenate([rollout(self.rig, volts[a: a + 256], y0=starts[a: a + 256])
+                               for a in range(0, len(starts), 256)])
+
+    def _blocks(self, traj: np.ndarray, seg_index: np.ndarray, following: np.ndarray
+                ) -> np.ndarray:
+        """Residual blocks (B, block) of segment trajectories (B, seg + 1, 5) that are
+        segments ``seg_index`` (B,), the next node ``following`` (B, 5)."""
+        y = traj[:, 1:]
+        k = seg_index[:, None] * self.seg + np.arange(1, self.seg + 1)[None, :]
+        x = y[..., X]
+        track = (np.maximum(x - self.hi, 0.0) + np.maximum(self.lo - x, 0.0)) / 0.005
+        current = np.maximum(np.abs(y[..., CURRENT]) - self.i_max, 0.0) / 0.02
+        reach = wrap(y[..., THETA]) ** 2 + self.limits.k_va * y[..., THETA_DOT] ** 2
+        region = np.where(k >= self.deadline, np.maximum(reach - self.region, 0.0) / 0.02, 0.0)
+        end = traj[:, -1]
+        defect = (end - following) / _NODE_SCALE
+        last = seg_index == self.nseg - 1
+        handover = np.stack([
+            np.maximum(np.abs(wrap(end[:, THETA])) - 0.05, 0.0) / 0.01,
+            np.maximum(np.abs(end[:, THETA_DOT]) - 0.3, 0.0) / 0.1,
+            np.maximum(np.abs(end[:, X_DOT]) - 0.15, 0.0) / 0.05,
+            np.maximum(np.abs(end[:, X]) - 0.06, 0.0) / 0.01,
+            np.zeros(len(end))], axis=-1)
+        tail = np.where(last[:, None], handover, defect)
+        return np.concatenate([track, current, region, tail], axis=-1)
+
+    def residuals(self, z: np.ndarray) -> np.ndarray:
+        knots, starts = self.split(z)
+        traj = self.segments(starts, knots)
+        index = np.arange(self.nseg)
+        following = np.vstack([starts[1:], np.zeros((1, 5))])
+        return self._blocks(traj, index, following).ravel()
+
+    def jacobian(self, z: np.ndarray) -> np.ndarray:
+        """Forward differences, every segment's perturbations in one batch: a segment's
+        residuals depend on its knots and its start only (and its defect on the next
+        node, with derivative -1 in the scaled unknowns)."""
+        knots, starts = self.split(z)
+        u_max = self.limits.voltage_v
+        step_u, step_s = 1e-4, 1e-6
+        per = 1 + self.kps + 5
+        b_knots = np.repeat(knots, per, axis=0).reshape(self.nseg, per, self.kps)
+        b_starts = np.repeat(starts, per, axis=0).reshape(self.nseg, per, 5)
+        signs = np.where(knots + step_u > u_max, -1.0, 1.0)  # inward from the bound
+        for a in range(self.kps):
+            b_knots[:, 1 + a, a] += step_u * signs[:, a]
+        for a in range(5):
+            b_starts[:, 1 + self.kps + a, a] += step_s * _NODE_SCALE[a]
+        index = np.repeat(np.arange(self.nseg), per)
+        following = np.repeat(np.vstack([starts[1:], np.zeros((1, 5))]), per, axis=0)
+        traj = self.segments(b_starts.reshape(-1, 5), b_knots.reshape(-1, self.kps))
+        r = self._blocks(traj, index, following).reshape(self.nseg, per, self.block)
+        base = r[:, 0]
+        jac = np.zeros((self.nseg, self.block, len(z)))
+        for j in range(self.nseg):
+            cols = slice(j * self.kps, (j + 1) * self.kps)
+            jac[j, :, cols] = ((r[j, 1: 1 + self.kps] - base[j]) / (step_u * signs[j][:, None])).T
+            if j > 0:
+                c0 = self.nknots + 5 * (j - 1)
+                jac[j, :, c0: c0 + 5] = ((r[j, 1 + self.kps:] - base[j]) / step_s).T
+            if j < self.nseg - 1:
+                c1 = self.nknots + 5 * j
+                jac[j, 3 * self.seg + np.arange(5), c1 + np.arange(5)] = -1.0
+        from scipy.sparse import csr_matrix
+
+        return csr_matrix(jac.reshape(self.nseg * self.block, len(z)))
+
+    def unknowns(self, voltages: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """The unknowns of a trajectory: knot means of ``voltages`` (>= horizon values)
+        and ``states`` (>= horizon + 1 samples) at the segments' starts."""
+        knots = voltages[: self.horizon].reshape(-1, self.kp).mean(axis=1)
+        nodes = states[self.seg: self.horizon: self.seg] / _NODE_SCALE
+        return np.concatenate([knots, nodes.ravel()])
+
+    def solve(self, z0: np.ndarray, max_nfev: int) -> tuple[np.ndarray, float]:
+        from scipy.optimize import least_squares
+
+        u_max = self.limits.voltage_v
+        lower = np.full(len(z0), -np.inf)
+        upper = np.full(len(z0), np.inf)
+        lower[: self.nknots], upper[: self.nknots] = -u_max, u_max
+        z0 = np.clip(z0, lower + 1e-9, upper - 1e-9)
+        result = least_squares(self.residuals, z0, jac=self.jacobian, bounds=(lower, upper),
+                               method="trf", tr_solver="lsmr", max_nfev=max_nfev,
+                               tr_options={"atol": 1e-10, "btol": 1e-10}, x_scale="jac",
+                               xtol=1e-12, ftol=1e-12, gtol=1e-12)
+        return np.asarray(result.x), float(np.max(np.abs(result.fun), initial=0.0))
+
+
+def transcribe(rig: Rig, limits: Limits, pool: Pool, settings: Transcription | None = None,
+               k_gain: np.ndarray | None = None) -> Transcribed:
+    """Multiple shooting with the catch deadline as the continuation parameter.
+
+    The rule "in the catch region (4.1) for good from some t <= catch_by_s" is the same
+    as "in it at every sample from catch_by_s on": the deadline. From each of the
+    ``guesses`` best rollouts of the feedback search (``pool``), whose stay in the region
+    begins late (at t_c), the deadline starts at min(t_c, ``first_deadline_s``) and
+    comes down by ``deadline_step_s`` to ``catch_by_s``; at each deadline d,
+    ``scipy.optimize.least_squares`` (trust region reflective, the bridge's voltage as
+    bounds) drives the residuals of :class:`_Shooting` over the horizon d + ``tail_s``
+    to zero (at most ``tolerance``), warm-started from the last deadline met (nodes
+    included). A deadline not met is tried again half as far below the last one met,
+    down to one period; then it stops. A rollout that starts later than
+    ``first_deadline_s`` starts there (a budget: a local method seldom moves a catch by
+    seconds). Met at ``catch_by_s``, the knots are
+    re-simulated alone from the start, handed to the LQR hold (:func:`hold_from`) and
+    checked (:func:`verify`)."""
+    s = settings or Transcription()
+    if s.segment_periods % s.knot_periods:
+        raise ValueError(f"segment_periods ({s.segment_periods}) must be a multiple of "
+                         f"knot_periods ({s.knot_periods})")
+    period = rig.period_s
+    steps = int(round(limits.duration_s / period))
+    k_gain = hold_gain(rig) if k_gain is None else k_gain
+    target = int(round(limits.catch_by_s / period))
+    step = max(1, int(round(s.deadline_step_s / period)))
+    outside = (wrap(pool.states[..., THETA]) ** 2
+               + limits.k_va * pool.states[..., THETA_DOT] ** 2 >= limits.delta_s)
+    start = np.where(outside.any(axis=-1), steps + 1 - np.argmax(outside[..., ::-1], axis=-1), 0)
+    earliest, tried = math.inf, 0
+    best_verdict = None
+    for j in np.argsort(pool.badness)[: s.guesses]:
+        d = min(int(start[j]), int(round(s.first_deadline_s / period)))
+        d = target + step * math.ceil(max(d - target, 0) / step)
+        voltages, states = pool.voltages[j], pool.states[j]
+        met, stride = math.inf, step
+        while d >= target:
+            horizon = s.segment_periods * math.ceil((d + s.tail_s / period)
+                                                    / s.segment_periods)
+            if horizon >= steps:
+                break
+            problem = _Shooting(rig, limits, s, horizon, d)
+            z, worst = problem.solve(problem.unknowns(voltages, states), s.max_nfev)
+            if worst > s.tolerance:
+                # not met: a smaller step from the last deadline met, down to one period
+                if stride == 1 or math.isinf(met):
+                    break
+                d += stride
+                stride = max(1, stride // 2)
+                d -= stride
+                continue
+            met = d * period
+            # the next deadline starts from this solution: its voltages and the states of
+            # its segments re-simulated from its nodes
+            knots, starts = problem.split(z)
+            seg_states = problem.segments(starts, knots)
+            states = np.concatenate([seg_states[:, :-1].reshape(-1, 5), seg_states[-1:, -1]])
+            voltages = _expand(knots.ravel(), problem.kp)
+            if d == target:
+                break
+            d = max(target, d - stride)
+        earliest = min(earliest, met)
+        if not met <= limits.catch_by_s + period / 2:
+            continue
+        y = rollout(rig, voltages)
+        tail, _ = hold_from(rig, limits, y[-1][None, :], steps - len(voltages), k_gain)
+        candidate = np.concatenate([voltages, tail[0]])
+        verdict = verify(rig, limits, candidate)
+        tried += 1
+        if verdict.ok:
+            return Transcribed(candidate, verdict, met, tried)
+        best_verdict = verdict
+    return Transcribed(None, best_verdict, earliest, tried)
+
+
 # -- the bound ---------------------------------------------------------------------------
 
 @dataclass(frozen=True)
 class EnergyBound:
-    """A necessary condition for reaching upright by ``horizon_s`` (see
+    """A necessary condition for entering the catch region by ``horizon_s`` (see
     :func:`energy_bound`); ``infeasible`` proves that no input can."""
 
-    needed_j: float  # -E_p(0): what the pendulum must gain
+    needed_j: float  # E* - E_p(0): what the pendulum must gain to enter the region
     largest_gain_j: float  # the most any input can add in the horizon, pivot loss paid
     accel_bound_mps2: float  # the largest cart acceleration any input can give
     horizon_s: float
+    least_time_s: float = 0.0  # :func:`climb_time`: no input enters the region sooner
 
     @property
     def infeasible(self) -> bool:
-        return self.largest_gain_j < self.needed_j
+        return self.largest_gain_j < self.needed_j or self.least_time_s > self.horizon_s
+
+
+def region_energy(rig: Rig, limits: Limits) -> float:
+    """E*: the least pendulum energy E_p inside the catch region (4.1), theta^2 + k_va
+    theta_dot^2 < delta_s; at theta_dot = 0, |theta| = sqrt(delta_s): m g l (cos
+    sqrt(delta_s) - 1). The pendulum enters the region with E_p > E*."""
+    return rig.mgl * (math.cos(min(math.sqrt(limits.delta_s), math.pi)) - 1.0)
+
+
+def accel_bound(rig: Rig, limits: Limits) -> float:
+    """a_b: the largest |x_ddot| any input can give while |theta_dot| <= 2 omega_0 (3.3):
+    (f_max + cart friction at the no-load speed + m l (2 omega_0)^2 + a1 g / 2
+    + a1 b_p 2 omega_0 / (m l)) / (a2 - a1), f_max = k_m i_max / r (4.2) with i_max the
+    current limit and the check's 2 % tolerance (or the stall current u_max / R without
+    a limit)."""
+    m = rig.config.motor
+    i_max = (1.02 * limits.current_a if limits.current_a is not None
+             else limits.voltage_v / m.resistance_ohm)
+    no_load = limits.voltage_v * m.wheel_radius_m / m.back_emf_v_s_per_rad
+    friction = float(abs(_friction(rig, np.array(no_load))))
+    w = 2.0 * rig.omega0
+    f_bound = (m.force_per_amp * i_max + friction + rig.ml * w * w
+               + rig.a1 * rig.mgl / rig.ml / 2.0 + rig.a1 * _pivot(rig) * w / rig.ml)
+    return f_bound / (rig.a2 - rig.a1)
 
 
 def energy_bound(rig: Rig, limits: Limits, horizon_s: float | None = None) -> EnergyBound:
     """An energy budget that no input can beat.
 
     The pendulum's energy in the cart's frame E_p (:func:`pendulum_energy`) obeys
-    dE_p/dt = -m l x_ddot theta_dot cos(theta) - b_p theta_dot^2. Upright at rest is
-    E_p = 0; until E_p first reaches 0, |theta_dot| <= 2 omega_0, so by (3.3)
-    |x_ddot| <= a_b = (f_max + F_c + m l (2 omega_0)^2 + a1 g / 2 + a1 b_p 2 omega_0 / (m l))
-    / (a2 - a1), f_max = k_m i_max / r (4.2) with i_max the current limit (or the
-    stall current u_max / R without one) and the cart's viscous friction taken at the
-    no-load speed u_max r / k_e. With S = int theta_dot^2 dt and Cauchy-Schwarz,
-    int |theta_dot| dt <= sqrt(T S), so the gain is at most
-    max_S (m l a_b sqrt(T S) - b_p S) = (m l a_b)^2 T / (4 b_p) (unbounded without pivot
-    friction). If that is below -E_p(0), no input reaches upright by T.
+    dE_p/dt = -m l x_ddot theta_dot cos(theta) - b_p theta_dot^2. To be in the catch
+    region the pendulum needs E_p > E* (:func:`region_energy`, < 0); until E_p first
+    reaches E*, |theta_dot| <= 2 omega_0, so |x_ddot| <= a_b (:func:`accel_bound`).
+    With S = int theta_dot^2 dt and Cauchy-Schwarz, int |theta_dot| dt <= sqrt(T S), so
+    the gain is at most max_S (m l a_b sqrt(T S) - b_p S) = (m l a_b)^2 T / (4 b_p)
+    (unbounded without pivot friction). If that is below E* - E_p(0), no input enters
+    the catch region by T. The comparison lemma (:func:`climb_time`, ``least_time_s``)
+    is a second, sharper test: no input enters it sooner than that.
     """
     horizon = limits.catch_by_s if horizon_s is None else horizon_s
-    m = rig.config.motor
-    i_max = (limits.current_a if limits.current_a is not None
-             else limits.voltage_v / m.resistance_ohm)
-    no_load = limits.voltage_v * m.wheel_radius_m / m.back_emf_v_s_per_rad
-    friction = float(abs(_friction(rig, np.array(no_load))))
-    w = 2.0 * rig.omega0
     bp = _pivot(rig)
-    f_bound = (m.force_per_amp * i_max + friction + rig.ml * w * w
-               + rig.a1 * rig.mgl / rig.ml / 2.0 + rig.a1 * bp * w / rig.ml)
-    accel = f_bound / (rig.a2 - rig.a1)
-    needed = float(-pendulum_energy(rig, rig.y0))
+    accel = accel_bound(rig, limits)
+    needed = float(region_energy(rig, limits) - pendulum_energy(rig, rig.y0))
     gain = math.inf if bp == 0.0 else (rig.ml * accel) ** 2 * horizon / (4.0 * bp)
-    return EnergyBound(needed, gain, accel, horizon)
+    return EnergyBound(needed, gain, accel, horizon, climb_time(rig, limits))
+
+
+def climb_time(rig: Rig, limits: Limits, cells: int = 400, phases: int = 2000) -> float:
+    """A lower bound on the time any input needs to bring E_p from E_p(0) to E*
+    (:func:`region_energy`): the comparison lemma on dE_p/dt <= G(E_p).
+
+    With c = cos(theta) and theta_dot^2 = w^2(E, c) = 2 (E + m g l (1 - c)) / J at
+    energy E (the pendulum terms of (2.54)), dE_p/dt = -m l x_ddot theta_dot c - b_p
+    theta_dot^2 <= G(E) = max_c (m l a_b w |c| - b_p w^2) over the phases c with
+    w^2 >= 0, a_b of :func:`accel_bound` (valid while E_p < E*). E* - E_p(0) is cut into
+    ``cells`` equal cells of energy; the phase range [-1, 1] into ``phases`` cells, on
+    each of which w is largest at the lower c and at the cell's upper energy, w^2
+    smallest at the upper c and the lower energy: that upper-bounds G over the energy
+    cell (G_k), every step an inequality. Crossing energy cell k upward takes at least
+    dE / G_k (E_p rises at most at G_k while in it, and must rise by dE there), so the
+    sum over the cells bounds the time. Returns 0 if E_p(0) >= E*.
+    """
+    start = float(pendulum_energy(rig, rig.y0))
+    target = region_energy(rig, limits)
+    if start >= target:
+        return 0.0
+    a_b, bp, ml, mgl, j = accel_bound(rig, limits), _pivot(rig), rig.ml, rig.mgl, rig.inertia
+    edges = np.linspace(start, target, cells + 1)
+    c = np.linspace(-1.0, 1.0, phases + 1)
+    c_lo, c_hi = c[:-1], c[1:]
+    c_abs = np.maximum(np.abs(c_lo), np.abs(c_hi))
+    e_lo, e_hi = edges[:-1, None], edges[1:, None]
+    w_top = np.sqrt(np.maximum(2.0 * (e_hi + mgl * (1.0 - c_lo)) / j, 0.0))
+    w2_low = np.maximum(2.0 * (e_lo + mgl * (1.0 - c_hi)) / j, 0.0)
+    reachable = 2.0 * (e_hi + mgl * (1.0 - c_lo)) >= 0.0
+    g = np.max(np.where(reachable, ml * a_b * w_top * c_abs - bp * w2_low, -np.inf), axis=1)
+    return float(np.sum(np.diff(edges) / np.maximum(g, 1e-300)))
 
 
 # -- the search --------------------------------------------------------------------------
@@ -570,33 +855,37 @@ class Search:
     """What :func:`find_witness` found for one rig."""
 
     feasible: bool
-    how: str  # 'feedback', 'shooting', 'bound' (proved infeasible) or 'not found'
+    how: str  # 'feedback', 'shooting', 'multiple shooting',
+    # 'bound' (proved infeasible) or 'not found'
     voltages: np.ndarray | None  # the witness, one value a period (None without one)
     verdict: Verdict | None  # the witness's check, or the best failed candidate's
     bound: EnergyBound
     tried: int  # candidates checked
+    # the earliest catch deadline multiple shooting met (its residual zero), inf if none;
+    # NaN when it did not run
+    transcribed_s: float = math.nan
 
 
-def find_witness(rig: Rig, limits: Limits, rng: np.random.Generator, rollouts: int = 48,
-                 rounds: int = 4, restarts: int = 2, knot_periods: int = 8,
-                 max_nfev: int = 30) -> Search:
-    """Search for a witness, stopping at the first.
+@dataclass(frozen=True)
+class Pool:
+    """The feedback search's rollouts (:func:`feedback_search`): voltages (n, steps),
+    states (n, steps + 1, 5) and their badness (n,) (:func:`check`)."""
 
-    The energy bound first (:func:`energy_bound`). Then ``rounds`` batches of
-    ``rollouts`` perfect-knowledge feedback gain sets (:func:`feedback_rollouts`): the
-    first uniform over the gains' ranges, each next one drawn around the best eighth so
-    far with a spread that halves (a cross-entropy search). If none passes, direct
-    shooting (:func:`shoot`) from the ``restarts`` best rollouts, horizon at their
-    closest approach to upright before ``catch_by_s`` (knots of ``knot_periods``
-    periods), each handed to the LQR hold. A candidate counts only once :func:`verify`
-    passes it, re-simulated alone.
-    """
-    bound = energy_bound(rig, limits)
-    if bound.infeasible:
-        return Search(False, "bound", None, None, bound, 0)
+    voltages: np.ndarray
+    states: np.ndarray
+    badness: np.ndarray
+
+
+def feedback_search(rig: Rig, limits: Limits, rng: np.random.Generator, rollouts: int = 48,
+                    rounds: int = 4, k_gain: np.ndarray | None = None
+                    ) -> tuple[np.ndarray | None, Verdict | None, Pool, int]:
+    """The cross-entropy search over the pump's gains (:func:`find_witness`'s first
+    stage): ``rounds`` batches of ``rollouts`` gain sets, the first uniform, each next
+    one around the best eighth so far with a spread that halves. Returns (the witness's
+    voltages and verdict, or None, None; the pool of every rollout; candidates checked)."""
     period = rig.period_s
     steps = int(round(limits.duration_s / period))
-    k_gain = hold_gain(rig)
+    k_gain = hold_gain(rig) if k_gain is None else k_gain
     tried = 0
     pool_u, pool_v, pool_s, pool_b = [], [], [], []
     spread = 0.25
@@ -612,18 +901,44 @@ def find_witness(rig: Rig, limits: Limits, rng: np.random.Generator, rollouts: i
         volts, states = feedback_rollouts(rig, limits, Gains.from_unit(unit, limits), steps,
                                           k_gain)
         ok, badness = check(limits, volts, states, period)
-        for j in np.flatnonzero(ok)[:2]:
-            verdict = verify(rig, limits, volts[j])
-            tried += 1
-            if verdict.ok:
-                return Search(True, "feedback", volts[j], verdict, bound, tried)
         pool_u.append(unit)
         pool_v.append(volts)
         pool_s.append(states)
         pool_b.append(badness)
-    volts = np.concatenate(pool_v)
-    states = np.concatenate(pool_s)
-    badness = np.concatenate(pool_b)
+        for j in np.flatnonzero(ok)[:2]:
+            verdict = verify(rig, limits, volts[j])
+            tried += 1
+            if verdict.ok:
+                return volts[j], verdict, Pool(np.concatenate(pool_v), np.concatenate(pool_s),
+                                               np.concatenate(pool_b)), tried
+    return None, None, Pool(np.concatenate(pool_v), np.concatenate(pool_s),
+                            np.concatenate(pool_b)), tried
+
+
+def find_witness(rig: Rig, limits: Limits, rng: np.random.Generator, rollouts: int = 48,
+                 rounds: int = 4, restarts: int = 2, knot_periods: int = 8,
+                 max_nfev: int = 30, transcription: Transcription | None = None) -> Search:
+    """Search for a witness, stopping at the first.
+
+    The energy bound first (:func:`energy_bound`). Then ``rounds`` batches of
+    ``rollouts`` perfect-knowledge feedback gain sets (:func:`feedback_search`). If none
+    passes, direct shooting (:func:`shoot`) from the ``restarts`` best rollouts, horizon
+    at their closest approach to upright before ``catch_by_s`` (knots of
+    ``knot_periods`` periods), each handed to the LQR hold. With ``transcription``,
+    last, multiple shooting with the catch deadline brought down by continuation
+    (:func:`transcribe`) from the best rollouts. A candidate counts only once
+    :func:`verify` passes it, re-simulated alone.
+    """
+    bound = energy_bound(rig, limits)
+    if bound.infeasible:
+        return Search(False, "bound", None, None, bound, 0)
+    period = rig.period_s
+    steps = int(round(limits.duration_s / period))
+    k_gain = hold_gain(rig)
+    found, verdict, pool, tried = feedback_search(rig, limits, rng, rollouts, rounds, k_gain)
+    if found is not None:
+        return Search(True, "feedback", found, verdict, bound, tried)
+    volts, states, badness = pool.voltages, pool.states, pool.badness
     best = verify(rig, limits, volts[int(np.argmin(badness))])
     tried += 1
     last = int(round(limits.catch_by_s / period))
@@ -642,6 +957,13 @@ def find_witness(rig: Rig, limits: Limits, rng: np.random.Generator, rollouts: i
         tried += 1
         if verdict.ok:
             return Search(True, "shooting", candidate, verdict, bound, tried)
+    if transcription is not None:
+        result = transcribe(rig, limits, pool, transcription, k_gain)
+        tried += result.tried
+        if result.voltages is not None:
+            return Search(True, "multiple shooting", result.voltages, result.verdict, bound,
+                          tried, result.earliest_s)
+        return Search(False, "not found", None, best, bound, tried, result.earliest_s)
     return Search(False, "not found", None, best, bound, tried)
 
 
