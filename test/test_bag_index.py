@@ -41,7 +41,8 @@ def write_stream(directory: Path, messages) -> BagWriter:
     return writer
 
 
-def indexed_in_memory(stream: bytes, library: str = "pisc") -> bytes:
+def indexed_in_memory(stream: bytes, library: str = "pisc",
+                      compression: CompressionType = CompressionType.NONE) -> bytes:
     """What finishing did before: every record read, the messages sorted by log time
     (stable), written by the mcap library's writer."""
     import io
@@ -60,8 +61,7 @@ def indexed_in_memory(stream: bytes, library: str = "pisc") -> bytes:
     except EndOfFile:  # a stream: no footer
         pass
     out = io.BytesIO()
-    writer = Writer(out, chunk_size=CHUNK_SIZE, compression=CompressionType.NONE,
-                    enable_crcs=True)
+    writer = Writer(out, chunk_size=CHUNK_SIZE, compression=compression, enable_crcs=True)
     writer.start(profile="ros2", library=library)
     for s in schemas.values():
         writer.register_schema(s.name, s.encoding, s.data)
@@ -155,3 +155,33 @@ def test_finishing_holds_a_block_not_the_bag(tmp_path, monkeypatch):
         assert index_problems(writer.path) == []
     assert peaks[60] < peaks[10] + 1_000_000, peaks
     assert peaks[60] < 4_000_000 < sizes[60], (peaks, sizes)
+
+
+def test_the_index_check_walks_in_blocks_and_counts_what_the_mcap_reader_counts(tmp_path):
+    """index_problems (repair's check of a finished file) counts by the record framing,
+    as the mcap reader reading the file through counts; where the walk is not sure (a
+    file cut short) the reader decides, and names what it cannot read."""
+    from pisc_bringup.bag import _index_counts_by_reader, index_problems
+
+    writer = write_stream(tmp_path / "bag", recorded_order())
+    stream = writer.path.read_bytes()
+    unindexed = tmp_path / "unindexed.mcap"  # as bags were finished before issue 15
+    unindexed.write_bytes(stream)
+    with unindexed.open("ab") as out:
+        out.write(bytes.fromhex("0f0400000000000000") + b"\0\0\0\0")  # data end, no CRC
+        out.write(bytes.fromhex("021400000000000000") + bytes(20) + bag_index.MCAP_MAGIC)
+    writer.close()
+    zstd = tmp_path / "zstd.mcap"  # chunks compressed, as other writers may write them
+    zstd.write_bytes(indexed_in_memory(stream, compression=CompressionType.ZSTD))
+    for path in (writer.path, unindexed, zstd):
+        counts = bag_index.index_counts(path)
+        assert counts is not None and counts == _index_counts_by_reader(path), path
+    assert index_problems(writer.path) == index_problems(zstd) == []
+    assert index_problems(unindexed) == [
+        "no statistics in its summary",
+        "16045 of its 16045 messages are not in chunks (no index finds them)",
+        f"{bag_index.index_counts(unindexed).backwards} messages out of log-time order"]
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(writer.path.read_bytes()[:100_000])
+    assert bag_index.index_counts(cut) is None
+    assert index_problems(cut) == ["it cannot be read through (EndOfFile: )"]

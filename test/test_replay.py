@@ -121,9 +121,9 @@ def test_replay_reads_the_columns_into_the_run_the_messages_give(bag):
 
 
 def test_a_resent_sample_keeps_its_first_message_and_bad_messages_are_named(tmp_path):
-    """A stamp recorded twice keeps its first message on both paths; a message the
-    columns cannot read (joints replay does not know) goes to the message path, whose
-    error names it."""
+    """A stamp recorded twice keeps its first message on both paths, and a topic without
+    messages is empty on both; a message the columns cannot read (joints replay does not
+    know) goes to the message path, whose error names it."""
     import numpy as np
 
     from pisc_bringup.bag import TYPESTORE
@@ -140,14 +140,19 @@ def test_a_resent_sample_keeps_its_first_message_and_bad_messages_are_named(tmp_
     raw = list(read_bag_raw(SWINGUP))
     resent = joint_state(10_000_000, ["cart", "pendulum"], [9.0, 9.0])
     for name, extra in (("resent", (JOINT_STATES.name, resent)),
-                        ("strange", (STATE.name, joint_state(0, ["a", "b"], [0.0, 0.0])))):
+                        ("strange", (STATE.name, joint_state(0, ["a", "b"], [0.0, 0.0]))),
+                        ("no-force", None)):
         writer = BagWriter(tmp_path / name, GRAPH_TOPICS)
         for k, m in enumerate(raw):
+            if extra is None and m.topic == CART_FORCE.name:
+                continue  # a topic with no message (a run that did not record it)
             writer.write(m.topic, m.data, m.log_time_ns, m.publish_time_ns or 0)
-            if k == len(raw) // 2:
+            if k == len(raw) // 2 and extra is not None:
                 writer.write(*extra, m.log_time_ns, m.log_time_ns)
         writer.close()
         shutil.copy(SWINGUP / "pisc_params.yaml", tmp_path / name)
+    assert not assert_columns_give_the_messages_run(tmp_path / "no-force").outputs[
+        CART_FORCE.name]
     run = assert_columns_give_the_messages_run(tmp_path / "resent")
     assert run.samples[2][1:3] != (9.0, 9.0) and run.samples[2][0] == 10_000_000
     with pytest.raises(BagError, match="/pisc/state: state: expected joints "

@@ -53,7 +53,15 @@ from rosbags.interfaces import (
 from rosbags.rosbag2.metadata import dump_qos_v8, dump_qos_v9
 from rosbags.typesys import Stores, get_typestore
 
-from pisc_bringup.bag_index import CHUNK_SIZE, MCAP_MAGIC, NotMcap, Written, write_sorted
+from pisc_bringup.bag_index import (
+    CHUNK_SIZE,
+    MCAP_MAGIC,
+    IndexCounts,
+    NotMcap,
+    Written,
+    index_counts,
+    write_sorted,
+)
 from pisc_msgs_py.topics import QosSpec, Topic
 
 __all__ = ["BagError", "BagMessage", "BagWriter", "RawMessage", "RepairReport", "bag_files",
@@ -399,41 +407,22 @@ def index_problems(path: str | Path) -> list[str]:
 
     Checked: a summary with statistics; every message in a chunk with a chunk index in
     the summary; every message listed by a message index; the statistics' message count;
-    log times that never decrease in file order.
+    log times that never decrease in file order. The file is walked in blocks
+    (:func:`pisc_bringup.bag_index.index_counts`); where that walk is not sure, the mcap
+    reader reads it through and names what it cannot read.
     """
-    from mcap.records import Chunk, ChunkIndex, Message, MessageIndex, Statistics
-    from mcap.stream_reader import StreamReader, breakup_chunk
-
-    messages = in_chunks = indexed = backwards = chunks = chunk_indexes = 0
-    statistics = None
-    last: int | None = None
-    try:
-        with Path(path).open("rb") as stream:
-            for record in StreamReader(stream, validate_crcs=True, emit_chunks=True).records:
-                inner: list[Any] = [record]
-                if isinstance(record, Chunk):
-                    chunks += 1
-                    inner = breakup_chunk(record, validate_crc=True)
-                    in_chunks += sum(isinstance(r, Message) for r in inner)
-                elif isinstance(record, MessageIndex):
-                    indexed += len(record.records)
-                elif isinstance(record, ChunkIndex):
-                    chunk_indexes += 1
-                elif isinstance(record, Statistics):
-                    statistics = record
-                for r in inner:
-                    if isinstance(r, Message):
-                        messages += 1
-                        backwards += last is not None and r.log_time < last
-                        last = r.log_time
-    except Exception as exc:  # noqa: BLE001 - the readers raise several unrelated types
-        return [f"it cannot be read through ({type(exc).__name__}: {exc})"]
+    counts = index_counts(Path(path)) or _index_counts_by_reader(Path(path))
+    if isinstance(counts, str):
+        return [counts]
+    messages, in_chunks, indexed = counts.messages, counts.in_chunks, counts.indexed
+    chunks, chunk_indexes, backwards = counts.chunks, counts.chunk_indexes, counts.backwards
+    statistics = counts.statistics
     problems = []
     if statistics is None:
         problems.append("no statistics in its summary")
-    elif statistics.message_count != messages:
-        problems.append(f"its statistics count {statistics.message_count} messages, the file "
-                        f"holds {messages}")
+    elif statistics != messages:
+        problems.append(f"its statistics count {statistics} messages, the file holds "
+                        f"{messages}")
     if in_chunks != messages:
         problems.append(f"{messages - in_chunks} of its {messages} messages are not in chunks "
                         "(no index finds them)")
@@ -445,6 +434,40 @@ def index_problems(path: str | Path) -> list[str]:
     if backwards:
         problems.append(f"{backwards} messages out of log-time order")
     return problems
+
+
+def _index_counts_by_reader(path: Path) -> IndexCounts | str:
+    """:class:`IndexCounts` as the mcap reader reads the file through (chunk and data
+    section CRCs checked), or what it cannot read."""
+    from mcap.records import Chunk, ChunkIndex, Message, MessageIndex, Statistics
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    messages = in_chunks = indexed = backwards = chunks = chunk_indexes = 0
+    statistics = None
+    last: int | None = None
+    try:
+        with path.open("rb") as stream:
+            for record in StreamReader(stream, validate_crcs=True, emit_chunks=True).records:
+                inner: list[Any] = [record]
+                if isinstance(record, Chunk):
+                    chunks += 1
+                    inner = breakup_chunk(record, validate_crc=True)
+                    in_chunks += sum(isinstance(r, Message) for r in inner)
+                elif isinstance(record, MessageIndex):
+                    indexed += len(record.records)
+                elif isinstance(record, ChunkIndex):
+                    chunk_indexes += 1
+                elif isinstance(record, Statistics):
+                    statistics = record.message_count
+                for r in inner:
+                    if isinstance(r, Message):
+                        messages += 1
+                        backwards += last is not None and r.log_time < last
+                        last = r.log_time
+    except Exception as exc:  # noqa: BLE001 - the readers raise several unrelated types
+        return f"it cannot be read through ({type(exc).__name__}: {exc})"
+    return IndexCounts(messages, in_chunks, indexed, backwards, chunks, chunk_indexes,
+                       statistics)
 
 
 def _metadata_problem(directory: Path, file_name: str, counts: dict[str, int]) -> str | None:

@@ -52,8 +52,8 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["BLOCK_BYTES", "CHUNK_SIZE", "HOLD_MESSAGES", "MCAP_MAGIC", "IndexedWriter",
-           "NotMcap", "RecordScan", "Written", "write_sorted"]
+__all__ = ["BLOCK_BYTES", "CHUNK_SIZE", "HOLD_MESSAGES", "MCAP_MAGIC", "IndexCounts",
+           "IndexedWriter", "NotMcap", "RecordScan", "Written", "index_counts", "write_sorted"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 CHUNK_SIZE = 768 * 1024  # libmcap's default chunk size, which rosbag2 writes with
@@ -65,6 +65,8 @@ MERGE_READ_BYTES = 256 * 1024  # each run's read buffer in the external merge
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 _MESSAGE_INDEX, _CHUNK_INDEX, _ATTACHMENT_INDEX, _METADATA_INDEX = 0x07, 0x08, 0x0A, 0x0D
 _STATISTICS, _SUMMARY_OFFSET, _DATA_END = 0x0B, 0x0E, 0x0F
+_TALLIED = frozenset((_SCHEMA, _CHANNEL, _CHUNK, _MESSAGE_INDEX, _CHUNK_INDEX, _STATISTICS,
+                      _DATA_END, _FOOTER))
 _RECORD = struct.Struct("<BQ")  # opcode, length
 _MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time
 _MESSAGE_HEAD = 9 + _MESSAGE_FIXED  # a message record up to its data
@@ -83,6 +85,7 @@ class Batch:
     sizes: np.ndarray  # int64: each record's size, opcode and length included
     log: np.ndarray  # uint64 log times
     channel: np.ndarray  # uint16 channel ids
+    in_chunk: bool = False  # the messages of a chunk record
 
     def __len__(self) -> int:
         return len(self.starts)
@@ -146,6 +149,13 @@ class RecordScan:
         self.size = 0
         self.whole_bytes = 0  # offset after the last whole record
         self.stopped: str | None = None  # why records stopped being taken before the end
+        # tallies for index_counts: messages dropped for want of a channel, chunk
+        # records, message index entries, chunk indexes, the last statistics' message
+        # count, a footer seen, and what makes the tallies unsure
+        self.unknown = self.chunk_records = self.indexed = self.chunk_indexes = 0
+        self.statistics: int | None = None
+        self.footer = False
+        self.unsure: str | None = None
 
     def batches(self) -> Iterator[Batch]:
         with self.path.open("rb") as stream:
@@ -182,6 +192,8 @@ class RecordScan:
             if nxt > end:
                 return pos, (nxt - pos if buf_at + nxt <= self.size else -1), \
                     self._close_batch(buf, starts, found)
+            if op in _TALLIED:
+                self._tally(op, buf[pos + 9:nxt], live)
             if live:
                 if op == _MESSAGE:
                     if length >= _MESSAGE_FIXED:
@@ -205,6 +217,29 @@ class RecordScan:
             pos = nxt
         return pos, 9, self._close_batch(buf, starts, found)
 
+    def _tally(self, op: int, body: bytes, live: bool) -> None:
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import Channel, Schema, Statistics
+
+        try:
+            if op == _CHUNK:
+                self.chunk_records += 1
+            elif op == _MESSAGE_INDEX:
+                self.indexed += struct.unpack_from("<I", body, 2)[0] // 16
+            elif op == _CHUNK_INDEX:
+                self.chunk_indexes += 1
+            elif op == _STATISTICS:
+                self.statistics = Statistics.read(ReadDataStream(io.BytesIO(body))).message_count
+            elif op == _DATA_END:
+                if struct.unpack_from("<I", body)[0]:
+                    self.unsure = "a data section CRC"  # the reader checks it
+            elif op == _FOOTER:
+                self.footer = True
+            elif not live:  # a schema or channel of the summary
+                (Schema if op == _SCHEMA else Channel).read(ReadDataStream(io.BytesIO(body)))
+        except Exception as exc:  # noqa: BLE001 - a record that does not parse
+            self.unsure = f"{type(exc).__name__}: {exc}"
+
     def _stop(self, why: str) -> bool:
         if self.stopped is None:
             self.stopped = why
@@ -221,6 +256,7 @@ class RecordScan:
                                                    count=len(self.channels)))
         if known.all():
             return batch
+        self.unknown += int(np.count_nonzero(~known))
         return Batch(batch.data, batch.starts[known], batch.sizes[known], batch.log[known],
                      batch.channel[known])
 
@@ -274,7 +310,9 @@ class RecordScan:
                 if not self._definition(op, data[pos + 9:nxt]):
                     break
         self._close_batch(data, starts, batches)
-        return _concat(batches) if batches else _batch(b"", [])
+        inner = _concat(batches) if batches else _batch(b"", [])
+        inner.in_chunk = True
+        return inner
 
 
 @dataclass
@@ -467,6 +505,48 @@ class IndexedWriter:
         Footer(summary_start=summary_start, summary_offset_start=offset_start,
                summary_crc=crc).write(builder)
         self._write(builder.end() + MCAP_MAGIC)
+
+
+@dataclass(frozen=True)
+class IndexCounts:
+    """What :func:`pisc_bringup.bag.index_problems` checks, counted."""
+
+    messages: int
+    in_chunks: int
+    indexed: int  # message index entries
+    backwards: int  # messages whose log time is before the one before them
+    chunks: int
+    chunk_indexes: int
+    statistics: int | None  # the statistics' message count, None without statistics
+
+
+def index_counts(path: Path) -> IndexCounts | None:
+    """:class:`IndexCounts` of a finished MCAP file, walked in blocks, or None when the
+    walk cannot be sure of them (a record that does not parse, a message whose channel
+    has no channel record, a CRC of the data section, anything after the footer): the
+    mcap reader decides then."""
+    scan = RecordScan(path)
+    messages = in_chunks = backwards = 0
+    last: int | None = None
+    try:
+        for batch in scan.batches():
+            log = batch.log
+            messages += len(log)
+            in_chunks += len(log) if batch.in_chunk else 0
+            backwards += int(np.count_nonzero(log[1:] < log[:-1]))
+            backwards += last is not None and int(log[0]) < last
+            last = int(log[-1])
+    except NotMcap:
+        return None
+    if (scan.stopped != "" or scan.unknown or scan.unsure or not scan.footer
+            or scan.whole_bytes != scan.size - len(MCAP_MAGIC)):
+        return None
+    with Path(path).open("rb") as stream:
+        stream.seek(scan.size - len(MCAP_MAGIC))
+        if stream.read() != MCAP_MAGIC:
+            return None
+    return IndexCounts(messages, in_chunks, scan.indexed, backwards, scan.chunk_records,
+                       scan.chunk_indexes, scan.statistics)
 
 
 class _OutOfWindow(Exception):

@@ -100,7 +100,9 @@ class StampTable(Mapping[int, tuple[float, ...]]):
 
     def __init__(self, stamps: np.ndarray, values: np.ndarray) -> None:
         self.stamps = np.asarray(stamps, dtype=np.int64)
-        self.values = np.asarray(values, dtype=np.float64).reshape(len(self.stamps), -1)
+        self.values = np.asarray(values, dtype=np.float64)
+        if self.values.ndim == 1:
+            self.values = self.values.reshape(-1, 1)
 
     @classmethod
     def first_of(cls, stamps: np.ndarray, values: np.ndarray) -> StampTable:
