@@ -2,20 +2,22 @@
 each, identified, and the estimates and their 95 % intervals compared with the truth.
 
     python -m pisc_bringup.identify_bench [--via driver|lockstep] [--draws 20] [--seed 1]
-                                          [--duration 30] [--set NAME=VALUE ...]
+                                          [--duration S] [--set NAME=VALUE ...]
                                           [--keep DIR]
 
 ``--via driver`` (default) records each run as on the rig: ``pisc_virtual_rig`` on a
 pseudo-terminal with the drawn plant as its parameter file, ``pisc_graph --scene
 excitation --driver PORT`` (both under SCHED_FIFO, as ``test/test_driver.py`` runs them),
-in real time, on a ROS domain it claims (unless ROS_DOMAIN_ID is set); ``--via lockstep`` simulates the same experiment in this process (the pure
-closed loop, the graph's cores), with the distribution's command latency and
-measurement noise. The hidden plant of each draw: the motor's R, L, J_m and b_m, the
-cart's Coulomb and viscous friction and the pivot's friction from the distribution
-(default ``thesis-rig``), the rig's masses and lengths the thesis's (thesis Table 6.1:
-measured, and J_m cannot be told from the cart's mass otherwise). b_m / r^2 acts as
-cart viscous friction, so the truth the cart viscous estimate is compared with is
-b_c + (b_m - b_m,base) / r^2.
+in real time, on a ROS domain it claims (unless ROS_DOMAIN_ID is set); ``--via
+lockstep`` simulates the same experiment in this process (the pure closed loop, the
+graph's cores), with the distribution's command latency and measurement noise. Both run
+the ``excitation`` scene's experiment (its ``experiment.*`` parameters and, unless
+``--duration`` says otherwise, its length). The hidden plant of each draw: the motor's
+R, L, J_m and b_m, the cart's Coulomb and viscous friction and the pivot's friction from
+the distribution (default ``thesis-rig``), the rig's masses and lengths the thesis's
+(thesis Table 6.1: measured, and J_m cannot be told from the cart's mass otherwise).
+b_m / r^2 acts as cart viscous friction, so the truth the cart viscous estimate is
+compared with is b_c + (b_m - b_m,base) / r^2.
 
 Prints, per draw, each parameter's truth, estimate, error and whether the 95 % interval
 covers the truth, then the coverage per parameter, how many estimates are within the
@@ -53,6 +55,7 @@ FIT = "R,L,J_m,cart_coulomb,cart_viscous,pivot_viscous,delay,current_offset"
 TOLERANCE = {"R": (0.05, 0.0), "J_m": (0.05, 0.0), "cart_coulomb": (0.10, 0.005),
              "cart_viscous": (0.10, 0.005), "L": (0.20, 0.0)}
 RT_RIG, RT_GRAPH = "50", "40"
+SCENE = "excitation"  # the experiment each draw records (its length unless --duration)
 #: The parameters whose intervals' coverage the summary counts (the physical ones)
 COVERAGE = ("R", "L", "J_m", "cart_coulomb", "cart_viscous", "pivot_viscous")
 
@@ -107,12 +110,22 @@ def judge(outcome: Outcome, base: Any) -> None:
     outcome.not_identifiable = [e.unknown.key for e in res.not_identifiable]
 
 
+def scene_experiment() -> tuple[dict[str, Any], float]:
+    """The ``excitation`` scene's experiment parameters (flat) and its length, s."""
+    from pisc_sim.scene import load_scene
+
+    scene = load_scene(SCENE)
+    return ({k: v for k, v in scene.overrides.items() if k.startswith("experiment.")},
+            scene.duration_s)
+
+
 def record_lockstep(truth: dict[str, float], duration_s: float, overrides: dict[str, Any],
                     seed: int) -> idf.Recording:
     from pisc_sim.closed_loop import simulate
 
     plant = {"models.friction": "coulomb", "noise.seed": seed, **truth}
-    config, _, _ = load_run_config("default", {"experiment.kind": "excitation", **overrides},
+    experiment, _ = scene_experiment()
+    config, _, _ = load_run_config("default", {**experiment, **overrides},
                                    plant_overrides=plant)
     log = simulate(config, duration_s)
     return idf.recording_from_arrays("lockstep", config.loop.period_s, log["x"], log["theta"],
@@ -143,7 +156,7 @@ def record_driver(truth: dict[str, float], duration_s: float, overrides: dict[st
         rig = RigProcess(["--realtime", RT_RIG, "--params-file", str(params)], env=env)
         try:
             graph = subprocess.run(
-                [sys.executable, "-m", "pisc_bringup.graph", "--scene", "excitation",
+                [sys.executable, "-m", "pisc_bringup.graph", "--scene", SCENE,
                  "--driver", rig.device, "--duration", str(duration_s), "--bag", str(target),
                  "--realtime", RT_GRAPH, *sets],
                 env=env, capture_output=True, text=True, timeout=120 + 3 * duration_s)
@@ -220,7 +233,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--via", choices=("driver", "lockstep"), default="driver")
     parser.add_argument("--draws", type=int, default=20)
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--duration", type=float, default=30.0)
+    parser.add_argument("--duration", type=float, default=None,
+                        help="length of each run, s (default: the excitation scene's)")
     parser.add_argument("--distribution", default="thesis-rig")
     parser.add_argument("--fit", default=FIT)
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
@@ -236,6 +250,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"identify_bench: {exc}", file=sys.stderr)
         return 2
     base, _, _ = load_run_config("default")
+    duration = args.duration if args.duration is not None else scene_experiment()[1]
     claim = None
     if args.via == "driver" and "ROS_DOMAIN_ID" not in os.environ:
         # a ROS domain of its own: another graph on this machine (a test, a soak) must not
@@ -252,14 +267,14 @@ def main(argv: list[str] | None = None) -> int:
             outcome = Outcome(k, truth, None)
             try:
                 if args.via == "lockstep":
-                    recording = record_lockstep(truth, args.duration, overrides, args.seed + k)
+                    recording = record_lockstep(truth, duration, overrides, args.seed + k)
                 else:
                     bag = where / f"draw-{k:03d}"
                     # a draw recorded again (the machine did not keep time) is draw-NNN-A
                     kept = sorted(p for p in where.glob(f"draw-{k:03d}*")
                                   if (p / "metadata.yaml").exists()) if args.keep else []
-                    bag = kept[-1] if kept else record_driver(truth, args.duration,
-                                                              overrides, bag)
+                    bag = kept[-1] if kept else record_driver(truth, duration, overrides,
+                                                              bag)
                     recording = idf.read_recording(bag)
                 outcome.result, outcome.wall_s = identify_one(recording, args.fit)
                 judge(outcome, base.plant)
