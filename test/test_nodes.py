@@ -21,11 +21,12 @@ from pisc_control.supervisor_node import SupervisorNode
 from pisc_msgs_py.base_node import PISC_SECTIONS, message_class, parse_ros_arguments, qos_profile
 from pisc_msgs_py.config import ConfigError
 from pisc_msgs_py.convert import (
+    joint_sample_to_cdr,
     joint_sample_to_msg,
     motor_sample_from_msg,
     motor_sample_to_msg,
 )
-from pisc_msgs_py.topics import CLOCK, JOINT_STATES, MOTOR_CURRENT, VOLTAGE
+from pisc_msgs_py.topics import CLOCK, DIAGNOSTICS, JOINT_STATES, MOTOR_CURRENT, STATE, VOLTAGE
 from pisc_msgs_py.types import JointSample, MotorSample
 from pisc_plant.plant_node import PlantNode
 
@@ -141,6 +142,42 @@ def test_controllers_answer_a_sample_with_a_voltage_of_the_same_stamp(ros_contex
         assert answers[0].value < 0.0
     finally:
         for n in [*nodes, probe]:
+            n.destroy_node()
+
+
+def test_bytes_that_are_no_joint_state_are_refused_on_diagnostics_and_the_node_answers_on(
+        ros_context):
+    """The nodes read their cycle's topics raw (issue 16): a sample whose bytes are no
+    JointState is refused on /diagnostics, naming the topic and what is wrong, and the
+    next good sample is answered (rclpy's own deserialisation raised in the executor)."""
+    estimator = EstimatorNode(context=ros_context)
+    probe = rclpy.node.Node("probe", context=ros_context)
+    joints = probe.create_publisher(message_class(JOINT_STATES.type), JOINT_STATES.name,
+                                    qos_profile(JOINT_STATES.qos))
+    statuses, states = [], []
+    probe.create_subscription(message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
+                              lambda m: statuses.extend(s.message for s in m.status),
+                              qos_profile(DIAGNOSTICS.qos))
+    probe.create_subscription(message_class(STATE.type), STATE.name, states.append,
+                              qos_profile(STATE.qos))
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (estimator, probe):
+        executor.add_node(n)
+    try:
+        assert spin_until(executor, lambda: joints.get_subscription_count() >= 1
+                          and estimator._state_pub.get_subscription_count() >= 1
+                          and estimator._diagnostics.get_subscription_count() >= 1, 10.0)
+        good = joint_sample_to_cdr(JointSample(5_000_000, 0.05, math.pi))
+        joints.publish(good[:30])  # ends before its two joint names
+        assert spin_until(executor, lambda: any("rejected" in m for m in statuses), 10.0)
+        assert [m for m in statuses if "rejected" in m] == [
+            "rejected /pisc/joint_states: JointState: malformed CDR (2 joint names do not "
+            "fit in the message)"]
+        joints.publish(good)
+        assert spin_until(executor, lambda: len(states) == 1, 10.0)
+        assert tuple(states[0].position) == (0.05, math.pi)
+    finally:
+        for n in (estimator, probe):
             n.destroy_node()
 
 

@@ -56,6 +56,7 @@ from __future__ import annotations
 import argparse
 import collections
 import ctypes
+import gc
 import importlib
 import math
 import os
@@ -89,7 +90,7 @@ from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.processes import console_command
-from pisc_msgs_py.base_node import message_class, qos_profile
+from pisc_msgs_py.base_node import freeze_startup_objects, message_class, qos_profile
 from pisc_msgs_py.config import ConfigError, load_params_file, parse_overrides
 from pisc_msgs_py.topics import (
     CART_FORCE,
@@ -367,6 +368,11 @@ class RunResult:
     # messages per topic the nodes of this process published (empty with --processes)
     published: dict[str, int] = field(default_factory=dict)
     experiment: str = "none"  # experiment.kind: an identification run, not a swing-up
+    # wall time from the first voltage this runner received to the one ending the run:
+    # the loop itself, without start-up and finishing the bag (lockstep: its speed), and
+    # the CPU time this process used meanwhile (all its threads; the nodes in one process)
+    loop_s: float | None = None
+    loop_cpu_s: float | None = None
 
 
 # ROS 2 (Jazzy) discovery range: LOCALHOST, SUBNET (the ROS default), OFF or SYSTEM_DEFAULT
@@ -425,6 +431,10 @@ class _Progress:
         self.duration_ns = round(duration_s * 1e9)
         self.first_ns: int | None = None
         self.last_ns: int | None = None
+        self.first_wall: float | None = None  # time.monotonic() at the first voltage
+        self.first_cpu: float | None = None  # time.process_time() then
+        self.loop_s: float | None = None  # wall time from the first voltage to the last
+        self.loop_cpu_s: float | None = None  # and this process's CPU time
         self.done = threading.Event()
         self.future = Future()  # for an executor spinning until the end
 
@@ -436,8 +446,12 @@ class _Progress:
             return
         if self.first_ns is None:
             self.first_ns = stamp
+            self.first_wall = time.monotonic()
+            self.first_cpu = time.process_time()
         self.last_ns = stamp
         if stamp - self.first_ns >= self.duration_ns and not self.done.is_set():
+            self.loop_s = time.monotonic() - self.first_wall
+            self.loop_cpu_s = time.process_time() - self.first_cpu
             self.done.set()
             self.future.set_result(stamp)
 
@@ -749,6 +763,7 @@ def run_graph(options: RunOptions) -> RunResult:
         published = _count_publications(nodes)
         for node in [*nodes, watcher]:
             executor.add_node(node)
+        freeze_startup_objects()
         executor.spin_until_future_complete(progress.future, timeout)
         finished = progress.done.is_set()
         # the plant stops with the last sample; what is still in flight reaches the recorder
@@ -794,7 +809,7 @@ def run_graph(options: RunOptions) -> RunResult:
     summary = summarise_bag(bag_dir, config.loop.period_s)
     started_as = [Path(c.args[0]).name for c in children]
     return RunResult(bag_dir, summary, recorded, wall, started_as, dict(published),
-                     config.supervisor.experiment.kind)
+                     config.supervisor.experiment.kind, progress.loop_s, progress.loop_cpu_s)
 
 
 def _end_if_a_node_died(children: Sequence[subprocess.Popen], progress: _Progress,
@@ -1086,8 +1101,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{'' if plant is None else f'; plant: {plant}'}")
     if result.processes:
         print(f"entry points: {', '.join(result.processes)}")
+    loop = ("" if result.loop_s is None else
+            f"; the loop: {options.duration_s:g} s in {result.loop_s:.2f} s")
     print(f"bag: {result.bag_dir} ({sum(result.recorded.values())} messages, "
-          f"{result.wall_s:.1f} s wall)")
+          f"{result.wall_s:.1f} s wall{loop})")
     print(result.summary.format())
     if result.experiment != "none":  # nothing is to be caught: the run must not fault
         faults = result.summary.faults

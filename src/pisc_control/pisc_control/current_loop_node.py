@@ -11,7 +11,7 @@ from pisc_msgs_py.convert import (
     cart_force_from_msg,
     mode_from_msg,
     motor_sample_from_msg,
-    motor_sample_to_msg,
+    motor_sample_to_cdr,
 )
 from pisc_msgs_py.sync import StampPairer
 from pisc_msgs_py.topics import CART_FORCE, CURRENT_SETPOINT, MODE, MOTOR_CURRENT, VOLTAGE
@@ -76,8 +76,8 @@ class CurrentLoopNode(PiscNode):
             fault=bool(self._fault))
         self._answers.publish(
             force.stamp_ns,
-            (self._setpoint_pub, motor_sample_to_msg(MotorSample(force.stamp_ns, float(i_d)))),
-            (self._voltage_pub, motor_sample_to_msg(MotorSample(force.stamp_ns, float(voltage)))))
+            (self._setpoint_pub, motor_sample_to_cdr(MotorSample(force.stamp_ns, float(i_d)))),
+            (self._voltage_pub, motor_sample_to_cdr(MotorSample(force.stamp_ns, float(voltage)))))
         self._cycles += 1
         if self.routine_diagnostics(self._cycles) and not self._fault:
             self.diagnose(OK, "regulating current", force.stamp_ns, cycles=self._cycles,

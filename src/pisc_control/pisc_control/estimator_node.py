@@ -6,7 +6,7 @@ from typing import Any
 
 from pisc_control.estimator import EstimatorParams, EstimatorState, estimator_update
 from pisc_msgs_py.base_node import OK, PiscNode, ResendCache, run_node
-from pisc_msgs_py.convert import joint_sample_from_msg, state_to_msg
+from pisc_msgs_py.convert import joint_sample_from_msg, state_to_cdr
 from pisc_msgs_py.topics import JOINT_STATES, STATE
 from pisc_msgs_py.types import StateEstimate
 from pisc_model.params import LoopParams
@@ -31,7 +31,7 @@ class EstimatorNode(PiscNode):
         loop, params = self.config
         self._state, x_dot, theta_dot = estimator_update(
             params, loop.period_s, self._state, sample.position_m, sample.angle_rad)
-        out = state_to_msg(StateEstimate(
+        out = state_to_cdr(StateEstimate(
             sample.stamp_ns, sample.position_m, float(x_dot), sample.angle_rad, float(theta_dot)))
         self._answers.publish(sample.stamp_ns, (self._state_pub, out))
         self._samples += 1

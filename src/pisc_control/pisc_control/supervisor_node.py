@@ -19,7 +19,7 @@ from pisc_control.supervisor import (
 from pisc_control.swing_up import SwingUpParams
 from pisc_model.params import LoopParams, RigParams
 from pisc_msgs_py.base_node import ERROR, OK, PiscNode, ResendCache, run_node
-from pisc_msgs_py.convert import cart_force_to_msg, mode_to_msg, state_from_msg
+from pisc_msgs_py.convert import cart_force_to_cdr, mode_to_msg, state_from_msg
 from pisc_msgs_py.topics import CART_FORCE, MODE, STATE
 from pisc_msgs_py.types import CartForce, Mode, ModeReport
 
@@ -71,7 +71,7 @@ class SupervisorNode(PiscNode):
             self._mode_pub.publish(mode_to_msg(ModeReport(state.stamp_ns, mode, reason)))
             self._mode = mode
         self._answers.publish(state.stamp_ns, (
-            self._force_pub, cart_force_to_msg(CartForce(state.stamp_ns, float(force)))))
+            self._force_pub, cart_force_to_cdr(CartForce(state.stamp_ns, float(force)))))
 
 
 def main(args: list[str] | None = None) -> int:

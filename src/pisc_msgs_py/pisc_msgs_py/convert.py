@@ -1,8 +1,12 @@
 """Conversions between ROS messages and the typed values of :mod:`pisc_msgs_py.types`.
 
-``*_to_msg`` build rclpy message objects. ``*_from_msg`` read by attribute only, so they
-accept both rclpy messages and the objects rosbags decodes from a bag. A message that
-does not have the agreed layout raises :class:`MessageError` saying what is wrong.
+``*_to_msg`` build rclpy message objects; ``*_to_cdr`` write the same message as CDR
+bytes (:mod:`pisc_msgs_py.cdr`), which a publisher sends without building an object (the
+nodes' cycle, issue 16). Both take their fields from one function per message, so they
+cannot differ. ``*_from_msg`` read by attribute only, so they accept rclpy messages, the
+objects rosbags decodes from a bag and the views :mod:`pisc_msgs_py.cdr` reads from raw
+bytes. A message that does not have the agreed layout raises :class:`MessageError`
+saying what is wrong.
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import WrenchStamped
 from sensor_msgs.msg import JointState
 
+from pisc_msgs_py import cdr
+from pisc_msgs_py.cdr import MessageError
 from pisc_msgs_py.topics import JOINT_NAMES, MOTOR_JOINT
 from pisc_msgs_py.types import (
     CartForce,
@@ -29,28 +35,30 @@ from pisc_msgs_py.types import (
 __all__ = [
     "MessageError",
     "cart_force_from_msg",
+    "cart_force_to_cdr",
     "cart_force_to_msg",
+    "clock_to_cdr",
     "joint_sample_from_msg",
+    "joint_sample_to_cdr",
     "joint_sample_to_msg",
     "mode_from_msg",
     "mode_to_msg",
     "motor_sample_from_msg",
+    "motor_sample_to_cdr",
     "motor_sample_to_msg",
     "stamp_from_msg",
     "stamp_to_msg",
     "state_from_msg",
+    "state_to_cdr",
     "state_to_msg",
     "true_state_from_msg",
+    "true_state_to_cdr",
     "true_state_to_msg",
 ]
 
 MODE_STATUS_NAME = "pisc/supervisor/mode"
 _MODE_LEVEL = {Mode.SWING_UP: DiagnosticStatus.OK, Mode.CATCH: DiagnosticStatus.OK,
                Mode.FAULT: DiagnosticStatus.ERROR}
-
-
-class MessageError(ValueError):
-    """A message does not have the layout PISC agreed for its topic."""
 
 
 def stamp_to_msg(stamp_ns: int) -> Time:
@@ -79,12 +87,33 @@ def _joint_values(msg: Any, names: tuple[str, ...], field: str, what: str) -> li
     return _finite(values, what)
 
 
-def joint_sample_to_msg(sample: JointSample) -> JointState:
+# JointState fields: (stamp_ns, joint names, position, velocity, effort)
+JointFields = tuple[int, tuple[str, ...], tuple[float, ...], tuple[float, ...],
+                    tuple[float, ...]]
+
+
+def _joint_state_msg(fields: JointFields) -> JointState:
+    stamp_ns, names, position, velocity, effort = fields
     msg = JointState()
-    msg.header.stamp = stamp_to_msg(sample.stamp_ns)
-    msg.name = list(JOINT_NAMES)
-    msg.position = [float(sample.position_m), float(sample.angle_rad)]
+    msg.header.stamp = stamp_to_msg(stamp_ns)
+    msg.name = list(names)
+    msg.position = list(position)
+    msg.velocity = list(velocity)
+    msg.effort = list(effort)
     return msg
+
+
+def _joint_sample_fields(sample: JointSample) -> JointFields:
+    return (sample.stamp_ns, JOINT_NAMES, (float(sample.position_m), float(sample.angle_rad)),
+            (), ())
+
+
+def joint_sample_to_msg(sample: JointSample) -> JointState:
+    return _joint_state_msg(_joint_sample_fields(sample))
+
+
+def joint_sample_to_cdr(sample: JointSample) -> bytes:
+    return cdr.joint_state(*_joint_sample_fields(sample))
 
 
 def joint_sample_from_msg(msg: Any) -> JointSample:
@@ -92,12 +121,16 @@ def joint_sample_from_msg(msg: Any) -> JointSample:
     return JointSample(stamp_from_msg(msg.header.stamp), x, theta)
 
 
+def _motor_sample_fields(sample: MotorSample) -> JointFields:
+    return sample.stamp_ns, (MOTOR_JOINT,), (), (), (float(sample.value),)
+
+
 def motor_sample_to_msg(sample: MotorSample) -> JointState:
-    msg = JointState()
-    msg.header.stamp = stamp_to_msg(sample.stamp_ns)
-    msg.name = [MOTOR_JOINT]
-    msg.effort = [float(sample.value)]
-    return msg
+    return _joint_state_msg(_motor_sample_fields(sample))
+
+
+def motor_sample_to_cdr(sample: MotorSample) -> bytes:
+    return cdr.joint_state(*_motor_sample_fields(sample))
 
 
 def motor_sample_from_msg(msg: Any) -> MotorSample:
@@ -105,13 +138,17 @@ def motor_sample_from_msg(msg: Any) -> MotorSample:
     return MotorSample(stamp_from_msg(msg.header.stamp), value)
 
 
+def _state_fields(state: StateEstimate) -> JointFields:
+    return (state.stamp_ns, JOINT_NAMES, (float(state.position_m), float(state.angle_rad)),
+            (float(state.velocity_mps), float(state.rate_radps)), ())
+
+
 def state_to_msg(state: StateEstimate) -> JointState:
-    msg = JointState()
-    msg.header.stamp = stamp_to_msg(state.stamp_ns)
-    msg.name = list(JOINT_NAMES)
-    msg.position = [float(state.position_m), float(state.angle_rad)]
-    msg.velocity = [float(state.velocity_mps), float(state.rate_radps)]
-    return msg
+    return _joint_state_msg(_state_fields(state))
+
+
+def state_to_cdr(state: StateEstimate) -> bytes:
+    return cdr.joint_state(*_state_fields(state))
 
 
 def state_from_msg(msg: Any) -> StateEstimate:
@@ -120,14 +157,19 @@ def state_from_msg(msg: Any) -> StateEstimate:
     return StateEstimate(stamp_from_msg(msg.header.stamp), x, x_dot, theta, theta_dot)
 
 
+def _true_state_fields(state: TrueState) -> JointFields:
+    return (state.stamp_ns, (*JOINT_NAMES, MOTOR_JOINT),
+            (float(state.position_m), float(state.angle_rad), 0.0),
+            (float(state.velocity_mps), float(state.rate_radps), 0.0),
+            (0.0, 0.0, float(state.current_a)))
+
+
 def true_state_to_msg(state: TrueState) -> JointState:
-    msg = JointState()
-    msg.header.stamp = stamp_to_msg(state.stamp_ns)
-    msg.name = [*JOINT_NAMES, MOTOR_JOINT]
-    msg.position = [float(state.position_m), float(state.angle_rad), 0.0]
-    msg.velocity = [float(state.velocity_mps), float(state.rate_radps), 0.0]
-    msg.effort = [0.0, 0.0, float(state.current_a)]
-    return msg
+    return _joint_state_msg(_true_state_fields(state))
+
+
+def true_state_to_cdr(state: TrueState) -> bytes:
+    return cdr.joint_state(*_true_state_fields(state))
 
 
 def true_state_from_msg(msg: Any) -> TrueState:
@@ -138,17 +180,29 @@ def true_state_from_msg(msg: Any) -> TrueState:
     return TrueState(stamp_from_msg(msg.header.stamp), x, x_dot, theta, theta_dot, current)
 
 
+CART_FRAME = "cart"  # the frame of the cart force
+
+
 def cart_force_to_msg(force: CartForce) -> WrenchStamped:
     msg = WrenchStamped()
     msg.header.stamp = stamp_to_msg(force.stamp_ns)
-    msg.header.frame_id = "cart"
+    msg.header.frame_id = CART_FRAME
     msg.wrench.force.x = float(force.force_n)
     return msg
+
+
+def cart_force_to_cdr(force: CartForce) -> bytes:
+    return cdr.wrench_stamped(force.stamp_ns, CART_FRAME, (float(force.force_n), 0.0, 0.0))
 
 
 def cart_force_from_msg(msg: Any) -> CartForce:
     (f,) = _finite([float(msg.wrench.force.x)], "cart_force")
     return CartForce(stamp_from_msg(msg.header.stamp), f)
+
+
+def clock_to_cdr(stamp_ns: int) -> bytes:
+    """``rosgraph_msgs/msg/Clock`` at ``stamp_ns`` as CDR bytes."""
+    return cdr.clock(stamp_ns)
 
 
 def mode_to_msg(report: ModeReport) -> DiagnosticArray:

@@ -39,17 +39,16 @@ from typing import Any
 
 import rclpy
 from rclpy.time import Time
-from rosgraph_msgs.msg import Clock
 
 from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, run_node
 from pisc_msgs_py.config import ConfigError, in_range, one_of, param
 from pisc_msgs_py.convert import (
-    joint_sample_to_msg,
+    clock_to_cdr,
+    joint_sample_to_cdr,
     motor_sample_from_msg,
-    motor_sample_to_msg,
+    motor_sample_to_cdr,
     stamp_from_msg,
-    stamp_to_msg,
-    true_state_to_msg,
+    true_state_to_cdr,
 )
 from pisc_msgs_py.topics import (
     CLOCK,
@@ -116,6 +115,17 @@ class SimulationParams:
 SECTIONS = {**PLANT_SECTIONS, "initial": InitialParams, "simulation": SimulationParams}
 
 
+def _warm_up(plant: Plant, state: Any) -> None:
+    """One sample, command and step on a throwaway copy, before the run: numba loads the
+    kernel's entry points from its cache on first call (about 1 s, measured in the first
+    lockstep cycle, issue 16) and the plant keeps its operator tables; the run's own
+    SampledPlant starts from ``state`` untouched, with its own noise generator."""
+    scratch = SampledPlant(plant, state.copy())
+    scratch.sample()
+    scratch.command(0.0)
+    scratch.advance()
+
+
 class PlantNode(PiscNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("plant", SECTIONS, **kwargs)
@@ -156,6 +166,8 @@ class PlantNode(PiscNode):
         self._first_voltage_ns: int | None = None  # stamp of the first voltage seen
         self._finished = False  # the voltage ending the run (duration_s) has come
         self._stop_requested = False  # a signal asked the process to stop
+        # with the topics created: discovery goes on meanwhile, in DDS's threads
+        _warm_up(plant, state)
         period = plant_config.loop.period_s
         self._timer = self.create_timer(0.01 if self._lockstep else period, self._on_timer)
 
@@ -181,16 +193,16 @@ class PlantNode(PiscNode):
         sample = self._sim.sample()
         if self._lockstep:
             self._stamp_ns = self._sim.time_ns
-            self._clock_pub.publish(Clock(clock=stamp_to_msg(self._stamp_ns)))
+            self._clock_pub.publish(clock_to_cdr(self._stamp_ns))
         else:
             self._stamp_ns = self._wall_ns()
         self._watchdog.sample(sample.index, self._stamp_ns)
-        self._joint_pub.publish(joint_sample_to_msg(
+        self._joint_pub.publish(joint_sample_to_cdr(
             JointSample(self._stamp_ns, sample.position_m, sample.angle_rad)))
         self._current_pub.publish(
-            motor_sample_to_msg(MotorSample(self._stamp_ns, sample.current_a)))
+            motor_sample_to_cdr(MotorSample(self._stamp_ns, sample.current_a)))
         if self._sim_params.publish_true_state:
-            self._true_pub.publish(true_state_to_msg(TrueState(self._stamp_ns, *sample.true_state)))
+            self._true_pub.publish(true_state_to_cdr(TrueState(self._stamp_ns, *sample.true_state)))
         self._published_ns = self._wall_ns()
         if self.routine_diagnostics(sample.index + 1):
             self.diagnose(OK, "simulating", self._stamp_ns, sample=sample.index,
