@@ -185,3 +185,27 @@ def test_the_index_check_walks_in_blocks_and_counts_what_the_mcap_reader_counts(
     cut.write_bytes(writer.path.read_bytes()[:100_000])
     assert bag_index.index_counts(cut) is None
     assert index_problems(cut) == ["it cannot be read through (EndOfFile: )"]
+
+
+def test_repair_removes_what_a_merge_killed_midway_left(tmp_path):
+    """A finish killed during the external merge leaves its runs in a temporary
+    directory beside the bag: repair removes them with the ``.tmp`` file, and says so,
+    for a stream as for a finished bag."""
+    writer = write_stream(tmp_path / "live", recorded_order())
+    bag = tmp_path / "cut"
+    bag.mkdir()
+    (bag / "cut_0.mcap").write_bytes(writer.path.read_bytes())
+    writer.close()
+    for name in (".pisc-sort-abc", ".pisc-sort-def"):
+        (bag / name).mkdir()
+        (bag / name / "run000000").write_bytes(b"\x05" * 100)
+    (bag / "cut_0.mcap.tmp").write_bytes(b"\x89MCAP0")
+    report = repair_bag(bag)
+    assert report.removed == (bag / "cut_0.mcap.tmp", bag / ".pisc-sort-abc",
+                              bag / ".pisc-sort-def")
+    assert "removed .pisc-sort-abc (an interrupted finish)" in report.format()
+    assert sorted(p.name for p in bag.iterdir()) == ["cut_0.mcap", "cut_0.mcap.unfinished",
+                                                      "metadata.yaml"]
+    (bag / ".pisc-sort-ghi").mkdir()
+    again = repair_bag(bag)  # finished: only the leftover to remove
+    assert again.removed == (bag / ".pisc-sort-ghi",) and again.backup is None

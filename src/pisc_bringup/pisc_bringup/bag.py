@@ -56,6 +56,7 @@ from rosbags.typesys import Stores, get_typestore
 from pisc_bringup.bag_index import (
     CHUNK_SIZE,
     MCAP_MAGIC,
+    SCRATCH_PREFIX,
     IndexCounts,
     NotMcap,
     Written,
@@ -572,10 +573,10 @@ def repair_bag(directory: str | Path) -> RepairReport:
                   for cid, c in summary.channels.items()}
         problem = _metadata_problem(directory, path.name, counts)
         if problem is None:
-            if leftover.exists():
-                leftover.unlink()
+            removed = _remove(leftover)
+            if removed:
                 return RepairReport(path, None, counts, 0, ("an interrupted finish's "
-                                    "temporary file",), None, (leftover,))
+                                    "temporary file",), None, removed)
             raise BagError(f"{path}: already finished; nothing to repair")
         meta_backup = _keep_broken_metadata(directory)
         times = ((stats.message_start_time, stats.message_end_time) if stats.message_count
@@ -608,10 +609,19 @@ def repair_bag(directory: str | Path) -> RepairReport:
 
 
 def _remove(leftover: Path) -> tuple[Path, ...]:
+    """An interrupted finish's leftovers: its ``.tmp`` file, and the temporary
+    directories of an external merge beside it."""
+    import shutil
+
+    removed = []
     if leftover.exists():
         leftover.unlink()
-        return (leftover,)
-    return ()
+        removed.append(leftover)
+    for scratch in sorted(leftover.parent.glob(SCRATCH_PREFIX + "*")):
+        if scratch.is_dir():
+            shutil.rmtree(scratch)
+            removed.append(scratch)
+    return tuple(removed)
 
 
 def _keep_broken_metadata(directory: Path) -> Path | None:

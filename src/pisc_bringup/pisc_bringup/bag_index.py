@@ -60,6 +60,7 @@ CHUNK_SIZE = 768 * 1024  # libmcap's default chunk size, which rosbag2 writes wi
 BLOCK_BYTES = 4 * 1024 * 1024  # the file is read this much at a time
 HOLD_MESSAGES = 8192  # held back to be sorted with the next block's messages
 MERGE_READ_BYTES = 256 * 1024  # each run's read buffer in the external merge
+SCRATCH_PREFIX = ".pisc-sort-"  # the external merge's temporary directory, beside the bag
 
 # MCAP record opcodes (MCAP specification, "Records")
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
@@ -609,7 +610,7 @@ def _window(scan: RecordScan, writer: IndexedWriter, hold: int) -> None:
 
 def _merge(scan: RecordScan, writer: IndexedWriter, beside: Path) -> None:
     """External merge: each block's messages sorted into a run file, the runs merged."""
-    with tempfile.TemporaryDirectory(prefix=".pisc-sort-", dir=beside) as scratch:
+    with tempfile.TemporaryDirectory(prefix=SCRATCH_PREFIX, dir=beside) as scratch:
         runs = []
         for k, batch in enumerate(scan.batches()):
             run = Path(scratch) / f"run{k:06d}"
