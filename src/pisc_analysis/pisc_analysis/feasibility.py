@@ -8,7 +8,7 @@ the robustness benchmark's rules (:class:`Limits`): the cart inside the safe ran
 every sample, |u| within the bridge's voltage, |i| within the current loop's limit at
 every sample, from ``hold_start_s`` |theta| and |x| within the hold's bounds.
 
-Two searches, both on the compiled plant (:class:`pisc_plant.plant.Plant`):
+Three searches, all on the compiled plant (:class:`pisc_plant.plant.Plant`):
 
 1. **Perfect-knowledge feedback** (:func:`feedback_rollouts`): an energy pump on the
    true pendulum energy with a track guard, the force computed from the true model
@@ -18,12 +18,15 @@ Two searches, both on the compiled plant (:class:`pisc_plant.plant.Plant`):
    ``scipy.optimize.least_squares`` on the terminal state (upright at rest) with the
    track and current limits as penalty residuals, started from the best feedback
    rollouts and from random pumps; the LQR hold takes over at the end of the horizon.
+3. **Multiple shooting** (:func:`transcribe`, optional): the catch deadline brought
+   down by continuation from the best feedback rollouts, 5 ms knots, 0.2 s segments.
 
 Every candidate is re-simulated from scratch as one voltage sequence and checked
 (:func:`verify`); only a sequence that passes is a witness. A witness proves that the
 rig can be swung up and held: the draw is *feasible*. A search that fails proves
-nothing; :func:`energy_bound` gives a necessary condition that does (an energy budget),
-and :class:`Search` says which of the two applies.
+nothing; :func:`energy_bound` gives necessary conditions that do (an energy budget and
+the comparison lemma's :func:`climb_time` to the catch region's energy), and
+:class:`Search` says which applies.
 
 The search uses the plant with ideal sensors, no sensor filters and an unquantised
 bridge (``actuator.command_levels = 0``): the 7-bit quantisation (90 mV steps) and the
