@@ -23,9 +23,10 @@ Then each tool runs as a process of its own, on a copy of the stream where neede
 * analyse: ``pisc_bag analyse`` of the finished bag;
 * replay: ``pisc_bag replay`` of the finished bag (through the controller cores).
 
-Each prints its wall time (the command's, interpreter start included), messages a
-second, and the process's peak resident memory (``ru_maxrss`` from ``wait4``); the date
-and load average go first, the load again at the end.
+Each prints its wall time (the command's, interpreter start included), CPU time
+(``wait4``), messages a second, and the process's own peak resident memory (``VmHWM``
+read by the child at its end; a child's ``ru_maxrss`` starts from its parent's); the
+date and load average go first, the load again at the end.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -123,20 +125,46 @@ def _finish(directory: str) -> int:
 
 
 def _run_measured(label: str, command: list[str], messages: int) -> dict:
-    """``command`` as a child process, waited for with ``wait4``: its wall time and its
-    own peak resident memory."""
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        started = time.perf_counter()
-        child = subprocess.Popen(command, stdout=out, stderr=err)
-        _, status, usage = os.wait4(child.pid, 0)
-        wall = time.perf_counter() - started
+    """``command`` (``[python, "-m", module, *args]``) as a child process: its wall and
+    CPU time (``wait4``) and its own peak resident memory (``VmHWM``, which the child
+    reads when the module returns: ``ru_maxrss`` of a child starts from its parent's
+    high-water mark, the forked copy's)."""
+    python, _, module, *rest = command
+    with tempfile.TemporaryDirectory() as scratch:
+        peak_file = Path(scratch) / "peak"
+        out, err = Path(scratch) / "out", Path(scratch) / "err"
+        with out.open("wb") as stdout, err.open("wb") as stderr:
+            started = time.perf_counter()
+            child = subprocess.Popen([python, "-m", "pisc_bringup.bag_bench", "--measure",
+                                      str(peak_file), module, *rest],
+                                     stdout=stdout, stderr=stderr)
+            _, status, usage = os.wait4(child.pid, 0)
+            wall = time.perf_counter() - started
         child.returncode = os.waitstatus_to_exitcode(status)
-        out.seek(0)
-        err.seek(0)
+        peak = peak_file.read_text() if peak_file.exists() else "nan"
         return {"step": label, "rc": child.returncode, "wall_s": wall, "messages": messages,
-                "rss_mb": usage.ru_maxrss / 1024, "cpu_s": usage.ru_utime + usage.ru_stime,
-                "stdout": out.read().decode(errors="replace"),
-                "stderr": err.read().decode(errors="replace")}
+                "rss_mb": float(peak) / 1024, "cpu_s": usage.ru_utime + usage.ru_stime,
+                "stdout": out.read_text(errors="replace"),
+                "stderr": err.read_text(errors="replace")}
+
+
+def _measure(peak_file: str, module: str, args: list[str]) -> int:
+    """Run ``module`` as ``python -m module args`` would, then write this process's
+    peak resident memory (kB, ``VmHWM``) to ``peak_file``."""
+    import runpy
+
+    sys.argv = [module, *args]
+    code: Any = 0
+    try:
+        runpy.run_module(module, run_name="__main__", alter_sys=True)
+    except SystemExit as exc:
+        code = exc.code
+    finally:
+        status = Path("/proc/self/status").read_text()
+        peak = next(line.split()[1] for line in status.splitlines()
+                    if line.startswith("VmHWM:"))
+        Path(peak_file).write_text(peak)
+    return code if isinstance(code, int) else (0 if code is None else 1)
 
 
 def _load() -> str:
@@ -144,6 +172,9 @@ def _load() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["--measure"] and len(argv) >= 3:  # a step, in its own process
+        return _measure(argv[1], argv[2], argv[3:])
     parser = argparse.ArgumentParser(prog="python -m pisc_bringup.bag_bench",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=600.0,
