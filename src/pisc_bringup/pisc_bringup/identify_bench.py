@@ -3,7 +3,7 @@ each, identified, and the estimates and their 95 % intervals compared with the t
 
     python -m pisc_bringup.identify_bench [--via driver|lockstep] [--draws 20] [--seed 1]
                                           [--duration S] [--set NAME=VALUE ...]
-                                          [--keep DIR]
+                                          [--truth NAME=VALUE ...] [--keep DIR]
 
 ``--via driver`` (default) records each run as on the rig: ``pisc_virtual_rig`` on a
 pseudo-terminal with the drawn plant as its parameter file, ``pisc_graph --scene
@@ -239,13 +239,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fit", default=FIT)
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="override the experiment's parameters (e.g. experiment.signal=prbs)")
+    parser.add_argument("--truth", action="append", default=[], metavar="NAME=VALUE",
+                        help="set a parameter of every draw's hidden plant (e.g. "
+                        "noise.current_std_a=0: lockstep without the current's noise)")
     parser.add_argument("--keep", type=Path, metavar="DIR", help="keep the bags here; a bag "
                         "already there (draw-NNN of the same seed) is identified again "
                         "instead of recorded")
     args = parser.parse_args(argv)
     try:
         overrides = parse_overrides(args.set)
-        truths = draw_truths(args.draws, args.seed, args.distribution, args.via == "lockstep")
+        try:
+            fixed = parse_overrides(args.truth)
+        except ConfigError as exc:  # (its text names --set)
+            raise ConfigError(str(exc).replace("--set", "--truth", 1)) from None
+        truths = [{**t, **fixed} for t in draw_truths(args.draws, args.seed, args.distribution,
+                                                      args.via == "lockstep")]
     except ConfigError as exc:
         print(f"identify_bench: {exc}", file=sys.stderr)
         return 2
