@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import control
@@ -12,7 +13,7 @@ from pisc_msgs_py.config import ConfigError, finite, nonnegative, one_of, param,
 from pisc_model.dynamics import linearise_upright, wrap_to_upright
 from pisc_model.params import RigParams
 
-__all__ = ["CatchParams", "catch_force", "catch_gain"]
+__all__ = ["CatchParams", "SAME_DESIGN_RTOL", "catch_force", "catch_gain", "recorded_or_designed"]
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,12 @@ class CatchParams:
     settle_rate_mps: float = param(
         0.0, "the catch's cart reference starts where the cart is when the catch begins and "
         "moves to x* at this speed (0 = x* at once, the thesis's law)", "m/s", nonnegative)
+    recorded_gain: tuple[float, ...] = param(
+        [], "K as a recorded run computed it (pisc_graph writes it into the bag's parameter "
+        "file); used instead of the designed K only when the design gives the same K within "
+        "1e-9 relative, so that a replay on another machine, whose LAPACK rounds the last "
+        "bits differently, reproduces the run bit for bit, and a changed design still changes "
+        "K; empty: the designed K", "N/m, N s/m, N/rad, N s/rad")
 
     @property
     def pole_set(self) -> np.ndarray:
@@ -63,6 +70,10 @@ class CatchParams:
                     "conjugate pairs (same real part, opposite imaginary parts)")
         if len(self.lqr_q) != 4:
             raise ConfigError(f"catch.lqr_q: expected 4 weights, got {len(self.lqr_q)}")
+        if self.recorded_gain and (len(self.recorded_gain) != 4
+                                   or not all(math.isfinite(k) for k in self.recorded_gain)):
+            raise ConfigError(f"catch.recorded_gain = {list(self.recorded_gain)}: expected "
+                              "4 finite gains, or none")
 
 
 def catch_gain(rig: RigParams, params: CatchParams) -> np.ndarray:
@@ -96,7 +107,20 @@ def catch_gain(rig: RigParams, params: CatchParams) -> np.ndarray:
     k = np.asarray(k, dtype=float).reshape(4)
     if not np.all(np.isfinite(k)):
         raise ConfigError(f"catch: the gain design produced non-finite gains {k}")
-    return k
+    return recorded_or_designed(k, params.recorded_gain)
+
+
+#: how far a recorded K may be from the designed one and still be "the same design": the
+#: LAPACK kernels of two machines differ by a few ulps (5e-15 relative on the default's LQR
+#: between OpenBLAS's SkylakeX and Zen kernels), a changed design by far more
+SAME_DESIGN_RTOL = 1e-9
+
+
+def recorded_or_designed(designed: np.ndarray, recorded: tuple[float, ...]) -> np.ndarray:
+    """The recorded K when it is the designed K up to rounding, else the designed K."""
+    if recorded and np.allclose(designed, recorded, rtol=SAME_DESIGN_RTOL, atol=0.0):
+        return np.array(recorded, dtype=float)
+    return designed
 
 
 def catch_force(

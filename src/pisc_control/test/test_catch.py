@@ -69,3 +69,24 @@ def test_force_sign_and_wrap():
     assert catch_force(k, 0.0, 0.0, 0.05 + 4 * math.pi, 0.0) == pytest.approx(
         catch_force(k, 0.0, 0.0, 0.05, 0.0), rel=1e-12)
     assert catch_force(k, 0.02, 0.0, 0.0, 0.0, target_m=0.02) == 0.0
+
+
+def test_a_recorded_gain_is_used_only_when_the_design_gives_it_up_to_rounding():
+    """A bag's K (another machine's LAPACK: a few ulps off) replaces the designed K; a K
+    of another design does not."""
+    designed = catch_gain(RIG, CatchParams())
+    ulps = tuple(float(np.nextafter(np.nextafter(k, 0.0), 0.0)) for k in designed)  # 2 ulps
+    assert tuple(catch_gain(RIG, CatchParams(recorded_gain=ulps))) == ulps
+    assert not np.array_equal(designed, ulps)
+    other = tuple(float(k) * (1.0 + 1e-6) for k in designed)  # not this design's
+    np.testing.assert_array_equal(catch_gain(RIG, CatchParams(recorded_gain=other)), designed)
+    # changed poles with the old recording's K: the new design's K
+    moved = catch_gain(RIG, CatchParams(poles=(-15.0, -11.0, -3.0, -2.4), recorded_gain=ulps))
+    np.testing.assert_array_equal(
+        moved, catch_gain(RIG, CatchParams(poles=(-15.0, -11.0, -3.0, -2.4))))
+
+
+@pytest.mark.parametrize("gain", [(1.0, 2.0, 3.0), (1.0, 2.0, math.nan, 4.0)])
+def test_a_malformed_recorded_gain_is_refused(gain):
+    with pytest.raises(ConfigError, match=r"catch.recorded_gain = .*expected 4 finite gains"):
+        CatchParams(recorded_gain=gain)
