@@ -13,6 +13,7 @@ from pisc_bringup.bag import read_bag
 from pisc_sim.closed_loop import simulate
 from pisc_sim.configuration import load_graph_config, load_run_config
 from pisc_bringup.graph import RunOptions, main, run_graph
+from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import ConfigError, load_params_file
 from pisc_msgs_py.convert import mode_from_msg, motor_sample_from_msg
 from pisc_msgs_py.topics import DIAGNOSTICS, GRAPH_TOPICS, MODE, VOLTAGE
@@ -99,6 +100,9 @@ def test_a_plant_with_model_error_runs_its_own_parameters_bit_for_bit(tmp_path, 
     assert load_params_file(bag / "pisc_params.yaml")["motor.resistance_ohm"] == 14.0
     cfg, _, _ = load_run_config("default", {"initial.x_m": 0.05},
                                 plant_overrides={"motor.resistance_ohm": 18.2})
+    # the K the run used, to the bit, for a replay on another machine (catch.recorded_gain)
+    assert load_params_file(bag / "pisc_params.yaml")["catch.recorded_gain"] == [
+        float(k) for k in Supervisor(cfg.supervisor).gain]
     log = simulate(cfg, 3.0)
     recorded = recorded_voltages(bag)
     assert len(recorded) == len(log["u"])

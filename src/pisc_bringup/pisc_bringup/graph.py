@@ -639,7 +639,10 @@ def run_graph(options: RunOptions) -> RunResult:
                           "seconds > 0")
     config, flat, plant_params = load_run_config(
         options.config, options.overrides, options.plant_config, options.plant_overrides)
-    Supervisor(config.supervisor)  # refuses (3.29) and an uncontrollable linearisation
+    supervisor = Supervisor(config.supervisor)  # refuses (3.29), an uncontrollable model
+    # the K this machine computes goes into the bag's parameter file, so that a replay on
+    # a machine whose LAPACK rounds differently uses the same bits (catch.recorded_gain)
+    flat = {**flat, "catch.recorded_gain": [float(k) for k in supervisor.gain]}
     track = config.simulated_plant.track
     if options.driver_port is None and not track.min_m <= config.initial.x_m <= track.max_m:
         raise ConfigError(f"initial.x_m = {config.initial.x_m} lies outside the track "
