@@ -275,9 +275,11 @@ class PlantNode(PiscNode):
                     self.diagnose(
                         ERROR, f"command watchdog: no command answered samples "
                         f"{self._watchdog.answered + 1} .. {index}: 0 V from sample {index}; "
-                        f"{self._silent_stage()}", self._stamp_ns, sample=index,
+                        f"{self._silent_stage(judged=self._watchdog.answered + 1)}",
+                        self._stamp_ns, sample=index,
                         last_answered_sample=self._watchdog.answered, applied_v=0.0,
-                        silent=self._silent_stage(node_only=True))
+                        silent=self._silent_stage(node_only=True,
+                                                  judged=self._watchdog.answered + 1))
             self._sim.advance()
         self._started = True
         self._publish_sample()
@@ -378,11 +380,15 @@ class PlantNode(PiscNode):
                           f"{self._command_topic.name}: commands apply again", self._stamp_ns,
                           sample=self._sim.index)
 
-    def _silent_stage(self, node_only: bool = False) -> str:
-        """The first stage of the chain with no output for the current sample, and who
+    def _silent_stage(self, node_only: bool = False, judged: int | None = None) -> str:
+        """The first stage of the chain with no output for sample ``judged`` (the current
+        one by default; a trip judges the oldest unanswered one, which had the most time:
+        a live stage slowed by the machine has answered it, one that died has not), and who
         publishes it (:func:`pisc_msgs_py.watchdog.silent_stage_report`)."""
-        sentence, who = silent_stage_report(self, self._stamp_ns, self._upstream,
-                                            self._sim.index, self._command_topic)
+        index = self._sim.index if judged is None else judged
+        stamp = self._stamp_ns if judged is None else self._watchdog.stamp_of(judged)
+        sentence, who = silent_stage_report(self, self._stamp_ns if stamp is None else stamp,
+                                            self._upstream, index, self._command_topic)
         return who if node_only else sentence
 
 
