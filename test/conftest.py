@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -14,6 +15,17 @@ from rclpy.context import Context
 from pisc_msgs_py.processes import DomainClaim
 
 __all__ = ["DomainClaim", "recorder_pid", "spin_until"]
+
+@pytest.fixture(autouse=True)
+def _no_virtual_rig_outlives_its_test() -> Iterator[None]:
+    """Stop every pisc_virtual_rig a test started and left running (one whose test failed
+    before its own clean-up): at SCHED_FIFO it would load every later test of the run."""
+    yield
+    module = sys.modules.get("pisc_plant.virtual_rig")
+    if module is not None:
+        for rig in list(module.RigProcess.running):
+            rig.stop()
+
 
 @pytest.fixture
 def claim_domain() -> Iterator[Callable[[], int]]:

@@ -549,22 +549,31 @@ def test_a_visitor_answering_every_sample_drives_nothing_through_the_driver(
 
 def _start_balancing(tmp_path, env, ros_context, processes: bool):
     rig = start_rig(tmp_path, "--x0", "0.0")
-    graph = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bringup.graph", "--driver", rig.device, "--duration",
-         "60", "--bag", str(tmp_path / "bag"), "--realtime", RT_GRAPH,
-         *(["--processes"] if processes else [])],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    probe = Node("crash_probe", context=ros_context)
-    watch = DriverWatch(probe)
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(probe)
-    # balancing (or, on a slow day, still swinging up: the chain answers every sample
-    # either way, which is what the crash cuts)
-    caught = spin_until(executor, lambda: Mode.CATCH in watch.modes or graph.poll() is not None,
-                        30.0)
-    assert graph.poll() is None, graph.communicate()
-    spin_until(executor, lambda: False, 1.0)
-    assert rig.status()["applied_v"] != 0.0 or caught
+    graph = None
+    try:  # a failure here stops the rig and the graph (a rig left at SCHED_FIFO loads
+        # every later test of the run)
+        graph = subprocess.Popen(
+            [sys.executable, "-m", "pisc_bringup.graph", "--driver", rig.device, "--duration",
+             "60", "--bag", str(tmp_path / "bag"), "--realtime", RT_GRAPH,
+             *(["--processes"] if processes else [])],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        probe = Node("crash_probe", context=ros_context)
+        watch = DriverWatch(probe)
+        executor = SingleThreadedExecutor(context=ros_context)
+        executor.add_node(probe)
+        # balancing (or, on a slow day, still swinging up: the chain answers every sample
+        # either way, which is what the crash cuts)
+        caught = spin_until(executor,
+                            lambda: Mode.CATCH in watch.modes or graph.poll() is not None, 30.0)
+        assert graph.poll() is None, graph.communicate()
+        spin_until(executor, lambda: False, 1.0)
+        assert rig.status()["applied_v"] != 0.0 or caught
+    except BaseException:
+        if graph is not None and graph.poll() is None:
+            graph.kill()
+            graph.communicate()
+        rig.stop()
+        raise
     return rig, graph, probe, watch, executor, caught
 
 

@@ -58,8 +58,9 @@ import sys
 import threading
 import time
 import tty
+import weakref
 from dataclasses import dataclass, field
-from typing import Any, TextIO
+from typing import Any, ClassVar, TextIO
 
 import numpy as np
 
@@ -508,11 +509,15 @@ class RigProcess:
     rig said on standard error (a thread reads it, so that it never fills the pipe).
     """
 
+    #: the rigs started and not stopped (a test's fixture stops what its test left)
+    running: ClassVar[weakref.WeakSet[RigProcess]] = weakref.WeakSet()
+
     def __init__(self, args: list[str] = (), env: dict[str, str] | None = None,
                  timeout_s: float = 30.0) -> None:
         self.process = subprocess.Popen(
             [sys.executable, "-m", "pisc_plant.virtual_rig", *args], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, bufsize=1)
+        RigProcess.running.add(self)
         self._final: dict[str, Any] | None = None
         self._stderr: collections.deque[str] = collections.deque(maxlen=1000)
         self._stderr_reader = threading.Thread(target=self._read_stderr, daemon=True,
@@ -563,7 +568,12 @@ class RigProcess:
         if self._final is None:
             if self.process.poll() is None:
                 self.process.send_signal(signal.SIGTERM)
-            out, _ = self.process.communicate(timeout=timeout_s)
+            try:
+                out, _ = self.process.communicate(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                out, _ = self.process.communicate()
+            RigProcess.running.discard(self)
             lines = [line for line in out.splitlines() if line.startswith("{")]
             self._final = json.loads(lines[-1]) if lines else {}
         return self._final
