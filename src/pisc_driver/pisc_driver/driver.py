@@ -95,7 +95,7 @@ class DriverParams(ParserParams):
 class Trip:
     """The command watchdog tripped at frame ``sample`` (stamp ``stamp_ns``): the newest
     answered one was ``last_answered``; ``judged_stamp_ns`` is the stamp of the frame
-    after that (the oldest unanswered), on which the stage that stopped is named."""
+    before, on which the stage that stopped is named."""
 
     sample: int
     last_answered: int
@@ -181,11 +181,11 @@ class DriverCore:
             self.watchdog.sample(index, stamp)
             if (self.watchdog.expired(index) and self.watchdog.tripped_at == index
                     and not self.intruders):  # (while they are there all is 0 V anyway)
-                # the stage that stopped is judged on the oldest unanswered sample, which
-                # had the most time to be answered (a live stage slowed by the machine has
-                # answered it; one that died has not); this one has only just arrived
+                # the stage that stopped is judged on the sample before this one, which
+                # had its period to be answered (this one has only just arrived); not on the
+                # oldest unanswered one, which a stage may have answered just before dying
                 self._trip = Trip(index, self.watchdog.answered, stamp,
-                                  self.watchdog.stamp_of(self.watchdog.answered + 1) or stamp)
+                                  self.watchdog.stamp_of(index - 1) or stamp)
             out.append(Measurement(stamp, x, theta, current))
         self._read_ns[now_s] = now_ns  # for frames this read begins and a later one ends
         while len(self._read_ns) > READS_KEPT:

@@ -207,8 +207,8 @@ class DriverNode(PiscNode):
                         self._report(OK, f"link up on {link.port}", now)
                 if trip is not None:
                     sentence, who = silent_stage_report(
-                        self, trip.judged_stamp_ns, self._upstream, trip.last_answered + 1,
-                        VOLTAGE)
+                        self, trip.judged_stamp_ns, self._upstream, trip.sample - 1, VOLTAGE,
+                        core.answered_stamp_ns)
                     self._report(ERROR, f"{fault}; {sentence}", trip.stamp_ns,
                                  sample=trip.sample, last_answered_sample=trip.last_answered,
                                  applied_v=0.0, silent=who,

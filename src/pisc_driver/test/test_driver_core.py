@@ -219,8 +219,7 @@ def test_the_watchdog_trip_is_reported_with_its_samples():
             reports.append((k, byte, fault, c.new_trip))
     [(k, byte, fault, trip)] = reports  # once
     last = c.watchdog.answered
-    # judged on the oldest unanswered frame (last + 1, stamped 10 ms): it had two periods
-    assert k == 4 and byte == ZERO and trip == Trip(last + 3, last, 20 * MS, 10 * MS)
+    assert k == 4 and byte == ZERO and trip == Trip(last + 3, last, 20 * MS, 15 * MS)
     assert fault == f"command watchdog: no command answered samples {last + 1} .. " \
                    f"{last + 3}: 0 V from sample {last + 3}"
 

@@ -189,24 +189,44 @@ CHAIN: tuple[tuple[str, Topic], ...] = (("estimator", STATE), ("supervisor", CAR
 
 
 def first_silent_stage(stamp_ns: int, newest: Mapping[str, int],
-                       last: str = "current_loop") -> tuple[str, Topic | None]:
-    """The first stage of :data:`CHAIN` whose newest output (``newest[stage]``, a stamp)
-    is older than ``stamp_ns``, with its topic; else ``(last, None)``: the stage that
-    publishes the command stopped. For the newest unanswered sample a stage that died is
-    silent, one that answered it before dying is not."""
-    for name, topic in CHAIN:
-        if newest.get(name, -1) < stamp_ns:
-            return name, topic
-    return last, None
+                       last: str = "current_loop",
+                       answered_ns: int | None = None) -> tuple[str, Topic | None]:
+    """The stage of :data:`CHAIN` (then ``last``, the command's) that stopped, with its
+    topic (``None`` for ``last``).
+
+    Without ``answered_ns``: the first stage whose newest output (``newest[stage]``, a
+    stamp) is older than ``stamp_ns``. With ``answered_ns``, the stamp of the newest
+    sample the command answered (``last``'s newest output): of the stages older than
+    ``stamp_ns``, the one furthest behind the stage before it (the samples, for the
+    first), the first of equals. A stage that died stops where it was while the live
+    ones before it go on, so it falls behind by the whole time since it died; a live stage
+    slowed by the machine falls behind by its lag only (with the first rule a killed
+    current loop was blamed on a supervisor one period late)."""
+    if answered_ns is None:
+        for name, topic in CHAIN:
+            if newest.get(name, -1) < stamp_ns:
+                return name, topic
+        return last, None
+    stages = [(name, topic, newest.get(name, -1)) for name, topic in CHAIN]
+    stages.append((last, None, answered_ns))
+    best: tuple[int, str, Topic | None] | None = None
+    before = stamp_ns
+    for name, topic, out in stages:
+        behind = min(before, stamp_ns) - out
+        if out < stamp_ns and (best is None or behind > best[0]):
+            best = (behind, name, topic)
+        before = out
+    return (last, None) if best is None else (best[1], best[2])
 
 
 def silent_stage_report(node: Any, stamp_ns: int, newest: Mapping[str, int], sample: int,
-                        command_topic: Topic) -> tuple[str, str]:
+                        command_topic: Topic, answered_ns: int | None = None
+                        ) -> tuple[str, str]:
     """(sentence, nodes) naming the stage that stopped answering sample ``sample``
     (stamp ``stamp_ns``) and the node(s) that publish its output, for /diagnostics:
     ``the supervisor (/supervisor) stopped: nothing on /pisc/cart_force answers sample
     812``."""
-    stage, topic = first_silent_stage(stamp_ns, newest)
+    stage, topic = first_silent_stage(stamp_ns, newest, answered_ns=answered_ns)
     topic = topic or command_topic
     nodes = sorted({e.fully_qualified for e in listed_publishers(node, topic.name)})
     who = ", ".join(nodes) if nodes else f"no publisher on {topic.name}"

@@ -128,3 +128,20 @@ def test_a_visitor_the_graph_forgets_before_the_count_drops_is_named_when_it_lea
     assert pin.look(3, [LOOP, VISITOR, other]) == PinChange(
         intruders=("/lab/visitor", "/other"))
     assert pin.look(1, [LOOP]) == PinChange(left=("/lab/visitor", "/other"))
+
+
+def test_with_the_answered_stamp_the_stage_furthest_behind_the_one_before_it_is_named():
+    # current loop killed after answering 85; the live estimator and supervisor are one
+    # period (5) late on the judged sample 100
+    assert first_silent_stage(100, {"estimator": 95, "supervisor": 95},
+                              answered_ns=85) == ("current_loop", None)
+    # the supervisor killed after 85: the estimator goes on, one period late
+    assert first_silent_stage(100, {"estimator": 95, "supervisor": 85},
+                              answered_ns=85) == ("supervisor", CART_FORCE)
+    # the estimator killed after 85: everything after it stops there too
+    assert first_silent_stage(100, {"estimator": 85, "supervisor": 85},
+                              answered_ns=85) == ("estimator", STATE)
+    # never heard of: named; all caught up but not admitted: the command's stage
+    assert first_silent_stage(100, {}, answered_ns=85) == ("estimator", STATE)
+    assert first_silent_stage(100, {"estimator": 100, "supervisor": 100},
+                              answered_ns=85) == ("current_loop", None)

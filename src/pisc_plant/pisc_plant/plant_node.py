@@ -158,6 +158,7 @@ class PlantNode(PiscNode):
         self._watchdog = CommandWatchdog(self._sim_params.watchdog_periods)
         # newest stamp out of each stage of the chain, to say which one stopped
         self._upstream: dict[str, int] = {}
+        self._answered_ns = -1  # stamp of the newest sample an admitted command answered
         self._upstream_subs = [
             self.subscription(topic, lambda msg, name=name: self._upstream.__setitem__(
                 name, stamp_from_msg(msg.header.stamp)))
@@ -275,11 +276,10 @@ class PlantNode(PiscNode):
                     self.diagnose(
                         ERROR, f"command watchdog: no command answered samples "
                         f"{self._watchdog.answered + 1} .. {index}: 0 V from sample {index}; "
-                        f"{self._silent_stage(judged=self._watchdog.answered + 1)}",
+                        f"{self._silent_stage(judged=index - 1)}",
                         self._stamp_ns, sample=index,
                         last_answered_sample=self._watchdog.answered, applied_v=0.0,
-                        silent=self._silent_stage(node_only=True,
-                                                  judged=self._watchdog.answered + 1))
+                        silent=self._silent_stage(node_only=True, judged=index - 1))
             self._sim.advance()
         self._started = True
         self._publish_sample()
@@ -333,6 +333,7 @@ class PlantNode(PiscNode):
         admitted = self._pin.admits(stamp_ns)
         value = command if admitted else 0.0
         if admitted:
+            self._answered_ns = max(self._answered_ns, stamp_ns)
             resumed = self._watchdog.answer(answers)
             if resumed is not None:
                 self.diagnose(OK, f"command watchdog: commands resumed at sample {answers} "
@@ -382,13 +383,16 @@ class PlantNode(PiscNode):
 
     def _silent_stage(self, node_only: bool = False, judged: int | None = None) -> str:
         """The first stage of the chain with no output for sample ``judged`` (the current
-        one by default; a trip judges the oldest unanswered one, which had the most time:
-        a live stage slowed by the machine has answered it, one that died has not), and who
-        publishes it (:func:`pisc_msgs_py.watchdog.silent_stage_report`)."""
+        one by default; a trip judges the one before the current, which had its period: a
+        live stage slowed by the machine may not have answered the current one yet, and a
+        stage may have answered the oldest unanswered one just before dying; the driver
+        judges the same way), and who publishes it
+        (:func:`pisc_msgs_py.watchdog.silent_stage_report`)."""
         index = self._sim.index if judged is None else judged
         stamp = self._stamp_ns if judged is None else self._watchdog.stamp_of(judged)
         sentence, who = silent_stage_report(self, self._stamp_ns if stamp is None else stamp,
-                                            self._upstream, index, self._command_topic)
+                                            self._upstream, index, self._command_topic,
+                                            None if judged is None else self._answered_ns)
         return who if node_only else sentence
 
 
