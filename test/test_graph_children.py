@@ -31,6 +31,7 @@ def test_a_child_writing_much_to_stderr_is_not_blocked_and_its_last_lines_are_ke
     while not done.exists() and time.monotonic() < deadline:
         time.sleep(0.05)
     assert done.exists()
+    child.wait(timeout=60)  # its own exit (a SIGTERM from _stop could come first: -15)
     problem, _ = graph._stop(child)
     assert problem.startswith(f"{os.path.basename(sys.executable)} exited with status 3: ")
     lines = problem.split(": ", 1)[1].splitlines()
