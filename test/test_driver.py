@@ -324,13 +324,22 @@ def test_sigkill_of_the_driver_while_driving_leaves_zero_volts_by_the_rig_watchd
             command_voltage(encode_command(3.0))), 30.0), rig.status()
         driver.kill()  # the host crashes: nothing more is sent
         driver.communicate(timeout=20)
+
+        def zeroed(status: dict) -> bool:  # a trip in force, after the last byte
+            return (status["watchdog_tripped"]
+                    and status["watchdog_trip_time"] > status["last_byte_time"])
+
         status = rig.status()
         deadline = time.monotonic() + 2.0
-        while status["watchdog_trips"] == 0 and time.monotonic() < deadline:
+        while not zeroed(status) and time.monotonic() < deadline:
             time.sleep(0.01)
             status = rig.status()
-        assert status["last_byte"] == encode_command(3.0)  # the driver never sent 0 V ...
-        assert status["applied_v"] == 0.0 and status["watchdog_trips"] == 1, status  # ... yet
+        # (a trip before the kill, the driver stalled past 50 ms on this loaded machine,
+        # ended at its next byte: only the trip in force at the end counts)
+        shown = {k: status[k] for k in ("frames", "overruns", "applied_v", "last_byte",
+                                        "watchdog_trips", "watchdog_tripped")}
+        assert status["last_byte"] == encode_command(3.0), shown  # the driver never sent 0 V
+        assert zeroed(status) and status["applied_v"] == 0.0, shown  # ... yet 0 V applies
         assert 0.050 < status["watchdog_delay_s"] <= 0.055 + 1e-9  # by the rig's clock
         delay = status["watchdog_trip_time"] - status["last_byte_time"]
         print(f"0 V {delay * 1e3:.1f} ms after the last byte of the killed driver "
