@@ -622,9 +622,10 @@ def test_sigkill_of_a_controller_through_the_driver_zeroes_the_rig_and_names_it(
     print(f"SIGKILL {stage} ({'balancing' if caught else 'swinging up'}): watchdog trip "
           f"{(trip_ns - killed_ns) * 1e-6:.1f} ms after the kill (driver clock), last answered "
           f"sample {(killed_ns - answered_ns) * 1e-6:.1f} ms before it")
-    if trip_ns > killed_ns - 15_000_000:  # (a stall before the kill trips it too)
-        assert f"the {stage} (/{stage}) stopped" in trip.message, trip.message
-        assert values["silent"] == f"/{stage}"
+    print(f"named {values.get('behind')} samples behind, sure {values.get('sure')}")
+    # named once it has fallen behind (a trip of a stall in force at the kill too)
+    assert f"the {stage} (/{stage}) stopped" in trip.message, trip.message
+    assert values["silent"] == f"/{stage}"
     # the rig's own log: 0 V from 20 ms after the last answered sample, to the end
     log = true_log(tmp_path)
     after = log[log["unix_s"] >= answered_ns * 1e-9 + 0.020]

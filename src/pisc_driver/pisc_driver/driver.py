@@ -25,7 +25,8 @@ commands it received and the time (ROS time, integer nanoseconds) of each event:
 The command watchdog shared with the plant (:class:`pisc_msgs_py.watchdog.CommandWatchdog`,
 ``driver.watchdog_periods``) counts the frames: when ``watchdog_periods`` frames in a row
 went unanswered the driver sends 0 V at the next frame's arrival and ``tick`` says so
-(``new_trip``: the node names the stage that stopped). The age rule above is the
+(``new_trip``), and ``witness`` (:class:`pisc_msgs_py.watchdog.StopWitness`) then
+tells the node which stage stopped once it has fallen behind. The age rule above is the
 stricter (0 V 10 ms after the newest command's sample, by the clock); the watchdog holds
 0 V until a command answers one of the last ``watchdog_periods`` frames.
 
@@ -44,7 +45,7 @@ from pisc_driver.protocol import (
     unwrap_count,
 )
 from pisc_msgs_py.config import any_value, in_range, param
-from pisc_msgs_py.watchdog import CommandWatchdog
+from pisc_msgs_py.watchdog import CommandWatchdog, StopWitness
 from pisc_model.params import ActuatorParams, SensorParams
 
 __all__ = ["DriverCore", "DriverParams", "Measurement", "Trip", "ZERO"]
@@ -94,13 +95,11 @@ class DriverParams(ParserParams):
 @dataclass(frozen=True)
 class Trip:
     """The command watchdog tripped at frame ``sample`` (stamp ``stamp_ns``): the newest
-    answered one was ``last_answered``; ``judged_stamp_ns`` is the stamp of the frame
-    before, on which the stage that stopped is named."""
+    answered one was ``last_answered``."""
 
     sample: int
     last_answered: int
     stamp_ns: int
-    judged_stamp_ns: int
 
 
 @dataclass(frozen=True)
@@ -139,6 +138,7 @@ class DriverCore:
         self.keepalives = 0  # bytes sent for a frame the controllers did not answer
         self.silences = 0
         self.watchdog = CommandWatchdog(params.watchdog_periods)
+        self.witness = StopWitness()  # after a trip: which stage stopped
         self.new_trip: Trip | None = None  # the trip the last tick reported
         self._trip: Trip | None = None  # a trip to report at the next tick
         self.resumed_from: int | None = None  # a trip the last command ended (its sample)
@@ -179,13 +179,11 @@ class DriverCore:
             self._stamp_ns = stamp
             index = self._frames + len(out)
             self.watchdog.sample(index, stamp)
+            self.witness.sample(index, stamp)
             if (self.watchdog.expired(index) and self.watchdog.tripped_at == index
                     and not self.intruders):  # (while they are there all is 0 V anyway)
-                # the stage that stopped is judged on the sample before this one, which
-                # had its period to be answered (this one has only just arrived); not on the
-                # oldest unanswered one, which a stage may have answered just before dying
-                self._trip = Trip(index, self.watchdog.answered, stamp,
-                                  self.watchdog.stamp_of(index - 1) or stamp)
+                self._trip = Trip(index, self.watchdog.answered, stamp)
+                self.witness.trip(index, self.watchdog.answered)
             out.append(Measurement(stamp, x, theta, current))
         self._read_ns[now_s] = now_ns  # for frames this read begins and a later one ends
         while len(self._read_ns) > READS_KEPT:
@@ -222,6 +220,8 @@ class DriverCore:
             if answers is not None:
                 self.resumed_from = self.watchdog.answer(answers)
                 self.answered_stamp_ns = stamp_ns
+                if self.resumed_from is not None:
+                    self.witness.resumed()
         self.commands += 1
         self.active = True
         self._answered = self._frames

@@ -38,7 +38,7 @@ from pisc_msgs_py.convert import (
 )
 from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE
 from pisc_msgs_py.types import JointSample, MotorSample
-from pisc_msgs_py.watchdog import CHAIN, PublisherPin, listed_publishers, silent_stage_report
+from pisc_msgs_py.watchdog import CHAIN, PublisherPin, listed_publishers, stop_sentence, who_publishes
 from pisc_model.params import ActuatorParams, LoopParams, SensorParams
 
 SECTIONS = {"driver": DriverParams, "sensors": SensorParams, "actuator": ActuatorParams,
@@ -104,6 +104,8 @@ class DriverNode(PiscNode):
         if self._reader is not None:
             self._reader.join(timeout=1.0)
             self._reader = None
+        if self.context.ok():  # (a signal has shut it down already: nothing to say it on)
+            self._name_the_stopped_stage(force=True)
         with self._lock:
             self._send(ZERO)
             self._link.close()
@@ -176,6 +178,24 @@ class DriverNode(PiscNode):
             self._report(OK, f"{', '.join(change.left)} left {VOLTAGE.name}: commands "
                          "apply again", now)
 
+    def _name_the_stopped_stage(self, force: bool = False) -> None:
+        """After a trip, once the evidence is in (``force``: now), the stage that
+        stopped, on /diagnostics with the trip's stamp and values."""
+        core = self._core
+        with self._lock:
+            answered = -1 if core.answered_stamp_ns is None else core.answered_stamp_ns
+            verdict = core.witness.verdict(self._upstream, answered, force=force)
+        if verdict is None:
+            return
+        who = who_publishes(self, verdict.topic or VOLTAGE)
+        self._report(
+            ERROR, f"command watchdog: no command answered samples "
+            f"{verdict.last_answered + 1} .. {verdict.trip}: 0 V from sample {verdict.trip}; "
+            f"{stop_sentence(verdict, who, VOLTAGE)}", verdict.trip_stamp_ns,
+            sample=verdict.trip, last_answered_sample=verdict.last_answered, applied_v=0.0,
+            silent=who, behind=verdict.behind, sure=verdict.sure,
+            last_answered_stamp_ns=answered)
+
     def _read_loop(self) -> None:
         core = self._core
         link = self._link
@@ -206,15 +226,14 @@ class DriverNode(PiscNode):
                         # have missed the "opened" status of its start)
                         self._report(OK, f"link up on {link.port}", now)
                 if trip is not None:
-                    sentence, who = silent_stage_report(
-                        self, trip.judged_stamp_ns, self._upstream, trip.sample - 1, VOLTAGE,
-                        core.answered_stamp_ns)
-                    self._report(ERROR, f"{fault}; {sentence}", trip.stamp_ns,
-                                 sample=trip.sample, last_answered_sample=trip.last_answered,
-                                 applied_v=0.0, silent=who,
+                    self._report(ERROR, f"{fault} (the stage that stopped is named when it "
+                                 "has fallen behind)", trip.stamp_ns, sample=trip.sample,
+                                 last_answered_sample=trip.last_answered, applied_v=0.0,
                                  last_answered_stamp_ns=core.answered_stamp_ns)
                 elif fault:
                     self._report(ERROR, fault, now)
+                if samples and core.witness.pending is not None:
+                    self._name_the_stopped_stage()
             except LinkError as exc:
                 with self._lock:
                     link.close()

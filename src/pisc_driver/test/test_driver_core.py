@@ -219,9 +219,14 @@ def test_the_watchdog_trip_is_reported_with_its_samples():
             reports.append((k, byte, fault, c.new_trip))
     [(k, byte, fault, trip)] = reports  # once
     last = c.watchdog.answered
-    assert k == 4 and byte == ZERO and trip == Trip(last + 3, last, 20 * MS, 15 * MS)
+    assert k == 4 and byte == ZERO and trip == Trip(last + 3, last, 20 * MS)
+    assert c.witness.pending == (last + 3, last, 20 * MS)  # the stage: named later
     assert fault == f"command watchdog: no command answered samples {last + 1} .. " \
                    f"{last + 3}: 0 V from sample {last + 3}"
+    # a command answering the newest frame ends the trip and the question of who stopped
+    newest = c.newest_stamp_ns
+    c.command(newest, 1.0, newest + MS)
+    assert c.resumed_from == last + 3 and c.witness.pending is None
 
 
 def test_while_another_publisher_is_there_every_command_is_zero_volts():

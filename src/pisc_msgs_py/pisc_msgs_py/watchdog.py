@@ -6,8 +6,11 @@ driver, free of rclpy (docs/safety.md).
 * :class:`PublisherPin`: the graph's own command publisher, pinned when it is first
   seen, and every other publisher on the command topic (an intruder) from what the ROS
   graph lists; the node asks the graph only when :meth:`PublisherPin.needs_look` says so.
+* :class:`StopWitness`: after a trip, the stage of the control chain that stopped,
+  named once the evidence is in (a dead stage falls further behind the one before it
+  every period; a slow one does not).
 * :func:`first_silent_stage`: the first stage of the control chain with no output for
-  a sample, to name what stopped.
+  a sample (lockstep, where nothing moves while the chain is silent).
 
 The nodes do the ROS calls (``get_publisher_count``, ``get_publishers_info_by_topic``)
 and pass plain values in.
@@ -23,7 +26,8 @@ from typing import Any
 from pisc_msgs_py.topics import CART_FORCE, STATE, Topic
 
 __all__ = ["CHAIN", "CommandWatchdog", "Endpoint", "PinChange", "PublisherPin",
-           "first_silent_stage", "listed_publishers", "silent_stage_report"]
+           "StopVerdict", "StopWitness", "first_silent_stage", "listed_publishers",
+           "silent_stage_report", "stop_sentence", "who_publishes"]
 
 
 class CommandWatchdog:
@@ -189,46 +193,140 @@ CHAIN: tuple[tuple[str, Topic], ...] = (("estimator", STATE), ("supervisor", CAR
 
 
 def first_silent_stage(stamp_ns: int, newest: Mapping[str, int],
-                       last: str = "current_loop",
-                       answered_ns: int | None = None) -> tuple[str, Topic | None]:
-    """The stage of :data:`CHAIN` (then ``last``, the command's) that stopped, with its
-    topic (``None`` for ``last``).
+                       last: str = "current_loop") -> tuple[str, Topic | None]:
+    """The first stage of :data:`CHAIN` whose newest output (``newest[stage]``, a stamp)
+    is older than ``stamp_ns``, with its topic; ``(last, None)`` when all have one (the
+    command's stage). For lockstep, where no sample comes while the chain is silent: on
+    the wall clock a slow stage looks the same for a while (:class:`StopWitness`)."""
+    for name, topic in CHAIN:
+        if newest.get(name, -1) < stamp_ns:
+            return name, topic
+    return last, None
 
-    Without ``answered_ns``: the first stage whose newest output (``newest[stage]``, a
-    stamp) is older than ``stamp_ns``. With ``answered_ns``, the stamp of the newest
-    sample the command answered (``last``'s newest output): of the stages older than
-    ``stamp_ns``, the one furthest behind the stage before it (the samples, for the
-    first), the first of equals. A stage that died stops where it was while the live
-    ones before it go on, so it falls behind by the whole time since it died; a live stage
-    slowed by the machine falls behind by its lag only (with the first rule a killed
-    current loop was blamed on a supervisor one period late)."""
-    if answered_ns is None:
-        for name, topic in CHAIN:
-            if newest.get(name, -1) < stamp_ns:
-                return name, topic
-        return last, None
-    stages = [(name, topic, newest.get(name, -1)) for name, topic in CHAIN]
-    stages.append((last, None, answered_ns))
-    best: tuple[int, str, Topic | None] | None = None
-    before = stamp_ns
-    for name, topic, out in stages:
-        behind = min(before, stamp_ns) - out
-        if out < stamp_ns and (best is None or behind > best[0]):
-            best = (behind, name, topic)
-        before = out
-    return (last, None) if best is None else (best[1], best[2])
+
+@dataclass(frozen=True)
+class StopVerdict:
+    """The stage that stopped (``topic`` None: the command's own stage), by the samples:
+    its newest output answers sample ``since`` (None: none of the last samples kept), the
+    stage before it went on to sample ``before_at``, ``behind`` samples further; ``sure``:
+    that is ``margin`` or more, not named at a deadline or a stop from what was known.
+    The trip it explains: 0 V from sample ``trip`` (stamp ``trip_stamp_ns``), the newest
+    answered sample ``last_answered``."""
+
+    stage: str
+    topic: Topic | None
+    since: int | None
+    before_at: int | None
+    behind: int
+    sure: bool = False
+    trip: int = -1
+    last_answered: int = -1
+    trip_stamp_ns: int = -1
+
+
+class StopWitness:
+    """Which stage of the control chain stopped, after a command watchdog trip (pure).
+
+    The trip zeroes the motor at once; the stage is named when the evidence is in. A stage
+    that died stops where it was while the stages before it go on, so it falls one sample
+    further behind the stage before it (the samples themselves, for the estimator) every
+    period; a live stage slowed by the machine falls behind by its lag and catches up.
+    Judged at one instant the two look alike (issue 15: a killed current loop two
+    samples behind was taken for a supervisor one sample late), so the stage is named
+    when it is ``margin`` samples behind the one before it, the furthest behind of those,
+    the first of equals. If none is, ``deadline`` samples after the trip (the chain
+    stalled as a whole) or at a stop, the one furthest behind is named from what is
+    known (``sure`` false). Commands resuming end the question (:meth:`resumed`).
+    """
+
+    def __init__(self, margin: int = 8, deadline: int = 30,
+                 last: str = "current_loop") -> None:
+        if not 1 <= margin < deadline:
+            raise ValueError(f"margin {margin} must lie in 1 .. deadline - 1 ({deadline - 1})")
+        self.margin, self.deadline, self.last = margin, deadline, last
+        self._samples: deque[tuple[int, int]] = deque(maxlen=deadline + 16)  # (stamp, index)
+        self.pending: tuple[int, int, int] | None = None  # (trip sample, last answered, stamp)
+
+    def sample(self, index: int, stamp_ns: int) -> None:
+        self._samples.append((stamp_ns, index))
+
+    def trip(self, index: int, last_answered: int) -> None:
+        """A trip at sample ``index`` (the newest sample given to :meth:`sample`, or one
+        before it); the newest answered one was ``last_answered``."""
+        stamp = next((s for s, i in reversed(self._samples) if i == index), -1)
+        self.pending = (index, last_answered, stamp)
+
+    def resumed(self) -> None:
+        self.pending = None
+
+    def _index_of(self, stamp_ns: int) -> int | None:
+        """The newest kept sample at or before ``stamp_ns`` (None: older than all kept)."""
+        found = None
+        for s, i in self._samples:
+            if s > stamp_ns:
+                break
+            found = i
+        return found
+
+    def standing(self, newest: Mapping[str, int], answered_ns: int) -> list[StopVerdict]:
+        """Each stage, how many samples behind the stage before it (not ``sure``)."""
+        out = []
+        before = self._samples[-1][0] if self._samples else -1
+        stages = [(n, t, newest.get(n, -1)) for n, t in CHAIN] + [(self.last, None, answered_ns)]
+        for name, topic, stamp in stages:
+            behind = sum(1 for s, _ in self._samples if stamp < s <= before)
+            out.append(StopVerdict(name, topic, self._index_of(stamp), self._index_of(before),
+                                   behind))
+            before = stamp
+        return out
+
+    def verdict(self, newest: Mapping[str, int], answered_ns: int,
+                force: bool = False) -> StopVerdict | None:
+        """The stage that stopped, once known (then the question is closed), else None;
+        ``force``: name the one furthest behind now (a stop)."""
+        if self.pending is None or not self._samples:
+            return None
+        standing = self.standing(newest, answered_ns)
+        worst = max(standing, key=lambda v: v.behind)  # (max keeps the first of equals)
+        sure = worst.behind >= self.margin
+        if not (sure or force or self._samples[-1][1] - self.pending[0] >= self.deadline):
+            return None
+        trip, self.pending = self.pending, None
+        return StopVerdict(worst.stage, worst.topic, worst.since, worst.before_at,
+                           worst.behind, sure, *trip)
+
+
+def stop_sentence(verdict: StopVerdict, who: str, command_topic: Topic) -> str:
+    """``the supervisor (/supervisor) stopped: nothing on /pisc/cart_force since sample
+    596 while /pisc/state went on to sample 606``, for /diagnostics."""
+    topics = [t for _, t in CHAIN]
+    k = topics.index(verdict.topic) if verdict.topic in topics else len(CHAIN)
+    before = "the samples" if k == 0 else topics[k - 1].name
+    since = (f"since sample {verdict.since}" if verdict.since is not None
+             else "in the samples kept")
+    sentence = (f"the {verdict.stage} ({who}) stopped: nothing on "
+                f"{(verdict.topic or command_topic).name} {since} while {before} went on to "
+                f"sample {verdict.before_at}")
+    if not verdict.sure:
+        sentence += (f" (named from {verdict.behind} sample(s) behind, short of sure: the "
+                     "chain may have stalled as a whole)")
+    return sentence
+
+
+def who_publishes(node: Any, topic: Topic) -> str:
+    """The node(s) the ROS graph lists as publishing ``topic``, for a sentence."""
+    nodes = sorted({e.fully_qualified for e in listed_publishers(node, topic.name)})
+    return ", ".join(nodes) if nodes else f"no publisher on {topic.name}"
 
 
 def silent_stage_report(node: Any, stamp_ns: int, newest: Mapping[str, int], sample: int,
-                        command_topic: Topic, answered_ns: int | None = None
-                        ) -> tuple[str, str]:
-    """(sentence, nodes) naming the stage that stopped answering sample ``sample``
+                        command_topic: Topic) -> tuple[str, str]:
+    """(sentence, nodes) naming the first stage with no output for sample ``sample``
     (stamp ``stamp_ns``) and the node(s) that publish its output, for /diagnostics:
     ``the supervisor (/supervisor) stopped: nothing on /pisc/cart_force answers sample
-    812``."""
-    stage, topic = first_silent_stage(stamp_ns, newest, answered_ns=answered_ns)
+    812`` (lockstep; on the wall clock :class:`StopWitness`)."""
+    stage, topic = first_silent_stage(stamp_ns, newest)
     topic = topic or command_topic
-    nodes = sorted({e.fully_qualified for e in listed_publishers(node, topic.name)})
-    who = ", ".join(nodes) if nodes else f"no publisher on {topic.name}"
+    who = who_publishes(node, topic)
     return (f"the {stage} ({who}) stopped: nothing on {topic.name} answers sample {sample}",
             who)

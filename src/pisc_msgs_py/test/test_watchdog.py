@@ -3,13 +3,18 @@ silent stage (docs/safety.md). No rclpy."""
 
 from __future__ import annotations
 
-from pisc_msgs_py.topics import CART_FORCE, STATE
+import pytest
+
+from pisc_msgs_py.topics import CART_FORCE, STATE, VOLTAGE
 from pisc_msgs_py.watchdog import (
     CommandWatchdog,
     Endpoint,
     PinChange,
     PublisherPin,
+    StopVerdict,
+    StopWitness,
     first_silent_stage,
+    stop_sentence,
 )
 
 
@@ -130,18 +135,97 @@ def test_a_visitor_the_graph_forgets_before_the_count_drops_is_named_when_it_lea
     assert pin.look(1, [LOOP]) == PinChange(left=("/lab/visitor", "/other"))
 
 
-def test_with_the_answered_stamp_the_stage_furthest_behind_the_one_before_it_is_named():
-    # current loop killed after answering 85; the live estimator and supervisor are one
-    # period (5) late on the judged sample 100
-    assert first_silent_stage(100, {"estimator": 95, "supervisor": 95},
-                              answered_ns=85) == ("current_loop", None)
-    # the supervisor killed after 85: the estimator goes on, one period late
-    assert first_silent_stage(100, {"estimator": 95, "supervisor": 85},
-                              answered_ns=85) == ("supervisor", CART_FORCE)
-    # the estimator killed after 85: everything after it stops there too
-    assert first_silent_stage(100, {"estimator": 85, "supervisor": 85},
-                              answered_ns=85) == ("estimator", STATE)
-    # never heard of: named; all caught up but not admitted: the command's stage
-    assert first_silent_stage(100, {}, answered_ns=85) == ("estimator", STATE)
-    assert first_silent_stage(100, {"estimator": 100, "supervisor": 100},
-                              answered_ns=85) == ("current_loop", None)
+def _stamp(k: int) -> int:
+    return 1_000_000 + 5_000 * k  # sample k, 5 us apart (any increasing stamps do)
+
+
+def _run(witness: StopWitness, first: int, last: int, outputs, answered) -> list:
+    """Samples first .. last; after each, ``outputs(k)`` (newest stamp per stage) and
+    ``answered(k)`` (the command's) are judged; the verdicts, with their sample."""
+    found = []
+    for k in range(first, last + 1):
+        witness.sample(k, _stamp(k))
+        verdict = witness.verdict(outputs(k), answered(k))
+        if verdict is not None:
+            found.append((k, verdict))
+    return found
+
+
+def _tripped(margin: int = 8, deadline: int = 30) -> StopWitness:
+    """Samples 0 .. 10, tripped at 10 with 7 the newest answered."""
+    w = StopWitness(margin=margin, deadline=deadline)
+    _run(w, 0, 10, lambda k: {}, lambda k: -1)
+    w.trip(10, 7)
+    return w
+
+
+def test_a_killed_current_loop_two_samples_behind_is_named_once_it_falls_behind():
+    """The CI run's case (issue 15): the current loop killed having answered 596, the
+    live supervisor one sample late and the estimator keeping up; judged at the trip
+    (599) each stage is one sample behind the one before it. Eight samples later only
+    the dead one is."""
+    w = StopWitness(margin=8, deadline=30)
+    live = lambda k: {"estimator": _stamp(k), "supervisor": _stamp(k - 1)}  # noqa: E731
+    assert _run(w, 590, 599, live, lambda k: _stamp(min(k - 1, 596))) == []
+    w.trip(599, 596)
+    [(k, verdict)] = _run(w, 600, 640, live, lambda k: _stamp(596))
+    # the supervisor's newest output 604 - 596 = 8 samples behind, at sample 605
+    assert k == 605 and verdict == StopVerdict("current_loop", None, 596, 604, 8, True,
+                                               599, 596, _stamp(599))
+    assert w.pending is None  # the question is closed: said once
+    assert stop_sentence(verdict, "/current_loop", VOLTAGE) == (
+        "the current_loop (/current_loop) stopped: nothing on /pisc/motor/voltage since "
+        "sample 596 while /pisc/cart_force went on to sample 604")
+
+
+def test_a_killed_supervisor_and_a_killed_estimator_are_named():
+    w = _tripped()
+    dead_supervisor = lambda k: {"estimator": _stamp(k - 1), "supervisor": _stamp(7)}  # noqa: E731
+    [(k, verdict)] = _run(w, 11, 40, dead_supervisor, lambda k: _stamp(7))
+    assert (k, verdict.stage, verdict.topic, verdict.since, verdict.before_at) == (
+        16, "supervisor", CART_FORCE, 7, 15)
+    assert stop_sentence(verdict, "/supervisor", VOLTAGE) == (
+        "the supervisor (/supervisor) stopped: nothing on /pisc/cart_force since sample 7 "
+        "while /pisc/state went on to sample 15")
+    w = _tripped()
+    dead_estimator = lambda k: {"estimator": _stamp(7), "supervisor": _stamp(7)}  # noqa: E731
+    [(k, verdict)] = _run(w, 11, 40, dead_estimator, lambda k: _stamp(7))
+    assert (k, verdict.stage, verdict.topic, verdict.since, verdict.before_at) == (
+        15, "estimator", STATE, 7, 15)
+    assert stop_sentence(verdict, "/estimator", VOLTAGE).endswith(
+        "nothing on /pisc/state since sample 7 while the samples went on to sample 15")
+
+
+def test_a_chain_that_stalls_and_resumes_names_nobody():
+    """A live supervisor late at the trip catches up: commands resume, and with them the
+    question ends; nothing is named."""
+    w = _tripped()
+    slow = lambda k: {"estimator": _stamp(k), "supervisor": _stamp(min(k, 7 + (k - 10) // 2))}  # noqa: E731
+    assert _run(w, 11, 13, slow, lambda k: _stamp(7)) == []
+    w.resumed()
+    assert _run(w, 14, 60, slow, lambda k: _stamp(7)) == []
+
+
+def test_a_stop_names_at_once_and_a_crawling_chain_is_named_at_the_deadline():
+    w = _tripped()
+    stalled = {"estimator": _stamp(7), "supervisor": _stamp(7)}
+    assert w.verdict(stalled, _stamp(7)) is None  # 3 behind: not yet
+    w.sample(11, _stamp(11))
+    w.sample(12, _stamp(12))
+    # a stop at sample 12: named now from what is known, not sure
+    verdict = w.verdict(stalled, _stamp(7), force=True)
+    assert (verdict.stage, verdict.behind, verdict.sure) == ("estimator", 5, False)
+    assert stop_sentence(verdict, "/estimator", VOLTAGE) == (
+        "the estimator (/estimator) stopped: nothing on /pisc/state since sample 7 while "
+        "the samples went on to sample 12 (named from 5 sample(s) behind, short of sure: "
+        "the chain may have stalled as a whole)")
+    # with a margin no stage reaches, the deadline names one: 30 samples after the trip
+    w = _tripped(margin=29)
+    crawling = lambda k: {"estimator": _stamp(7 + (k - 7) // 2), "supervisor": _stamp(7)}  # noqa: E731
+    [(k, verdict)] = _run(w, 11, 60, crawling, lambda k: _stamp(7))
+    assert (k, verdict.stage, verdict.behind, verdict.sure) == (40, "estimator", 17, False)
+
+
+def test_the_witness_refuses_a_margin_outside_its_deadline():
+    with pytest.raises(ValueError, match=r"margin 30 must lie in 1 \.\. deadline - 1 \(29\)"):
+        StopWitness(margin=30, deadline=30)

@@ -10,10 +10,12 @@ nodes run with ``use_sim_time``; nothing in the loop depends on timers.
 **Command watchdog.** A command is fresh when its stamp is that of one of the last
 ``simulation.watchdog_periods`` samples (lockstep: of the awaited sample, the only one
 that advances time). On the wall clock, once that many samples in a row went unanswered,
-the plant applies 0 V until a fresh command comes, and says on ``/diagnostics`` which
-stage of the chain (estimator, supervisor, current loop) stopped answering; in lockstep a
-dead controller stops simulated time, so no voltage is held over any of it, and the
-plant says the same once ``resend_after_s`` passed.
+the plant applies 0 V until a fresh command comes and says so on ``/diagnostics`` at
+once; which stage of the chain (estimator, supervisor, current loop) stopped it says a
+few periods later, when that stage has fallen ``margin`` samples behind the one before it
+(:class:`pisc_msgs_py.watchdog.StopWitness`; at the latest when the node stops). In
+lockstep a dead controller stops simulated time, so no voltage is held over any of it,
+and the plant names the first silent stage once ``resend_after_s`` passed.
 
 **Only the graph drives the motor.** When the run starts the plant pins the command
 publisher of ``simulation.command_node`` (its GID, from the ROS graph). Any other
@@ -64,8 +66,11 @@ from pisc_msgs_py.watchdog import (
     CHAIN,
     CommandWatchdog,
     PublisherPin,
+    StopWitness,
     listed_publishers,
     silent_stage_report,
+    stop_sentence,
+    who_publishes,
 )
 from pisc_model.params import (
     InitialParams,
@@ -159,6 +164,7 @@ class PlantNode(PiscNode):
         # newest stamp out of each stage of the chain, to say which one stopped
         self._upstream: dict[str, int] = {}
         self._answered_ns = -1  # stamp of the newest sample an admitted command answered
+        self._witness = StopWitness()  # after a trip: which stage stopped
         self._upstream_subs = [
             self.subscription(topic, lambda msg, name=name: self._upstream.__setitem__(
                 name, stamp_from_msg(msg.header.stamp)))
@@ -198,6 +204,7 @@ class PlantNode(PiscNode):
         else:
             self._stamp_ns = self._wall_ns()
         self._watchdog.sample(sample.index, self._stamp_ns)
+        self._witness.sample(sample.index, self._stamp_ns)
         self._joint_pub.publish(joint_sample_to_cdr(
             JointSample(self._stamp_ns, sample.position_m, sample.angle_rad)))
         self._current_pub.publish(
@@ -220,6 +227,7 @@ class PlantNode(PiscNode):
         asked for, in which case the node's context is shut down here, between cycles."""
         if self._stop_requested:
             if self.context.ok():
+                self._name_the_stopped_stage(force=True)
                 self.get_logger().info(f"stopping after sample {self._sim.index}")
                 rclpy.try_shutdown(context=self.context)
             return True
@@ -275,14 +283,30 @@ class PlantNode(PiscNode):
                 if self._watchdog.tripped_at == index:
                     self.diagnose(
                         ERROR, f"command watchdog: no command answered samples "
-                        f"{self._watchdog.answered + 1} .. {index}: 0 V from sample {index}; "
-                        f"{self._silent_stage(judged=index - 1)}",
+                        f"{self._watchdog.answered + 1} .. {index}: 0 V from sample {index} "
+                        "(the stage that stopped is named when it has fallen behind)",
                         self._stamp_ns, sample=index,
-                        last_answered_sample=self._watchdog.answered, applied_v=0.0,
-                        silent=self._silent_stage(node_only=True, judged=index - 1))
+                        last_answered_sample=self._watchdog.answered, applied_v=0.0)
+                    self._witness.trip(index, self._watchdog.answered)
             self._sim.advance()
         self._started = True
         self._publish_sample()
+        self._name_the_stopped_stage()
+
+    def _name_the_stopped_stage(self, force: bool = False) -> None:
+        """After a trip, once the evidence is in (or ``force``: now), the stage that
+        stopped, on /diagnostics with the trip's stamp and values."""
+        verdict = self._witness.verdict(self._upstream, self._answered_ns, force=force)
+        if verdict is None:
+            return
+        who = who_publishes(self, verdict.topic or self._command_topic)
+        self.diagnose(
+            ERROR, f"command watchdog: no command answered samples "
+            f"{verdict.last_answered + 1} .. {verdict.trip}: 0 V from sample {verdict.trip}; "
+            f"{stop_sentence(verdict, who, self._command_topic)}",
+            verdict.trip_stamp_ns, sample=verdict.trip,
+            last_answered_sample=verdict.last_answered, applied_v=0.0, silent=who,
+            named_at_sample=self._sim.index, behind=verdict.behind, sure=verdict.sure)
 
     def _on_voltage(self, msg: Any) -> None:
         if self._stopping():
@@ -336,6 +360,7 @@ class PlantNode(PiscNode):
             self._answered_ns = max(self._answered_ns, stamp_ns)
             resumed = self._watchdog.answer(answers)
             if resumed is not None:
+                self._witness.resumed()
                 self.diagnose(OK, f"command watchdog: commands resumed at sample {answers} "
                               f"(0 V from sample {resumed})", self._stamp_ns)
         if self._lockstep:
@@ -381,18 +406,11 @@ class PlantNode(PiscNode):
                           f"{self._command_topic.name}: commands apply again", self._stamp_ns,
                           sample=self._sim.index)
 
-    def _silent_stage(self, node_only: bool = False, judged: int | None = None) -> str:
-        """The first stage of the chain with no output for sample ``judged`` (the current
-        one by default; a trip judges the one before the current, which had its period: a
-        live stage slowed by the machine may not have answered the current one yet, and a
-        stage may have answered the oldest unanswered one just before dying; the driver
-        judges the same way), and who publishes it
-        (:func:`pisc_msgs_py.watchdog.silent_stage_report`)."""
-        index = self._sim.index if judged is None else judged
-        stamp = self._stamp_ns if judged is None else self._watchdog.stamp_of(judged)
-        sentence, who = silent_stage_report(self, self._stamp_ns if stamp is None else stamp,
-                                            self._upstream, index, self._command_topic,
-                                            None if judged is None else self._answered_ns)
+    def _silent_stage(self, node_only: bool = False) -> str:
+        """Lockstep: the first stage of the chain with no output for the current sample,
+        and who publishes it (:func:`pisc_msgs_py.watchdog.silent_stage_report`)."""
+        sentence, who = silent_stage_report(self, self._stamp_ns, self._upstream,
+                                            self._sim.index, self._command_topic)
         return who if node_only else sentence
 
 
