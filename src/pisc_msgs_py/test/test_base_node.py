@@ -90,3 +90,23 @@ def test_parse_lets_other_errors_through():
 
     with pytest.raises(KeyError):
         PiscNode.parse(Diagnosed(), JointState(), broken, "joint_states")
+
+
+def test_errors_of_one_kind_are_logged_a_burst_a_window_and_the_rest_counted():
+    from pisc_msgs_py.base_node import LogLimit
+
+    limit = LogLimit(burst=2, window_s=10.0)
+    trip = "command watchdog: no command answered samples 1 .. 3: 0 V from sample 3"
+    assert limit.admit(trip, 100.0) == (True, None)
+    assert limit.admit("device silent: no frame for 20.0 ms", 100.1) == (True, None)
+    assert limit.admit(trip, 101.0) == (True, None)
+    assert limit.admit(trip, 102.0) == (False, None)  # the third in the window
+    assert limit.admit(trip, 109.9) == (False, None)
+    assert limit.admit("device silent: again", 105.0) == (True, None)  # its own kind
+    # the next one after the window is logged, with what was held back
+    assert limit.admit(trip, 110.0) == (True, "2 more 'command watchdog' error(s) not "
+                                              "logged (2 are logged per 10 s; all are on "
+                                              "/diagnostics)")
+    assert limit.admit(trip, 125.0) == (True, None)  # nothing was held back since
+    with pytest.raises(ValueError, match=r"burst 0 must be >= 1 and window 1.0 s > 0"):
+        LogLimit(burst=0, window_s=1.0)
