@@ -38,7 +38,13 @@ from pisc_msgs_py.convert import (
 )
 from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE
 from pisc_msgs_py.types import JointSample, MotorSample
-from pisc_msgs_py.watchdog import CHAIN, PublisherPin, listed_publishers, stop_sentence, who_publishes
+from pisc_msgs_py.watchdog import (
+    CHAIN,
+    PublisherPin,
+    listed_publishers,
+    named_trip,
+    who_publishes,
+)
 from pisc_model.params import ActuatorParams, LoopParams, SensorParams
 
 SECTIONS = {"driver": DriverParams, "sensors": SensorParams, "actuator": ActuatorParams,
@@ -189,9 +195,7 @@ class DriverNode(PiscNode):
             return
         who = who_publishes(self, verdict.topic or VOLTAGE)
         self._report(
-            ERROR, f"command watchdog: no command answered samples "
-            f"{verdict.last_answered + 1} .. {verdict.trip}: 0 V from sample {verdict.trip}; "
-            f"{stop_sentence(verdict, who, VOLTAGE)}", verdict.trip_stamp_ns,
+            ERROR, named_trip(verdict, who, VOLTAGE), verdict.trip_stamp_ns,
             sample=verdict.trip, last_answered_sample=verdict.last_answered, applied_v=0.0,
             silent=who, behind=verdict.behind, sure=verdict.sure,
             last_answered_stamp_ns=answered)

@@ -27,7 +27,7 @@ from pisc_msgs_py.topics import CART_FORCE, STATE, Topic
 
 __all__ = ["CHAIN", "CommandWatchdog", "Endpoint", "PinChange", "PublisherPin",
            "StopVerdict", "StopWitness", "first_silent_stage", "listed_publishers",
-           "silent_stage_report", "stop_sentence", "who_publishes"]
+           "named_trip", "silent_stage_report", "stop_sentence", "who_publishes"]
 
 
 class CommandWatchdog:
@@ -311,6 +311,14 @@ def stop_sentence(verdict: StopVerdict, who: str, command_topic: Topic) -> str:
         sentence += (f" (named from {verdict.behind} sample(s) behind, short of sure: the "
                      "chain may have stalled as a whole)")
     return sentence
+
+
+def named_trip(verdict: StopVerdict, who: str, command_topic: Topic) -> str:
+    """The trip's status once its stage is named: ``command watchdog: no command answered
+    samples j+1 .. j+3: 0 V from sample j+3; the ... stopped: ...``."""
+    return (f"command watchdog: no command answered samples {verdict.last_answered + 1} .. "
+            f"{verdict.trip}: 0 V from sample {verdict.trip}; "
+            f"{stop_sentence(verdict, who, command_topic)}")
 
 
 def who_publishes(node: Any, topic: Topic) -> str:

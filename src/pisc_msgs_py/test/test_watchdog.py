@@ -14,6 +14,7 @@ from pisc_msgs_py.watchdog import (
     StopVerdict,
     StopWitness,
     first_silent_stage,
+    named_trip,
     stop_sentence,
 )
 
@@ -173,7 +174,8 @@ def test_a_killed_current_loop_two_samples_behind_is_named_once_it_falls_behind(
     assert k == 605 and verdict == StopVerdict("current_loop", None, 596, 604, 8, True,
                                                599, 596, _stamp(599))
     assert w.pending is None  # the question is closed: said once
-    assert stop_sentence(verdict, "/current_loop", VOLTAGE) == (
+    assert named_trip(verdict, "/current_loop", VOLTAGE) == (
+        "command watchdog: no command answered samples 597 .. 599: 0 V from sample 599; "
         "the current_loop (/current_loop) stopped: nothing on /pisc/motor/voltage since "
         "sample 596 while /pisc/cart_force went on to sample 604")
 

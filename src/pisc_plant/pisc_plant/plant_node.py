@@ -69,7 +69,7 @@ from pisc_msgs_py.watchdog import (
     StopWitness,
     listed_publishers,
     silent_stage_report,
-    stop_sentence,
+    named_trip,
     who_publishes,
 )
 from pisc_model.params import (
@@ -301,11 +301,9 @@ class PlantNode(PiscNode):
             return
         who = who_publishes(self, verdict.topic or self._command_topic)
         self.diagnose(
-            ERROR, f"command watchdog: no command answered samples "
-            f"{verdict.last_answered + 1} .. {verdict.trip}: 0 V from sample {verdict.trip}; "
-            f"{stop_sentence(verdict, who, self._command_topic)}",
-            verdict.trip_stamp_ns, sample=verdict.trip,
-            last_answered_sample=verdict.last_answered, applied_v=0.0, silent=who,
+            ERROR, named_trip(verdict, who, self._command_topic), verdict.trip_stamp_ns,
+            sample=verdict.trip, last_answered_sample=verdict.last_answered, applied_v=0.0,
+            silent=who,
             named_at_sample=self._sim.index, behind=verdict.behind, sure=verdict.sure)
 
     def _on_voltage(self, msg: Any) -> None:
