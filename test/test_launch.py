@@ -88,7 +88,7 @@ def test_launch_files_declare_the_nodes_pisc_graph_starts():
     assert sim[0].parameters == {
         "simulation.clock": "lockstep", "simulation.duration_s": 0.0,
         "simulation.min_subscribers": 1, "simulation.min_true_state_subscribers": 0,
-        "simulation.min_clock_subscribers": 0}
+        "simulation.min_clock_subscribers": 0, "simulation.recorder_lag_samples": 0}
     # model error: the plant's file is params unless plant_params says otherwise
     assert sim[0].param_files == sim[1].param_files
     thesis = SRC / "pisc_sim" / "config" / "thesis.yaml"
@@ -115,7 +115,8 @@ def _run_files(tmp_path, options):
 def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path, processes):
     """The arguments pisc_graph passes (its bag's files, the clock, the duration, what the
     plant waits for: the 3 controllers' clocks, the recorder and, with separate processes,
-    the runner) reach the plant's and the controllers' parameters."""
+    the runner; how far it may run ahead of the recorder) reach the plant's and the
+    controllers' parameters."""
     options = RunOptions(overrides={"initial.x_m": 0.05}, duration_s=3.0, processes=processes,
                          plant_overrides={"motor.resistance_ohm": 18.2})
     files = _run_files(tmp_path, options)
@@ -126,7 +127,7 @@ def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path
     assert g.source.parameters == {
         "simulation.clock": "lockstep", "simulation.duration_s": 3.0,
         "simulation.min_subscribers": 2, "simulation.min_true_state_subscribers": 1,
-        "simulation.min_clock_subscribers": clocks}
+        "simulation.min_clock_subscribers": clocks, "simulation.recorder_lag_samples": 50}
     plant, estimator = g.source.flat(), g.controllers[0].flat()
     assert plant["motor.resistance_ohm"] == 18.2 and estimator["motor.resistance_ohm"] == 14.0
     assert estimator["initial.x_m"] == 0.05 and estimator["use_sim_time"] is True
@@ -136,7 +137,8 @@ def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path
         "--ros-args", "-r", "__node:=plant", "--params-file", str(tmp_path / "plant_params.yaml"),
         "-p", "simulation.clock:=lockstep", "-p", "simulation.duration_s:=3.0",
         "-p", "simulation.min_subscribers:=2", "-p", "simulation.min_true_state_subscribers:=1",
-        "-p", f"simulation.min_clock_subscribers:={clocks}"]
+        "-p", f"simulation.min_clock_subscribers:={clocks}",
+        "-p", "simulation.recorder_lag_samples:=50"]
     assert g.controllers[2].command()[-2:] == ["-p", "use_sim_time:=true"]
 
 

@@ -34,9 +34,11 @@ from pisc_msgs_py.convert import (
 from pisc_msgs_py.topics import (
     CART_FORCE,
     CURRENT_SETPOINT,
+    DIAGNOSTICS,
     GRAPH_TOPICS,
     JOINT_STATES,
     MOTOR_CURRENT,
+    SIM_STATE,
     STATE,
     VOLTAGE,
 )
@@ -308,7 +310,9 @@ class VoltageWatch:
         return spin_until(self.executor, predicate, timeout_s)
 
     def close(self) -> None:
-        self.node.destroy_node()
+        if self.sub is not None:
+            self.sub = None
+            self.node.destroy_node()
 
 
 def kill_the_recorder(graph: subprocess.Popen, bag: Path, watch: VoltageWatch,
@@ -437,3 +441,59 @@ def test_a_killed_recorder_in_a_driver_run_leaves_the_rig_at_zero_volts(
     # sent by the stopping driver, not by the rig's watchdog (50 ms without a byte)
     assert status["last_byte_time"] - dead_monotonic < 0.05
     assert out.startswith(f"bag: {bag} (what was recorded before pisc_record died)\n"), out
+
+
+@pytest.mark.parametrize("processes", [False, True], ids=["one process", "processes"])
+def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
+        tmp_path, ros_context, env_for_domain, processes):
+    """CI (stop 20): a lockstep run's bag missed 338 of its 2001 cycles. A publisher keeps
+    100 messages until the recorder has them, and the lockstep graph makes ~1,800 samples
+    a second: a recorder without the CPU for 55 ms lost messages. Now the plant waits for
+    the recorder's progress (/pisc/recorder/progress) when it is 50 samples ahead of it.
+    Here the recorder is stopped (SIGSTOP) for 1 s early in a 30 s run: the graph pauses
+    meanwhile, as an outside subscriber sees, and the bag has every cycle."""
+    bag = tmp_path / "stalled"
+    duration_s = 30.0
+    graph, watch = start_graph_with_watch(
+        ["--duration", str(duration_s), *(["--processes"] if processes else [])], bag,
+        env_for_domain, ros_context)
+    try:
+        assert watch.spin_until(lambda: len(watch.received) >= 600 or graph.poll() is not None,
+                                120.0)
+        assert graph.poll() is None, graph.communicate()
+        pid = recorder_pid(bag)
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            seen_before = len(watch.received)
+            watch.spin_until(lambda: False, 1.0)
+            during = len(watch.received) - seen_before
+        finally:
+            os.kill(pid, signal.SIGCONT)
+            # a subscriber that keeps all and takes nothing more would hold the graph's
+            # publishers waiting for its acknowledgement at the end of the run
+            watch.close()
+        out, err = graph.communicate(timeout=120)
+    finally:
+        watch.close()
+        if graph.poll() is None:
+            graph.kill()
+            graph.communicate()
+    print(f"\n{during} voltages while the recorder was stopped for 1 s\n{out}\n{err[-2000:]}")
+    assert graph.returncode == 0, (out, err)
+    cycles = round(duration_s / PERIOD_S) + 1
+    assert f"cycles                 {cycles} ({duration_s:.3f} s)" in out, out
+    assert "(true state)" in out, out
+    counts = {}
+    for m in read_bag(bag, [JOINT_STATES.name, MOTOR_CURRENT.name, SIM_STATE.name,
+                            VOLTAGE.name, CURRENT_SETPOINT.name]):
+        counts[m.topic] = counts.get(m.topic, 0) + 1
+    assert set(counts.values()) == {cycles}, counts
+    assert "the bag misses" not in err, err
+    # the graph went on for at most the 50 samples it may run ahead, and what was in
+    # flight (a cycle or two)
+    assert during <= 55, during
+    # and said why, on /diagnostics (so in the bag)
+    waits = [s.message for m in read_bag(bag, [DIAGNOSTICS.name]) for s in m.message.status
+             if s.name == "pisc/plant" and "waiting for the recorder" in s.message]
+    assert len(waits) == 1 and waits[0].startswith(
+        "lockstep: waiting for the recorder: sample "), waits

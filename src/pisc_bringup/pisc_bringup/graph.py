@@ -44,8 +44,10 @@ device and the plant options are refused.
 The plant starts publishing once its subscribers are matched (in one process, once
 every controller's are too) and the recorder has matched every publisher (a recorder
 that matches late gets only the last 100 messages); a lockstep sample that is lost
-anyway is sent again. With ``--processes --clock wall`` the plant does not wait for the
-recorder. The run ends when the voltage answering the sample at ``--duration`` has been
+anyway is sent again; in lockstep the plant runs at most :data:`RECORDER_LAG_SAMPLES`
+samples ahead of the newest voltage the recorder has written, so a recorder short of the
+CPU pauses the run instead of losing messages (docs/recording.md). With ``--processes
+--clock wall`` the plant does not wait for the recorder. The run ends when the voltage answering the sample at ``--duration`` has been
 received; the bag is closed, read back and summarised. Exit status: 0 caught and held, 1 not
 caught, 2 bad configuration or the graph did not run; an experiment run (``experiment.kind``)
 exits 0 when it ran without a fault, 1 when it faulted.
@@ -374,6 +376,14 @@ class RunResult:
     loop_s: float | None = None
     loop_cpu_s: float | None = None
 
+    @property
+    def missing(self) -> dict[str, int]:
+        """Messages per recorded topic that this process's nodes published and the bag
+        does not hold (the publishers' own count against the recorder's; empty with
+        --processes, where nothing here counts what the nodes publish)."""
+        return {topic: sent - self.recorded[topic] for topic, sent in self.published.items()
+                if topic in self.recorded and self.recorded[topic] < sent}
+
 
 # ROS 2 (Jazzy) discovery range: LOCALHOST, SUBNET (the ROS default), OFF or SYSTEM_DEFAULT
 DISCOVERY_RANGE = "ROS_AUTOMATIC_DISCOVERY_RANGE"
@@ -560,6 +570,13 @@ def _wait(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
 
 LAUNCH_FILES = {False: "sim", True: "rig"}
 
+# Lockstep: how many samples the plant may run ahead of the newest voltage the recorder
+# has written (simulation.recorder_lag_samples). Each of the sample's topics then holds
+# at most this many unwritten messages in its publisher's history of 100 (CONTROL_QOS),
+# and what the recorder reports every 10 voltages (pisc_record --progress) leaves the
+# plant a margin before it waits: a recorder that keeps up never holds the graph.
+RECORDER_LAG_SAMPLES = 50
+
 
 def _write_params(directory: Path, flat: dict[str, Any],
                   plant_flat: dict[str, Any] | None) -> dict[str, Path]:
@@ -605,7 +622,9 @@ def _run_args(options: RunOptions, graph: Graph) -> dict[str, str]:
                                            expected_subscribers(MOTOR_CURRENT, True, loop)))}
     return {"min_subscribers": str(expected_subscribers(JOINT_STATES, True, loop)),
             "min_true_state_subscribers": "1",
-            "min_clock_subscribers": str(_clock_subscribers(graph, options.processes))}
+            "min_clock_subscribers": str(_clock_subscribers(graph, options.processes)),
+            "recorder_lag_samples": str(RECORDER_LAG_SAMPLES
+                                        if options.clock == "lockstep" else 0)}
 
 
 def _read_again(first: Graph, options: RunOptions, files: dict[str, Path],
@@ -692,6 +711,8 @@ def run_graph(options: RunOptions) -> RunResult:
     ready_dir = tempfile.TemporaryDirectory(prefix="pisc_graph-")
     ready = Path(ready_dir.name) / "recorder-ready"
     publishers = list(graph.nodes)
+    if lockstep and not driver:  # the plant waits on its progress (RECORDER_LAG_SAMPLES)
+        topic_args += ["--progress", VOLTAGE.name]
     topic_args += ["--ready-file", str(ready), *(
         arg for t in recorded
         for arg in ("--expect", f"{t.name}={expected_publishers(t, publishers, lockstep)}"))]
@@ -811,8 +832,12 @@ def run_graph(options: RunOptions) -> RunResult:
             recorded[topic] = int(count)
     summary = summarise_bag(bag_dir, config.loop.period_s)
     started_as = [Path(c.args[0]).name for c in children]
-    return RunResult(bag_dir, summary, recorded, wall, started_as, dict(published),
-                     config.supervisor.experiment.kind, progress.loop_s, progress.loop_cpu_s)
+    result = RunResult(bag_dir, summary, recorded, wall, started_as, dict(published),
+                       config.supervisor.experiment.kind, progress.loop_s, progress.loop_cpu_s)
+    for topic, lost in result.missing.items():
+        print(f"pisc_graph: the bag misses {lost} of the {published[topic]} messages "
+              f"published on {topic}", file=sys.stderr)
+    return result
 
 
 def _end_if_a_node_died(children: Sequence[subprocess.Popen], progress: _Progress,

@@ -1,6 +1,7 @@
 """pisc_record: record graph topics to a rosbag2 MCAP bag until SIGINT or SIGTERM.
 
     pisc_record --bag DIR [--topic NAME ...] [--ready-file PATH [--expect NAME=N ...]]
+                [--progress NAME]
 
 A process of its own, so recording competes with the control loop for nothing but a
 CPU core. Every message is written as soon as it is taken (:mod:`pisc_bringup.
@@ -17,6 +18,11 @@ and ``pisc_bag repair`` finishes it.
 before the recorder sees the publisher; what it sends in between reaches the recorder
 only while it is still in the publisher's history (100 messages), so a runner that
 must lose nothing starts its graph after this file exists.
+
+``--progress NAME`` publishes the stamp of the newest message of recorded topic NAME
+written to the bag on ``/pisc/recorder/progress``, after every 10 of them: a lockstep
+plant with ``simulation.recorder_lag_samples`` waits on it (pisc_graph passes
+``--progress /pisc/motor/voltage``; :mod:`pisc_bringup.recorder_node`).
 """
 
 from __future__ import annotations
@@ -52,10 +58,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--expect", action="append", default=[], metavar="NAME=N",
                         help="with --ready-file: publishers topic NAME must have matched "
                              "(default 1 per topic; 0 for a topic nothing publishes yet)")
+    parser.add_argument("--progress", metavar="NAME",
+                        help="publish the newest stamp of recorded topic NAME written to the "
+                             "bag on /pisc/recorder/progress (a lockstep plant waits on it)")
     args, ros_args = parser.parse_known_args(argv)
     try:
         topics = list(graph_topics_named(args.topic) if args.topic else GRAPH_TOPICS)
         expected = _expected_publishers(args.expect, [t.name for t in topics], args.ready_file)
+        if args.progress is not None and args.progress not in {t.name for t in topics}:
+            raise ValueError(f"--progress {args.progress}: not a recorded topic (recorded: "
+                             f"{', '.join(t.name for t in topics)})")
     except (ConfigError, ValueError) as exc:
         print(f"pisc_record: {exc}", file=sys.stderr)
         return 2
@@ -69,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(sig, lambda signum, frame: stop.append(signum))
     # rclpy's own handlers would shut the context down at once, dropping what DDS holds
     rclpy.init(args=[sys.argv[0], *ros_args], signal_handler_options=SignalHandlerOptions.NO)
-    node = RecorderNode(writer, topics)
+    node = RecorderNode(writer, topics, progress=args.progress)
     try:
         while not stop:
             node.take(0.1 if expected is None else 0.01)

@@ -44,6 +44,7 @@ __all__ = [
     "LATCHED_QOS",
     "MARKERS",
     "MODE",
+    "RECORDER_PROGRESS",
     "MOTOR_CURRENT",
     "MOTOR_JOINT",
     "OPTIONAL_TOPICS",
@@ -140,6 +141,15 @@ MARKERS = Topic(
     QosSpec(depth=10, reliable=True, transient_local=True),
     "the rig as markers (track, end stops, safe range, cart, pendulum coloured by mode, "
     "force arrow, mode and time), frame world, at most markers.rate_hz per second of stamps",
+)
+# The run's recorder says how far it has written (``pisc_record --progress``): the stamp
+# of the newest voltage in the bag. The lockstep plant waits on it when it would run more
+# than ``simulation.recorder_lag_samples`` ahead (a publisher keeps only CONTROL_QOS's
+# 100 messages for a recorder that trails). Latched: a plant that matches late gets the
+# last word. Not a graph topic: it says nothing about the rig and is not recorded.
+RECORDER_PROGRESS = Topic(
+    "/pisc/recorder/progress", "rosgraph_msgs/msg/Clock", LATCHED_QOS,
+    "the run's recorder: stamp of the newest voltage it has written to the bag",
 )
 #: Topics of nodes the graph runs only on request: recordable, not recorded by default.
 OPTIONAL_TOPICS = (MARKERS,)

@@ -17,6 +17,15 @@ few periods later, when that stage has fallen ``margin`` samples behind the one 
 lockstep a dead controller stops simulated time, so no voltage is held over any of it,
 and the plant names the first silent stage once ``resend_after_s`` passed.
 
+**The recorder keeps up.** A reliable publisher keeps its last 100 messages for a
+subscriber that trails; in lockstep the graph makes ~1,800 samples a second, so a
+recorder short of the CPU for 55 ms would lose messages. With
+``simulation.recorder_lag_samples`` = N > 0 (pisc_graph: 50) the plant publishes a
+sample only when the run's recorder has written the voltage of the sample N periods
+before (``/pisc/recorder/progress``, ``pisc_record --progress``): a recorder that falls
+behind pauses simulated time, and the plant says so on /diagnostics when it has waited
+``resend_after_s``.
+
 **Only the graph drives the motor.** When the run starts the plant pins the command
 publisher of ``simulation.command_node`` (its GID, from the ROS graph). Any other
 publisher matched on the command topic is a fault on ``/diagnostics`` naming its node,
@@ -54,6 +63,7 @@ from pisc_msgs_py.convert import (
 )
 from pisc_msgs_py.topics import (
     CLOCK,
+    RECORDER_PROGRESS,
     CURRENT_SETPOINT,
     JOINT_STATES,
     MOTOR_CURRENT,
@@ -111,6 +121,13 @@ class SimulationParams:
                               "samples (0 = until stopped; pisc_graph sets its --duration, so "
                               "a run in separate processes ends at its duration exactly)",
                               "s", in_range(0.0, 1e9))
+    recorder_lag_samples: int = param(0, "lockstep: publish a sample only when the run's "
+                                      "recorder has written the voltage of the sample this "
+                                      "many periods before (/pisc/recorder/progress), so a "
+                                      "recorder that falls behind pauses simulated time "
+                                      "instead of losing messages; below the control topics' "
+                                      "history depth (100); 0: no recorder is waited for",
+                                      "", in_range(0, 99))
     command_node: str = param("current_loop", "the node whose command publisher the plant "
                               "pins at the start; any other publisher on the command topic "
                               "is a fault, with 0 V while it is there", "",
@@ -165,6 +182,14 @@ class PlantNode(PiscNode):
         self._upstream: dict[str, int] = {}
         self._answered_ns = -1  # stamp of the newest sample an admitted command answered
         self._witness = StopWitness()  # after a trip: which stage stopped
+        # lockstep with a recorder to wait for: the newest voltage stamp it has written
+        self._lag_ns = (self._sim_params.recorder_lag_samples
+                        * round(plant_config.loop.period_s * 1e9))
+        self._recorded_ns = -1  # before the first sample: the first sample's stamp
+        self._held_ns: int | None = None  # wall time the next sample began to wait for it
+        self._recorder_waits = 0  # samples that waited for the recorder
+        self._progress_sub = (self.subscription(RECORDER_PROGRESS, self._on_progress)
+                              if self._lockstep and self._lag_ns else None)
         self._upstream_subs = [
             self.subscription(topic, lambda msg, name=name: self._upstream.__setitem__(
                 name, stamp_from_msg(msg.header.stamp)))
@@ -215,7 +240,7 @@ class PlantNode(PiscNode):
         if self.routine_diagnostics(sample.index + 1):
             self.diagnose(OK, "simulating", self._stamp_ns, sample=sample.index,
                           deadline_misses=self._missed, stale_commands=self._stale,
-                          resent_samples=self._resent)
+                          resent_samples=self._resent, recorder_waits=self._recorder_waits)
 
     def request_stop(self) -> None:
         """Stop at the next callback (a signal handler's whole work: it may run in the
@@ -246,15 +271,20 @@ class PlantNode(PiscNode):
                         >= self._sim_params.min_true_state_subscribers
                         and self._clock_pub.get_subscription_count()
                         >= self._sim_params.min_clock_subscribers
-                        and self._sub.get_publisher_count() > 0):
+                        and self._sub.get_publisher_count() > 0
+                        and (self._progress_sub is None
+                             or self._progress_sub.get_publisher_count() > 0)):
                     now = self._wall_ns()
                     if self._matched_ns is None:
                         self._matched_ns = now
                     if (now - self._matched_ns) * 1e-9 >= self._sim_params.start_settle_s:
                         self._started = True
+                        self._recorded_ns = self._sim.time_ns
                         self._publish_sample()
                 else:
                     self._matched_ns = None
+            elif self._held_ns is not None:
+                self._say_recorder_wait()
             else:
                 waited_s = (self._wall_ns() - self._published_ns) * 1e-9
                 if waited_s > self._sim_params.resend_after_s:
@@ -366,10 +396,50 @@ class PlantNode(PiscNode):
             if self._finished:
                 return  # the run is over: no sample after it
             self._sim.advance()
-            self._publish_sample()
+            self._publish_when_recorded()
         else:
             delay_s = (self._wall_ns() - self._published_ns) * 1e-9
             self._sim.command(value, delay_s)
+
+    # -- lockstep: the recorder keeps up -----------------------------------------------
+
+    def _publish_when_recorded(self) -> None:
+        """Lockstep: the next sample now, or once the recorder has written the voltage
+        ``recorder_lag_samples`` periods before it (:meth:`_on_progress`)."""
+        if self._progress_sub is not None and (
+                self._sim.time_ns - self._recorded_ns > self._lag_ns):
+            self._held_ns = self._wall_ns()
+            self._recorder_waits += 1
+            return
+        self._publish_sample()
+
+    def _on_progress(self, msg: Any) -> None:
+        self._recorded_ns = max(self._recorded_ns, stamp_from_msg(msg.clock))
+        if self._held_ns is not None and not self._stopping() and (
+                self._sim.time_ns - self._recorded_ns <= self._lag_ns):
+            if self._held_ns < 0:  # it was said: say that it is over
+                self.diagnose(OK, f"lockstep: the recorder caught up; sample "
+                              f"{self._sim.index} published", self._stamp_ns,
+                              recorder_waits=self._recorder_waits)
+            self._held_ns = None
+            self._publish_sample()
+
+    def _say_recorder_wait(self) -> None:
+        """Timer: a sample held for the recorder longer than ``resend_after_s`` is said
+        once (the recorder may be stopped or starved; pisc_graph stops a run whose
+        recorder died)."""
+        if self._held_ns < 0:
+            return
+        waited_s = (self._wall_ns() - self._held_ns) * 1e-9
+        if waited_s > self._sim_params.resend_after_s:
+            self._held_ns = -1
+            said = (f"lockstep: waiting for the recorder: sample {self._sim.index} is held "
+                    f"for {waited_s:.2f} s until the recorder has written the voltage of "
+                    f"{self._lag_ns * 1e-9:.3f} s before it (it has written up to "
+                    f"{self._recorded_ns * 1e-9:.3f} s)")
+            self.get_logger().warning(said)
+            self.diagnose(WARN, said, self._stamp_ns, sample=self._sim.index,
+                          recorded_ns=self._recorded_ns, recorder_waits=self._recorder_waits)
 
     # -- who drives the motor, and who stopped ------------------------------------------
 
