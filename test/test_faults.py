@@ -239,9 +239,12 @@ def test_sigkill_of_a_controller_while_balancing_zeroes_the_motor_and_fails_the_
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # as pisc_graph's
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
     graph = subprocess.Popen(
+        # started 0.05 rad from upright: caught at once. (From hanging, the swing-up of
+        # the default passes within 11 mm of the safe range's end, and with --processes on
+        # this 2-core machine its latency faulted it before the catch in 2 of 9 runs.)
         [sys.executable, "-m", "pisc_bringup.graph", "--processes", "--clock", "wall",
-         "--x0", "0.05", "--duration", "60", "--bag", str(tmp_path / "bag"),
-         "--domain-id", str(domain_id)],
+         "--x0", "0.05", "--set", "initial.theta_rad=0.05", "--duration", "60",
+         "--bag", str(tmp_path / "bag"), "--domain-id", str(domain_id)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
@@ -258,15 +261,17 @@ def test_sigkill_of_a_controller_while_balancing_zeroes_the_motor_and_fails_the_
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(probe)
     try:
-        if not spin_until(executor, lambda: Mode.CATCH in modes or graph.poll() is not None,
-                          120.0):
-            graph.kill()
+        spin_until(executor, lambda: Mode.CATCH in modes or graph.poll() is not None, 120.0)
+        if Mode.CATCH not in modes:
+            if graph.poll() is None:
+                graph.kill()
             out, err = graph.communicate()
-            raise AssertionError(f"the pendulum was not caught in 120 s: modes seen "
+            raise AssertionError(f"no catch seen in 120 s or before pisc_graph exited "
+                                 f"({graph.returncode}): modes seen "
                                  f"{sorted(set(modes))[:5]}, {len(plant)} plant statuses; "
                                  f"pisc_graph said:\n{out[-1500:]}\n{err[-3000:]}")
         assert graph.poll() is None, graph.communicate()
-        spin_until(executor, lambda: False, 1.0)  # balancing for a second
+        spin_until(executor, lambda: False, 3.0)  # balancing for 3 s
         pid = _child_pid(graph.pid, f"{stage}_node")
         assert pid is not None
         killed_ns = time.time_ns()

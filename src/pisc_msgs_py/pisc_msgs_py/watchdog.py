@@ -269,10 +269,15 @@ class StopWitness:
         return found
 
     def standing(self, newest: Mapping[str, int], answered_ns: int) -> list[StopVerdict]:
-        """Each stage, how many samples behind the stage before it (not ``sure``)."""
+        """Each stage, how many samples behind the stage before it (not ``sure``). A stage
+        never heard from (no stamp) while a later one was has been running unheard (its
+        topic not yet matched): it is left out, and the next judged against the one
+        before it."""
         out = []
         before = self._samples[-1][0] if self._samples else -1
         stages = [(n, t, newest.get(n, -1)) for n, t in CHAIN] + [(self.last, None, answered_ns)]
+        stages = [stage for k, stage in enumerate(stages)
+                  if stage[2] >= 0 or all(later[2] < 0 for later in stages[k + 1:])]
         for name, topic, stamp in stages:
             behind = sum(1 for s, _ in self._samples if stamp < s <= before)
             out.append(StopVerdict(name, topic, self._index_of(stamp), self._index_of(before),

@@ -228,6 +228,27 @@ def test_a_stop_names_at_once_and_a_crawling_chain_is_named_at_the_deadline():
     assert (k, verdict.stage, verdict.behind, verdict.sure) == (40, "estimator", 17, False)
 
 
+def test_a_stage_never_heard_from_while_a_later_one_was_is_not_judged():
+    """The plant's subscription of a stage's topic may match late (its own process, a
+    loaded machine): a supervisor never heard from while the current loop answered was
+    running. Killed, the estimator is named (it was the supervisor, "in the samples
+    kept", taken as behind every kept sample). A stage never heard from with nothing
+    after it heard either may have been dead from the start, and is judged."""
+    w = _tripped()
+    unmatched = lambda k: {"estimator": _stamp(7)}  # noqa: E731
+    [(k, verdict)] = _run(w, 11, 40, unmatched, lambda k: _stamp(7))
+    assert (k, verdict.stage, verdict.topic, verdict.since, verdict.before_at, verdict.sure) == (
+        15, "estimator", STATE, 7, 15, True)
+    # the current loop is judged against the estimator, the stage heard before it (the
+    # samples went on to 40: 8 .. 40 are newer than the estimator's output)
+    assert [(v.stage, v.behind) for v in w.standing(unmatched(40), _stamp(7))] == [
+        ("estimator", 33), ("current_loop", 0)]
+    # nothing heard from any stage: the first is named, behind every kept sample
+    w = _tripped()
+    [(k, verdict)] = _run(w, 11, 40, lambda k: {}, lambda k: -1)
+    assert (k, verdict.stage, verdict.since, verdict.sure) == (11, "estimator", None, True)
+
+
 def test_the_witness_refuses_a_margin_outside_its_deadline():
     with pytest.raises(ValueError, match=r"margin 30 must lie in 1 \.\. deadline - 1 \(29\)"):
         StopWitness(margin=30, deadline=30)
