@@ -127,7 +127,7 @@ def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path
     assert g.source.parameters == {
         "simulation.clock": "lockstep", "simulation.duration_s": 3.0,
         "simulation.min_subscribers": 2, "simulation.min_true_state_subscribers": 1,
-        "simulation.min_clock_subscribers": clocks, "simulation.recorder_lag_samples": 50}
+        "simulation.min_clock_subscribers": clocks, "simulation.recorder_lag_samples": 20}
     plant, estimator = g.source.flat(), g.controllers[0].flat()
     assert plant["motor.resistance_ohm"] == 18.2 and estimator["motor.resistance_ohm"] == 14.0
     assert estimator["initial.x_m"] == 0.05 and estimator["use_sim_time"] is True
@@ -138,7 +138,7 @@ def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path
         "-p", "simulation.clock:=lockstep", "-p", "simulation.duration_s:=3.0",
         "-p", "simulation.min_subscribers:=2", "-p", "simulation.min_true_state_subscribers:=1",
         "-p", f"simulation.min_clock_subscribers:={clocks}",
-        "-p", "simulation.recorder_lag_samples:=50"]
+        "-p", "simulation.recorder_lag_samples:=20"]
     assert g.controllers[2].command()[-2:] == ["-p", "use_sim_time:=true"]
 
 

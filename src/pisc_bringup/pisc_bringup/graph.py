@@ -571,11 +571,13 @@ def _wait(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
 LAUNCH_FILES = {False: "sim", True: "rig"}
 
 # Lockstep: how many samples the plant may run ahead of the newest voltage the recorder
-# has written (simulation.recorder_lag_samples). Each of the sample's topics then holds
-# at most this many unwritten messages in its publisher's history of 100 (CONTROL_QOS),
-# and what the recorder reports every 10 voltages (pisc_record --progress) leaves the
-# plant a margin before it waits: a recorder that keeps up never holds the graph.
-RECORDER_LAG_SAMPLES = 50
+# has written (simulation.recorder_lag_samples). With what the recorder reports every 5
+# voltages (pisc_record --progress), at most 25 samples' messages (8 a sample) are on
+# their way to it: well inside each publisher's history of 100 (CONTROL_QOS) and Fast
+# DDS's shared-memory port of 512 messages. With 50, a recorder stopped for 1 s froze
+# the whole --processes graph in 2 of 13 runs, inside a publish (the plant's timer did
+# not run): a full port makes a writer wait for its reader.
+RECORDER_LAG_SAMPLES = 20
 
 
 def _write_params(directory: Path, flat: dict[str, Any],

@@ -20,7 +20,7 @@ only while it is still in the publisher's history (100 messages), so a runner th
 must lose nothing starts its graph after this file exists.
 
 ``--progress NAME`` publishes the stamp of the newest message of recorded topic NAME
-written to the bag on ``/pisc/recorder/progress``, after every 10 of them: a lockstep
+written to the bag on ``/pisc/recorder/progress``, after every 5 of them: a lockstep
 plant with ``simulation.recorder_lag_samples`` waits on it (pisc_graph passes
 ``--progress /pisc/motor/voltage``; :mod:`pisc_bringup.recorder_node`).
 """

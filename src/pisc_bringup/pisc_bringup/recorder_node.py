@@ -65,7 +65,7 @@ class RecorderNode(Node):
         topics: Sequence[Topic],
         on_message: Callable[[str, bytes], None] | None = None,
         progress: str | None = None,
-        progress_every: int = 10,
+        progress_every: int = 5,
         **kwargs: Any,
     ) -> None:
         kwargs.setdefault("start_parameter_services", False)

@@ -20,7 +20,7 @@ and the plant names the first silent stage once ``resend_after_s`` passed.
 **The recorder keeps up.** A reliable publisher keeps its last 100 messages for a
 subscriber that trails; in lockstep the graph makes ~1,800 samples a second, so a
 recorder short of the CPU for 55 ms would lose messages. With
-``simulation.recorder_lag_samples`` = N > 0 (pisc_graph: 50) the plant publishes a
+``simulation.recorder_lag_samples`` = N > 0 (pisc_graph: 20) the plant publishes a
 sample only when the run's recorder has written the voltage of the sample N periods
 before (``/pisc/recorder/progress``, ``pisc_record --progress``): a recorder that falls
 behind pauses simulated time, and the plant says so on /diagnostics when it has waited
