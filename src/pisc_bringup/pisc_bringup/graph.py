@@ -575,8 +575,8 @@ LAUNCH_FILES = {False: "sim", True: "rig"}
 # voltages (pisc_record --progress), at most 25 samples' messages (8 a sample) are on
 # their way to it: well inside each publisher's history of 100 (CONTROL_QOS) and Fast
 # DDS's shared-memory port of 512 messages. With 50, a recorder stopped for 1 s froze
-# the whole --processes graph in 2 of 13 runs, inside a publish (the plant's timer did
-# not run): a full port makes a writer wait for its reader.
+# the whole --processes graph in 2 of 13 runs (the plant's timer did not run either):
+# most likely a writer waiting for a reader whose port was full (docs/recording.md).
 RECORDER_LAG_SAMPLES = 20
 
 
