@@ -73,7 +73,7 @@ class RecorderNode(Node):
         self._writer = writer
         self._on_message = on_message
         if progress is not None and progress not in {t.name for t in topics}:
-            raise ValueError(f"--progress {progress}: not a recorded topic")
+            raise ValueError(f"progress = {progress}: not a recorded topic")
         if progress_every < 1:
             raise ValueError(f"progress_every = {progress_every}: must be >= 1")
         self._progress = progress

@@ -63,10 +63,10 @@ from pisc_msgs_py.convert import (
 )
 from pisc_msgs_py.topics import (
     CLOCK,
-    RECORDER_PROGRESS,
     CURRENT_SETPOINT,
     JOINT_STATES,
     MOTOR_CURRENT,
+    RECORDER_PROGRESS,
     SIM_STATE,
     VOLTAGE,
     Topic,
@@ -187,6 +187,7 @@ class PlantNode(PiscNode):
                         * round(plant_config.loop.period_s * 1e9))
         self._recorded_ns = -1  # before the first sample: the first sample's stamp
         self._held_ns: int | None = None  # wall time the next sample began to wait for it
+        self._hold_said = False  # that wait is said on /diagnostics
         self._recorder_waits = 0  # samples that waited for the recorder
         self._progress_sub = (self.subscription(RECORDER_PROGRESS, self._on_progress)
                               if self._lockstep and self._lag_ns else None)
@@ -409,6 +410,7 @@ class PlantNode(PiscNode):
         if self._progress_sub is not None and (
                 self._sim.time_ns - self._recorded_ns > self._lag_ns):
             self._held_ns = self._wall_ns()
+            self._hold_said = False
             self._recorder_waits += 1
             return
         self._publish_sample()
@@ -417,7 +419,7 @@ class PlantNode(PiscNode):
         self._recorded_ns = max(self._recorded_ns, stamp_from_msg(msg.clock))
         if self._held_ns is not None and not self._stopping() and (
                 self._sim.time_ns - self._recorded_ns <= self._lag_ns):
-            if self._held_ns < 0:  # it was said: say that it is over
+            if self._hold_said:
                 self.diagnose(OK, f"lockstep: the recorder caught up; sample "
                               f"{self._sim.index} published", self._stamp_ns,
                               recorder_waits=self._recorder_waits)
@@ -428,15 +430,15 @@ class PlantNode(PiscNode):
         """Timer: a sample held for the recorder longer than ``resend_after_s`` is said
         once (the recorder may be stopped or starved; pisc_graph stops a run whose
         recorder died)."""
-        if self._held_ns < 0:
+        if self._hold_said:
             return
         waited_s = (self._wall_ns() - self._held_ns) * 1e-9
         if waited_s > self._sim_params.resend_after_s:
-            self._held_ns = -1
+            self._hold_said = True
             said = (f"lockstep: waiting for the recorder: sample {self._sim.index} is held "
-                    f"for {waited_s:.2f} s until the recorder has written the voltage of "
-                    f"{self._lag_ns * 1e-9:.3f} s before it (it has written up to "
-                    f"{self._recorded_ns * 1e-9:.3f} s)")
+                    f"for {waited_s:.2f} s; the recorder has written voltages up to "
+                    f"{self._recorded_ns * 1e-9:.3f} s, and the plant runs at most "
+                    f"{self._sim_params.recorder_lag_samples} samples ahead of it")
             self.get_logger().warning(said)
             self.diagnose(WARN, said, self._stamp_ns, sample=self._sim.index,
                           recorded_ns=self._recorded_ns, recorder_waits=self._recorder_waits)
