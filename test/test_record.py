@@ -489,9 +489,10 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
         counts[m.topic] = counts.get(m.topic, 0) + 1
     assert set(counts.values()) == {cycles}, counts
     assert "the bag misses" not in err, err
-    # the graph went on for at most the 20 samples it may run ahead, the 5 the recorder
-    # had not yet reported, and what was in flight (a cycle or two)
-    assert during <= 27, during
+    # the graph went on for at most the 20 samples it may run ahead and the 5 the recorder
+    # had not yet reported; the rest is what was on its way to this subscriber (15-24 seen
+    # on the idle machine). Unpaused it makes hundreds a second.
+    assert during <= 40, during
     # and said why, on /diagnostics (so in the bag)
     waits = [s.message for m in read_bag(bag, [DIAGNOSTICS.name]) for s in m.message.status
              if s.name == "pisc/plant" and "waiting for the recorder" in s.message]

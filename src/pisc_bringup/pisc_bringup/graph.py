@@ -47,10 +47,11 @@ that matches late gets only the last 100 messages); a lockstep sample that is lo
 anyway is sent again; in lockstep the plant runs at most :data:`RECORDER_LAG_SAMPLES`
 samples ahead of the newest voltage the recorder has written, so a recorder short of the
 CPU pauses the run instead of losing messages (docs/recording.md). With ``--processes
---clock wall`` the plant does not wait for the recorder. The run ends when the voltage answering the sample at ``--duration`` has been
-received; the bag is closed, read back and summarised. Exit status: 0 caught and held, 1 not
-caught, 2 bad configuration or the graph did not run; an experiment run (``experiment.kind``)
-exits 0 when it ran without a fault, 1 when it faulted.
+--clock wall`` the plant does not wait for the recorder. The run ends when the voltage
+answering the sample at ``--duration`` has been received; the bag is closed, read back
+and summarised. Exit status: 0 caught and held, 1 not caught, 2 bad configuration or the
+graph did not run; an experiment run (``experiment.kind``) exits 0 when it ran without a
+fault, 1 when it faulted.
 """
 
 from __future__ import annotations
