@@ -462,6 +462,7 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
                                 120.0)
         assert graph.poll() is None, graph.communicate()
         pid = recorder_pid(bag)
+        assert pid is not None
         os.kill(pid, signal.SIGSTOP)
         try:
             seen_before = len(watch.received)
@@ -493,8 +494,9 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
     # had not yet reported; the rest is what was on its way to this subscriber (15-24 seen
     # on the idle machine). Unpaused it makes hundreds a second.
     assert during <= 40, during
-    # and said why, on /diagnostics (so in the bag)
+    # and said why, on /diagnostics (so in the bag); on a loaded machine a recorder short
+    # of the CPU for over 0.5 s elsewhere in the run says so too
     waits = [s.message for m in read_bag(bag, [DIAGNOSTICS.name]) for s in m.message.status
              if s.name == "pisc/plant" and "waiting for the recorder" in s.message]
-    assert len(waits) == 1 and waits[0].startswith(
-        "lockstep: waiting for the recorder: sample "), waits
+    assert waits and all(w.startswith("lockstep: waiting for the recorder: sample ")
+                         for w in waits), waits
