@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 import time
@@ -11,6 +12,7 @@ from pathlib import Path
 import pytest
 import rclpy
 from rclpy.context import Context
+from rclpy.node import Node
 
 from pisc_msgs_py.processes import DomainClaim
 
@@ -25,6 +27,29 @@ def _no_virtual_rig_outlives_its_test() -> Iterator[None]:
     if module is not None:
         for rig in list(module.RigProcess.running):
             rig.stop()
+
+
+_FAILED = pytest.StashKey[bool]()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """After a failed test's teardown: destroy every node whose context is down. Pytest
+    keeps a failed test's traceback, and with it the nodes its frames held, to the end of
+    the session; a node never destroyed keeps its publishers in its domain after its
+    context's shutdown (a later test given that domain id saw them as intruders)."""
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed:
+        item.stash[_FAILED] = True
+    if call.when == "teardown" and item.stash.get(_FAILED, False):
+        gc.collect()
+        for node in [o for o in gc.get_objects() if isinstance(o, Node)]:
+            if not node.context.ok():
+                try:
+                    node.destroy_node()
+                except Exception:  # destroyed already
+                    pass
 
 
 @pytest.fixture

@@ -800,6 +800,10 @@ def run_graph(options: RunOptions) -> RunResult:
                   f"{30.0 + options.duration_s:.0f} s; the bag may miss the last ones",
                   file=sys.stderr)
     finally:
+        # what was frozen is garbage again once the run is over (a process that runs
+        # graphs one after another, as the tests do, would otherwise keep every frozen
+        # object, nodes left undestroyed in reference cycles with their DDS endpoints)
+        gc.unfreeze()
         # the plant first, so the controllers see no sample after their peers stopped
         failures = [_stop(child)[0] for child in reversed(children)]
         for node in [*reversed(nodes), watcher]:  # the plant or driver first: 0 V
