@@ -33,6 +33,7 @@ from pisc_msgs_py.convert import (
 )
 from pisc_msgs_py.topics import (
     CART_FORCE,
+    CLOCK,
     CURRENT_SETPOINT,
     DIAGNOSTICS,
     GRAPH_TOPICS,
@@ -443,6 +444,53 @@ def test_a_killed_recorder_in_a_driver_run_leaves_the_rig_at_zero_volts(
     assert out.startswith(f"bag: {bag} (what was recorded before pisc_record died)\n"), out
 
 
+def test_the_recorders_progress_is_the_oldest_of_its_sample_topics_newest(tmp_path,
+                                                                          ros_context):
+    """pisc_record --progress NAME ...: the stamp said on /pisc/recorder/progress is the
+    oldest of the newest stamps written of each topic named (a topic whose message DDS
+    sends again lags the others); nothing is said before each has been written, and a
+    stamp only once."""
+    from pisc_bringup.bag import BagWriter
+    from pisc_bringup.recorder_node import RecorderNode
+    from pisc_msgs_py.convert import clock_to_cdr, motor_sample_to_cdr
+
+    topics = [CLOCK, VOLTAGE]
+    with pytest.raises(ValueError, match="progress: /pisc/state is not a recorded topic"):
+        RecorderNode(BagWriter(tmp_path / "refused", topics), topics,
+                     progress=[CLOCK.name, STATE.name], context=ros_context)
+    node = RecorderNode(BagWriter(tmp_path / "bag", topics), topics,
+                        progress=[CLOCK.name, VOLTAGE.name], progress_every=2,
+                        context=ros_context)
+    said: list[int] = []
+    node._progress_pub = type("Pub", (), {"publish": lambda _, data: said.append(
+        header_stamp_ns(data))})()
+    ms = 5_000_000
+
+    def batch(*messages):
+        return [(0, name, data, 0) for name, data in messages]
+
+    def clock(k):
+        return CLOCK.name, clock_to_cdr(k * ms)
+
+    def volts(k):
+        return VOLTAGE.name, motor_sample_to_cdr(MotorSample(k * ms, 1.0))
+
+    # said after every 2 samples' worth (4 messages of the two topics), and on waking idle
+    node._note_progress(batch(clock(0), clock(1), clock(2), clock(3)))
+    assert said == []  # no voltage written yet
+    node._note_progress(batch(volts(0), volts(1), volts(2), volts(3)))
+    assert said == [3 * ms]
+    node._note_progress(batch(volts(4), volts(5), volts(6), volts(7)))
+    assert said == [3 * ms]  # /clock holds it back: its sample 4 is not yet written
+    node._say_progress()  # woken to nothing: the same stamp is not said again
+    assert said == [3 * ms]
+    node._note_progress(batch(clock(4), clock(5)))
+    assert said == [3 * ms]  # one sample's worth
+    node._say_progress()
+    assert said == [3 * ms, 5 * ms]
+    node.destroy_node()
+
+
 @pytest.mark.parametrize("processes", [False, True], ids=["one process", "processes"])
 def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
         tmp_path, ros_context, env_for_domain, processes):
@@ -450,24 +498,33 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
     100 messages until the recorder has them, and the lockstep graph makes ~1,800 samples
     a second: a recorder without the CPU for 55 ms lost messages. Now the plant waits for
     the recorder's progress (/pisc/recorder/progress) when it is 20 samples ahead of it.
-    Here the recorder is stopped (SIGSTOP) for 1 s early in a 30 s run: the graph pauses
-    meanwhile, as an outside subscriber sees, and the bag has every cycle."""
+
+    Here the recorder is stopped (SIGSTOP) for 3 s once its bag holds about 600 cycles
+    (3 s of the 30 s run; the plant cannot be far ahead of it). Stopped once this test's
+    subscriber had seen 600 voltages, the run ended first when that subscriber was
+    discovered late (1 of 4 runs on 2026-12-03); stopped at the recorder's ready file,
+    before the run began, a controller's first messages were lost when its publisher had
+    not yet matched the stopped recorder (1 of 3), and the plant, whose publishers wait
+    for it, did not start. The plant holds a sample and says so after 0.5 s; no voltage
+    of that sample or later reaches an outside subscriber before the recorder goes on; the
+    bag has every cycle."""
     bag = tmp_path / "stalled"
     duration_s = 30.0
     graph, watch = start_graph_with_watch(
         ["--duration", str(duration_s), *(["--processes"] if processes else [])], bag,
         env_for_domain, ros_context)
     try:
-        assert watch.spin_until(lambda: len(watch.received) >= 600 or graph.poll() is not None,
-                                120.0)
-        assert graph.poll() is None, graph.communicate()
         pid = recorder_pid(bag)
-        assert pid is not None
+        assert pid is not None, graph.communicate()
+        # the recorder writes each message as it takes it: about 1 kB a cycle
+        assert watch.spin_until(lambda: graph.poll() is not None or sum(
+            f.stat().st_size for f in bag.glob("*.mcap")) > 600_000, 120.0)
+        assert graph.poll() is None, graph.communicate()
         os.kill(pid, signal.SIGSTOP)
         try:
-            seen_before = len(watch.received)
-            watch.spin_until(lambda: False, 1.0)
-            during = len(watch.received) - seen_before
+            watch.spin_until(lambda: False, 3.0)
+            running = graph.poll() is None
+            resumed_ns = time.time_ns()
         finally:
             os.kill(pid, signal.SIGCONT)
             # a subscriber that keeps all and takes nothing more would hold the graph's
@@ -479,7 +536,11 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
         if graph.poll() is None:
             graph.kill()
             graph.communicate()
-    print(f"\n{during} voltages while the recorder was stopped for 1 s\n{out}\n{err[-2000:]}")
+    before = [stamp for received, stamp in watch.received if received < resumed_ns]
+    newest = round(max(before, default=-1) * 1e-9 / PERIOD_S)
+    print(f"\n{len(before)} voltages reached an outside subscriber while the recorder was "
+          f"stopped for 3 s, the newest of sample {newest}\n{out}\n{err[-2000:]}")
+    assert running, (out, err)
     assert graph.returncode == 0, (out, err)
     cycles = round(duration_s / PERIOD_S) + 1
     assert f"cycles                 {cycles} ({duration_s:.3f} s)" in out, out
@@ -490,13 +551,15 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
         counts[m.topic] = counts.get(m.topic, 0) + 1
     assert set(counts.values()) == {cycles}, counts
     assert "the bag misses" not in err, err
-    # the graph went on for at most the 20 samples it may run ahead and the 5 the recorder
-    # had not yet reported; the rest is what was on its way to this subscriber (15-24 seen
-    # on the idle machine). Unpaused it makes hundreds a second.
-    assert during <= 40, during
-    # and said why, on /diagnostics (so in the bag); on a loaded machine a recorder short
-    # of the CPU for over 0.5 s elsewhere in the run says so too
-    waits = [s.message for m in read_bag(bag, [DIAGNOSTICS.name]) for s in m.message.status
-             if s.name == "pisc/plant" and "waiting for the recorder" in s.message]
+    # the plant said on /diagnostics (so in the bag) which sample it held and that it went
+    # on with it; on a loaded machine a recorder short of the CPU for over 0.5 s later in
+    # the run says so too
+    plant = [s.message for m in read_bag(bag, [DIAGNOSTICS.name]) for s in m.message.status
+             if s.name == "pisc/plant" and "the recorder" in s.message]
+    waits = [w for w in plant if "waiting for the recorder" in w]
     assert waits and all(w.startswith("lockstep: waiting for the recorder: sample ")
-                         for w in waits), waits
+                         for w in waits), plant
+    held = int(waits[0].removeprefix("lockstep: waiting for the recorder: sample ").split()[0])
+    assert f"lockstep: the recorder caught up; sample {held} published" in plant, plant
+    # and held it: nothing of it or later reached the outside before the recorder went on
+    assert all(stamp < held * round(PERIOD_S * 1e9) for stamp in before), (held, before[-5:])

@@ -45,7 +45,7 @@ The plant starts publishing once its subscribers are matched (in one process, on
 every controller's are too) and the recorder has matched every publisher (a recorder
 that matches late gets only the last 100 messages); a lockstep sample that is lost
 anyway is sent again; in lockstep the plant runs at most :data:`RECORDER_LAG_SAMPLES`
-samples ahead of the newest voltage the recorder has written, so a recorder short of the
+samples ahead of the newest sample the recorder has written, so a recorder short of the
 CPU pauses the run instead of losing messages (docs/recording.md). With ``--processes
 --clock wall`` the plant does not wait for the recorder. The run ends when the voltage
 answering the sample at ``--duration`` has been received; the bag is closed, read back
@@ -571,14 +571,19 @@ def _wait(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
 
 LAUNCH_FILES = {False: "sim", True: "rig"}
 
-# Lockstep: how many samples the plant may run ahead of the newest voltage the recorder
-# has written (simulation.recorder_lag_samples). With what the recorder reports every 5
-# voltages (pisc_record --progress), at most 25 samples' messages (8 a sample) are on
+# Lockstep: how many samples the plant may run ahead of the newest sample the recorder
+# has written whole (simulation.recorder_lag_samples). With what the recorder reports
+# every 5 samples (pisc_record --progress), at most 25 samples' messages (8 a sample) are on
 # their way to it: well inside each publisher's history of 100 (CONTROL_QOS) and Fast
 # DDS's shared-memory port of 512 messages. With 50, a recorder stopped for 1 s froze
 # the whole --processes graph in 2 of 13 runs (the plant's timer did not run either):
 # most likely a writer waiting for a reader whose port was full (docs/recording.md).
 RECORDER_LAG_SAMPLES = 20
+# what a lockstep graph publishes once every sample: the recorder's progress is the
+# oldest of the newest it has written of each (a topic whose message DDS sends again
+# lags the others)
+SAMPLE_TOPICS = (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, CLOCK, STATE, CART_FORCE,
+                 CURRENT_SETPOINT, VOLTAGE)
 
 
 def _write_params(directory: Path, flat: dict[str, Any],
@@ -715,7 +720,9 @@ def run_graph(options: RunOptions) -> RunResult:
     ready = Path(ready_dir.name) / "recorder-ready"
     publishers = list(graph.nodes)
     if lockstep and not driver:  # the plant waits on its progress (RECORDER_LAG_SAMPLES)
-        topic_args += ["--progress", VOLTAGE.name]
+        topic_args += [arg for t in recorded if t in SAMPLE_TOPICS
+                       and expected_publishers(t, publishers, lockstep)
+                       for arg in ("--progress", t.name)]
     topic_args += ["--ready-file", str(ready), *(
         arg for t in recorded
         for arg in ("--expect", f"{t.name}={expected_publishers(t, publishers, lockstep)}"))]

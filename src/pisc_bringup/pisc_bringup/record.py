@@ -19,10 +19,11 @@ before the recorder sees the publisher; what it sends in between reaches the rec
 only while it is still in the publisher's history (100 messages), so a runner that
 must lose nothing starts its graph after this file exists.
 
-``--progress NAME`` publishes the stamp of the newest message of recorded topic NAME
-written to the bag on ``/pisc/recorder/progress``, after every 5 of them: a lockstep
-plant with ``simulation.recorder_lag_samples`` waits on it (pisc_graph passes
-``--progress /pisc/motor/voltage``; :mod:`pisc_bringup.recorder_node`).
+``--progress NAME`` (repeatable: the recorded topics published every sample) publishes
+on ``/pisc/recorder/progress`` the oldest of the newest stamps written to the bag of each
+of them, after every 5 samples' worth: a lockstep plant with
+``simulation.recorder_lag_samples`` waits on it (pisc_graph passes each sample topic of
+the run; :mod:`pisc_bringup.recorder_node`).
 """
 
 from __future__ import annotations
@@ -58,16 +59,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--expect", action="append", default=[], metavar="NAME=N",
                         help="with --ready-file: publishers topic NAME must have matched "
                              "(default 1 per topic; 0 for a topic nothing publishes yet)")
-    parser.add_argument("--progress", metavar="NAME",
-                        help="publish the newest stamp of recorded topic NAME written to the "
-                             "bag on /pisc/recorder/progress (a lockstep plant waits on it)")
+    parser.add_argument("--progress", metavar="NAME", action="append", default=[],
+                        help="a recorded topic published every sample (repeatable): publish "
+                             "the oldest of the newest stamps written of each on "
+                             "/pisc/recorder/progress (a lockstep plant waits on it)")
     args, ros_args = parser.parse_known_args(argv)
     try:
         topics = list(graph_topics_named(args.topic) if args.topic else GRAPH_TOPICS)
         expected = _expected_publishers(args.expect, [t.name for t in topics], args.ready_file)
-        if args.progress is not None and args.progress not in {t.name for t in topics}:
-            raise ValueError(f"--progress {args.progress}: not a recorded topic (recorded: "
-                             f"{', '.join(t.name for t in topics)})")
+        for name in args.progress:
+            if name not in {t.name for t in topics}:
+                raise ValueError(f"--progress {name}: not a recorded topic (recorded: "
+                                 f"{', '.join(t.name for t in topics)})")
     except (ConfigError, ValueError) as exc:
         print(f"pisc_record: {exc}", file=sys.stderr)
         return 2

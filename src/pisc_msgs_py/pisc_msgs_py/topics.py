@@ -143,13 +143,14 @@ MARKERS = Topic(
     "force arrow, mode and time), frame world, at most markers.rate_hz per second of stamps",
 )
 # The run's recorder says how far it has written (``pisc_record --progress``): the stamp
-# of the newest voltage in the bag. The lockstep plant waits on it when it would run more
-# than ``simulation.recorder_lag_samples`` ahead (a publisher keeps only CONTROL_QOS's
-# 100 messages for a recorder that trails). Latched: a plant that matches late gets the
-# last word. Not a graph topic: it says nothing about the rig and is not recorded.
+# of the newest sample whose every message is in the bag. The lockstep plant waits on it
+# when it would run more than ``simulation.recorder_lag_samples`` ahead (a publisher
+# keeps only CONTROL_QOS's 100 messages for a recorder that trails). Latched: a plant that
+# matches late gets the last word. Not a graph topic: it says nothing about the rig and is
+# not recorded.
 RECORDER_PROGRESS = Topic(
     "/pisc/recorder/progress", "rosgraph_msgs/msg/Clock", LATCHED_QOS,
-    "the run's recorder: stamp of the newest voltage it has written to the bag",
+    "the run's recorder: stamp of the newest sample it has written whole to the bag",
 )
 #: Topics of nodes the graph runs only on request: recordable, not recorded by default.
 OPTIONAL_TOPICS = (MARKERS,)

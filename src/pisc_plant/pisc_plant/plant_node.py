@@ -21,7 +21,7 @@ and the plant names the first silent stage once ``resend_after_s`` passed.
 subscriber that trails; in lockstep the graph makes ~1,800 samples a second, so a
 recorder short of the CPU for 55 ms would lose messages. With
 ``simulation.recorder_lag_samples`` = N > 0 (pisc_graph: 20) the plant publishes a
-sample only when the run's recorder has written the voltage of the sample N periods
+sample only when the run's recorder has written every message of the sample N periods
 before (``/pisc/recorder/progress``, ``pisc_record --progress``): a recorder that falls
 behind pauses simulated time, and the plant says so on /diagnostics when it has waited
 ``resend_after_s``.
@@ -122,7 +122,7 @@ class SimulationParams:
                               "a run in separate processes ends at its duration exactly)",
                               "s", in_range(0.0, 1e9))
     recorder_lag_samples: int = param(0, "lockstep: publish a sample only when the run's "
-                                      "recorder has written the voltage of the sample this "
+                                      "recorder has written every message of the sample this "
                                       "many periods before (/pisc/recorder/progress), so a "
                                       "recorder that falls behind pauses simulated time "
                                       "instead of losing messages; below the control topics' "
@@ -182,7 +182,7 @@ class PlantNode(PiscNode):
         self._upstream: dict[str, int] = {}
         self._answered_ns = -1  # stamp of the newest sample an admitted command answered
         self._witness = StopWitness()  # after a trip: which stage stopped
-        # lockstep with a recorder to wait for: the newest voltage stamp it has written
+        # lockstep with a recorder to wait for: the newest sample it has written whole
         self._lag_ns = (self._sim_params.recorder_lag_samples
                         * round(plant_config.loop.period_s * 1e9))
         self._recorded_ns = -1  # before the first sample: the first sample's stamp
@@ -405,7 +405,7 @@ class PlantNode(PiscNode):
     # -- lockstep: the recorder keeps up -----------------------------------------------
 
     def _publish_when_recorded(self) -> None:
-        """Lockstep: the next sample now, or once the recorder has written the voltage
+        """Lockstep: the next sample now, or once the recorder has written the sample
         ``recorder_lag_samples`` periods before it (:meth:`_on_progress`)."""
         if self._progress_sub is not None and (
                 self._sim.time_ns - self._recorded_ns > self._lag_ns):
@@ -436,7 +436,7 @@ class PlantNode(PiscNode):
         if waited_s > self._sim_params.resend_after_s:
             self._hold_said = True
             said = (f"lockstep: waiting for the recorder: sample {self._sim.index} is held "
-                    f"for {waited_s:.2f} s; the recorder has written voltages up to "
+                    f"for {waited_s:.2f} s; the recorder has written the samples up to "
                     f"{self._recorded_ns * 1e-9:.3f} s, and the plant runs at most "
                     f"{self._sim_params.recorder_lag_samples} samples ahead of it")
             self.get_logger().warning(said)
