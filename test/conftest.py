@@ -45,11 +45,11 @@ def pytest_runtest_makereport(item, call):
     if call.when == "teardown" and item.stash.get(_FAILED, False):
         gc.collect()
         for node in [o for o in gc.get_objects() if isinstance(o, Node)]:
-            if not node.context.ok():
-                try:
+            try:
+                if not node.context.ok():
                     node.destroy_node()
-                except Exception:  # destroyed already
-                    pass
+            except Exception:  # destroyed already, or its context is
+                pass
 
 
 @pytest.fixture
