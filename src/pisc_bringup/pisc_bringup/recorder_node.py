@@ -84,12 +84,12 @@ class RecorderNode(Node):
                 raise ValueError(f"progress: {name} is not a recorded topic")
         if progress_every < 1:
             raise ValueError(f"progress_every = {progress_every}: must be >= 1")
-        self._progress_every = progress_every * len(progress)
+        # newest stamp written of each ``progress`` topic
+        self._newest_ns: dict[str, int] = dict.fromkeys(progress, -1)
+        self._progress_every = progress_every * len(self._newest_ns)
         self._progress_pub = (self.create_publisher(
             message_class(RECORDER_PROGRESS.type), RECORDER_PROGRESS.name,
             qos_profile(RECORDER_PROGRESS.qos)) if progress else None)
-        # newest stamp written of each ``progress`` topic
-        self._newest_ns: dict[str, int] = dict.fromkeys(progress, -1)
         self._said_ns = -1
         self._unsaid = 0  # messages of ``progress`` written since it was last said
         self.received: dict[str, int] = {t.name: 0 for t in topics}
