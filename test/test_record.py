@@ -565,9 +565,9 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
     period_ns = round(PERIOD_S * 1e9)
     seen = max((stamp for received, stamp in watch.received if received < stopped_ns),
                default=-1)
-    held = min(n for n in (int(w.removeprefix("lockstep: waiting for the recorder: sample ")
-                                .split()[0]) for w in waits) if n * period_ns > seen),
-               default=None)
+    samples = [int(w.removeprefix("lockstep: waiting for the recorder: sample ").split()[0])
+               for w in waits]
+    held = min((n for n in samples if n * period_ns > seen), default=None)
     assert held is not None, (seen, waits)
     assert f"lockstep: the recorder caught up; sample {held} published" in plant, plant
     # and held it: nothing of it or later reached the outside before the recorder went on
