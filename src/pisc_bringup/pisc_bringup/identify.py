@@ -29,6 +29,12 @@ a lockstep simulation it is ``delay`` alone (the plant's ``actuator.command_dela
 (:func:`pisc_plant.plant.plant_set`) with one rig per segment and per perturbation
 (each parameter, each component of a segment's initial state), forward differences.
 
+**Stopping.** Each pass of ``least_squares`` ends as usual (on the cost, the step or
+the gradient) or once the next Gauss-Newton step would move every unknown by less than
+a hundredth of its standard error (:func:`_within_standard_error`): along the R-J_m
+valley the cost keeps falling by parts in 10^9 an evaluation, which the data cannot
+tell from nothing, and such fits used to run out of evaluations.
+
 **Uncertainty.** The 95 % intervals come from the Jacobian at the optimum, with a
 cluster-robust (sandwich) covariance over segments: the quantisation error of a slowly
 moving signal is far from white, and the sandwich does not assume it is; the t
@@ -814,6 +820,9 @@ HELD_SAMPLES = 10
 
 #: Passes of the per-cycle timing for a run on the wall clock (each a fit of its own)
 TIMING_ROUNDS = 2
+#: A fit stops when its next Gauss-Newton step is under this fraction of every unknown's
+#: standard error (:func:`_within_standard_error`)
+STOP_FRACTION = 0.01
 
 #: A segment whose residual RMS exceeds this many times the median segment's is left out
 OUTLIER = 4.0
@@ -982,19 +991,39 @@ def identify(recordings: Sequence[Recording], fit: Sequence[Unknown], base: Plan
                 on_evaluation(done_passes, passes, count)
             return out
 
+        last_jacobian: list[tuple[bytes, np.ndarray]] = []
+
+        def jacobian(z: np.ndarray) -> np.ndarray:
+            j = problem.jacobian(z)
+            last_jacobian[:] = [(np.asarray(z, dtype=float).tobytes(), j)]
+            return j
+
+        def close_enough(intermediate_result: Any) -> None:
+            # (least_squares passes its OptimizeResult to a parameter of this name only)
+            x = np.asarray(intermediate_result.x, dtype=float)
+            # the iterate least_squares just accepted has its Jacobian computed
+            if not last_jacobian or last_jacobian[0][0] != x.tobytes():
+                return
+            if _within_standard_error(last_jacobian[0][1], intermediate_result.fun, x,
+                                      low, high):
+                raise StopIteration
+
         try:
             solution = least_squares(
-                residuals, z, jac=problem.jacobian, bounds=(low, high),
+                residuals, z, jac=jacobian, bounds=(low, high),
                 method="trf", x_scale="jac", ftol=1e-9, xtol=1e-9, gtol=1e-9,
-                max_nfev=max_evaluations)
+                max_nfev=max_evaluations, callback=close_enough)
         except IdentifyError:
             raise
         except (ValueError, np.linalg.LinAlgError) as exc:
             raise FitError(f"the fit failed: {exc}") from None
         evaluations += solution.nfev
+        why = {-2: f"the next step under {STOP_FRACTION:g} of a standard error",
+               1: "gradient", 2: "cost", 3: "step", 4: "cost and step"}.get(solution.status)
         say(f"  {solution.nfev} evaluations, {solution.njev} Jacobians, "
-            f"{problem.simulations} simulations, {time.perf_counter() - started:.1f} s")
-        if solution.status <= 0:
+            f"{problem.simulations} simulations, {time.perf_counter() - started:.1f} s"
+            + (f"; converged ({why})" if why else ""))
+        if solution.status == 0 or solution.status == -1:
             raise FitError(
                 f"the fit did not converge within {max_evaluations} evaluations "
                 f"({solution.message.rstrip('.')})" + _inseparable(problem, solution.x))
@@ -1050,6 +1079,41 @@ def identify(recordings: Sequence[Recording], fit: Sequence[Unknown], base: Plan
                   segments, list(recordings), problem.predictions(z), base, evaluations,
                   time.perf_counter() - started, cycles, float(values["delay"]),
                   timing_spread_s=timing_spread, fitted=estimates)
+
+
+def _within_standard_error(jac: np.ndarray, r: np.ndarray, z: np.ndarray,
+                           low: np.ndarray, high: np.ndarray,
+                           fraction: float | None = None) -> bool:
+    """Whether the Gauss-Newton step from ``z`` (kept inside the bounds) moves every
+    unknown by less than ``fraction`` (default :data:`STOP_FRACTION`) of its standard
+    error: the statistical stopping rule of a least-squares fit (after Bates and Watts,
+    *Technometrics* 23 (1981), the relative offset), which an ``ftol`` on the cost is
+    not. Along a valley (R and J_m, docs/identification.md) each step lowers a cost of
+    some 10^4 by 10^-4 or so: far below what the data can tell, and an ``ftol`` of 1e-9
+    kept such fits going until they ran out of evaluations. The standard errors here are
+    Gauss-Newton's, ``s^2 (J^T J)^-1`` with ``s^2`` the residuals' mean square, no
+    wider than the sandwich the intervals use when the residuals are correlated, so the
+    rule stops no earlier than one on the reported intervals would."""
+    fraction = STOP_FRACTION if fraction is None else fraction
+    n, p = jac.shape
+    if n <= p:
+        return False
+    try:
+        step, *_ = np.linalg.lstsq(jac, -r, rcond=None)
+        # an unknown on a bound that the step would take past it stays there, and the
+        # step is that of the others alone (the bound's active set)
+        held = ((z <= low) & (step < 0.0)) | ((z >= high) & (step > 0.0))
+        if held.any():
+            step = np.zeros(p)
+            if not held.all():
+                step[~held], *_ = np.linalg.lstsq(jac[:, ~held], -r, rcond=None)
+        inverse = np.linalg.pinv(jac.T @ jac, rcond=1e-14, hermitian=True)
+    except np.linalg.LinAlgError:
+        return False
+    step = np.clip(z + step, low, high) - z
+    s2 = float(r @ r) / (n - p)
+    std = np.sqrt(np.maximum(np.diag(inverse), 0.0) * s2)
+    return bool(np.all(np.abs(step) <= fraction * std))
 
 
 def _inseparable(problem: Problem, z: np.ndarray) -> str:

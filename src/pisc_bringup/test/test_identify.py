@@ -318,6 +318,57 @@ def test_the_quantisation_floor_adds_the_held_rows_of_one_code_coherently():
     assert meat[0, 0] == pytest.approx((0.5 ** 2 * 9 + 2.0 ** 2 * 9) / 12)
 
 
+def test_the_fit_stops_within_a_hundredth_of_a_standard_error_of_the_optimum():
+    # a linear model y = J z + e: the optimum is z* = lstsq(J, y), Gauss-Newton's step
+    # from z is z* - z, and each unknown's standard error is s sqrt((J^T J)^-1)_kk
+    rng = np.random.default_rng(3)
+    jac = rng.normal(size=(400, 3)) * np.array([1.0, 10.0, 0.1])
+    y = jac @ np.array([1.0, -2.0, 3.0]) + rng.normal(size=400)
+    best, *_ = np.linalg.lstsq(jac, y, rcond=None)
+    s2 = float(np.sum((y - jac @ best) ** 2)) / (400 - 3)
+    std = np.sqrt(np.diag(np.linalg.inv(jac.T @ jac)) * s2)
+    wide = (np.full(3, -1e9), np.full(3, 1e9))
+
+    def within(z, fraction=None):
+        return idf._within_standard_error(jac, jac @ z - y, z, *wide, fraction)
+
+    assert within(best)
+    for k in range(3):  # 0.005 of a standard error off in any one unknown: close enough
+        assert within(best + 0.005 * std * np.eye(3)[k])
+        assert not within(best + 0.02 * std * np.eye(3)[k])
+        assert within(best + 0.02 * std * np.eye(3)[k], fraction=0.05)
+    # an optimum beyond a bound: the step ends at the bound, so a point on it has arrived
+    low = np.array([-1e9, -1e9, best[2] + 5 * std[2]])
+    at_bound = best.copy()
+    at_bound[2] = low[2]
+    z = at_bound.copy()
+    # (the other unknowns at their optimum given the bound: one linear solve)
+    z[:2], *_ = np.linalg.lstsq(jac[:, :2], y - jac[:, 2] * z[2], rcond=None)
+    assert idf._within_standard_error(jac, jac @ z - y, z, low, np.full(3, 1e9))
+
+
+def test_a_fit_stops_by_the_rule_after_its_first_accepted_step(excitation_log, monkeypatch):
+    # the rule wired into least_squares: with a rule that always holds, each pass stops
+    # at its first accepted step, and says why
+    config, log = excitation_log
+    seen = []
+
+    def always(jac, r, z, low, high, fraction=None):
+        seen.append((jac.shape, r.shape, z.shape))
+        return True
+
+    monkeypatch.setattr(idf, "_within_standard_error", always)
+    lines: list[str] = []
+    result = idf.identify([recording_of(log)], idf.parse_fit("R,cart_viscous"), config.plant,
+                          progress=lines.append)
+    said = [line for line in lines if "evaluations" in line]
+    assert len(said) == 2 and all("the next step under 0.01 of a standard error" in line
+                                  for line in said), lines
+    assert result.iterations <= 2 * 5  # each pass: its start, a rejected step or so, one kept
+    # the rule saw the accepted point's Jacobian, residuals and unknowns
+    assert seen and all(j[1] == 2 and r == (j[0],) and z == (2,) for j, r, z in seen)
+
+
 def test_held_rows_are_runs_of_one_code(excitation_log):
     config, log = excitation_log
     segments = idf.make_segments([recording_of(log)], config.plant.sensors, 0.005)
