@@ -22,7 +22,9 @@ compared with is b_c + (b_m - b_m,base) / r^2.
 Prints, per draw, each parameter's truth, estimate, error and whether the 95 % interval
 covers the truth, then the coverage per parameter, how many estimates are within the
 issue's tolerances (R, J_m 5 %; friction 10 % or 0.005 whichever is larger; L 20 % or
-reported not identifiable), and the identification's wall time for the recording.
+reported not identifiable), and the identification's wall time for the recording. Each
+draw's line gives its recording's sample-to-voltage latency (median, p99) as the bag has
+it: a run that the machine did not keep in time identifies worse.
 """
 
 from __future__ import annotations
@@ -179,7 +181,8 @@ def format_outcome(o: Outcome) -> str:
     if o.result is None:
         return f"draw {o.draw}: FAILED: {o.error}"
     lines = [f"draw {o.draw}: identified in {o.wall_s:.1f} s ({o.result.cycles} samples); "
-             f"residual {' / '.join(f'{v:.3f}' for v in o.result.residual_rms)} steps"]
+             f"residual {' / '.join(f'{v:.3f}' for v in o.result.residual_rms)} steps"
+             + _timing(o.result)]
     for key, (t, v, lo, hi, covered, within) in o.checks.items():
         tol = TOLERANCE.get(key)
         lines.append(f"  {key:<14} truth {t:<12.5g} estimate {v:<12.5g} "
@@ -190,6 +193,16 @@ def format_outcome(o: Outcome) -> str:
     for key in o.not_identifiable:
         lines.append(f"  {key:<14} reported not identifiable")
     return "\n".join(lines)
+
+
+def _timing(result: idf.Result) -> str:
+    """How well the recording kept time: its sample-to-voltage latency as the bag has it
+    (a run on a loaded machine answers late, and the fit's timing suffers)."""
+    latency = np.concatenate([r.latency_s for r in result.recordings]) * 1e3
+    if not latency.size or not np.any(latency):
+        return ""  # (lockstep: none recorded)
+    return (f"; latency median {np.median(latency):.2f} ms, p99 "
+            f"{np.percentile(latency, 99):.2f} ms")
 
 
 def summary(outcomes: list[Outcome]) -> str:

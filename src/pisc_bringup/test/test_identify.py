@@ -347,6 +347,20 @@ def test_the_fit_stops_within_a_hundredth_of_a_standard_error_of_the_optimum():
     assert idf._within_standard_error(jac, jac @ z - y, z, low, np.full(3, 1e9))
 
 
+def test_a_fit_whose_steps_gain_less_than_a_quarter_standard_error_has_stalled():
+    # cost = sum of squares; s^2 = cost / dof = 1 here: a move of f standard errors
+    # changes the cost by f^2, so five iterations gaining under 1/16 in all have stalled
+    dof = 1000
+    assert not idf._stalled([1100.0, 1000.0], dof)  # too few iterations to tell
+    crawl = [1000.0 + 0.012 * k for k in range(6)][::-1]  # 0.06 over the last five
+    assert idf._stalled(crawl, dof)
+    assert not idf._stalled([1000.0 + 0.014 * k for k in range(6)][::-1], dof)  # 0.07
+    # only the last five count: an early drop does not keep a crawl going
+    assert idf._stalled([5000.0] + crawl, dof)
+    # the threshold scales with the residuals' mean square: 0.07 with s^2 = 2 has stalled
+    assert idf._stalled([1000.0 + 0.014 * k for k in range(6)][::-1], dof // 2)
+
+
 def test_a_fit_stops_by_the_rule_after_its_first_accepted_step(excitation_log, monkeypatch):
     # the rule wired into least_squares: with a rule that always holds, each pass stops
     # at its first accepted step, and says why
@@ -407,3 +421,22 @@ def test_the_intervals_include_the_quantisation_floor(excitation_log):
     std = np.array([e.std / e.unknown.scale for e in result.fitted])
     assert np.all(std ** 2 >= 0.99 * floor), (std ** 2, floor)
     assert np.all(floor > 0.0)
+
+
+def test_the_bench_says_how_well_each_recording_kept_time():
+    from types import SimpleNamespace
+
+    from pisc_bringup.identify_bench import Outcome, format_outcome
+
+    def outcome(latency_s):
+        result = SimpleNamespace(cycles=1000, residual_rms=np.array([0.3, 0.3, 0.4]),
+                                 recordings=[SimpleNamespace(latency_s=latency_s)])
+        return Outcome(3, {}, result, wall_s=12.0)
+
+    wall = np.full(1000, 0.8e-3)
+    wall[-20:] = 5e-3  # 2 % late: the 99th percentile is among them
+    line = format_outcome(outcome(wall)).splitlines()[0]
+    assert line.startswith("draw 3: identified in 12.0 s (1000 samples); residual 0.300 / ")
+    assert line.endswith("; latency median 0.80 ms, p99 5.00 ms"), line
+    # lockstep records no latency: nothing said
+    assert "latency" not in format_outcome(outcome(np.zeros(1000)))
