@@ -58,6 +58,32 @@ def test_excitation_signals_are_bounded_and_start_late():
                          chirp_end_hz=1.0)
 
 
+def test_a_level_spread_varies_each_bits_magnitude_and_keeps_its_sign():
+    t = np.arange(0.0, 60.5, 0.005)
+    plain = excitation_signal(ExperimentParams(kind="excitation", amplitude_n=1.7), t)
+    p = ExperimentParams(kind="excitation", amplitude_n=1.7, level_spread=0.4)
+    spread = excitation_signal(p, t)
+    on = t >= 0.5
+    assert np.array_equal(np.sign(spread), np.sign(plain))  # the PRBS's signs, bit for bit
+    held = np.abs(spread[on]).reshape(-1, 10)  # 50 ms bits of 10 samples
+    assert np.all(held == held[:, :1])  # one magnitude a bit
+    levels = held[:, 0]
+    assert levels.min() >= 0.6 * 1.7 - 1e-12 and levels.max() <= 1.7
+    # a uniform draw per bit (1,200 bits): spread over the range, no level repeated, and
+    # the 511-bit sequence's second period does not repeat the first's magnitudes
+    assert len(np.unique(levels)) == len(levels)
+    assert np.mean(levels) == pytest.approx(0.8 * 1.7, abs=0.02)
+    assert np.histogram(levels, bins=4, range=(1.02, 1.7))[0].min() > 0.2 * len(levels) / 4
+    assert not np.allclose(levels[:511], levels[511:1022])
+    # a pure function of the time (a replay asks the same) and of the seed
+    assert np.array_equal(excitation_signal(p, t[::-1])[::-1], spread)
+    other = excitation_signal(ExperimentParams(kind="excitation", amplitude_n=1.7,
+                                               level_spread=0.4, seed=2), t)
+    assert not np.array_equal(np.abs(other), np.abs(spread))
+    with pytest.raises(ConfigError, match="experiment.level_spread"):
+        from_flat(ExperimentParams, {"experiment.level_spread": 1.0}, "experiment")
+
+
 def test_the_guard_brakes_a_cart_that_would_stop_beyond_the_safe_range():
     p = ExperimentParams(kind="excitation", amplitude_n=1.0, margin_m=0.05,
                          position_k_x=0.0, position_k_v=0.0, start_s=0.0)
@@ -99,8 +125,9 @@ def test_the_supervisor_runs_the_experiment_and_keeps_its_fault_rules():
 def test_the_excitation_scene_stays_inside_the_safe_range():
     from pisc_bringup.identify_bench import scene_experiment
 
-    experiment, duration = scene_experiment()  # the shipped scene: 60 s at +-1.7 N
+    experiment, duration = scene_experiment()  # the shipped scene: 60 s at +-1.02-1.7 N
     assert experiment["experiment.kind"] == "excitation" and duration == 60.0
+    assert experiment["experiment.level_spread"] == 0.4
     for plant in (TRUTH, {**TRUTH, "motor.resistance_ohm": 9.8,
                           "motor.rotor_inertia_kgm2": 1.0e-6,
                           "friction.cart_coulomb_n": 0.0, "friction.cart_viscous_ns_per_m": 0.0}):

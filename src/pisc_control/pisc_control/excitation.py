@@ -8,10 +8,12 @@ latches, commands no force, and the current loop then commands 0 V.
 
 * ``excitation``: an open-loop sequence with the pendulum hanging, chosen by
   ``experiment.signal``: ``prbs`` (a maximum-length pseudo-random binary sequence of
-  order 9, +-amplitude, one bit every ``bit_s``), ``chirp`` (a sine sweeping from
-  ``chirp_start_hz`` to ``chirp_end_hz`` over ``chirp_sweep_s``, repeated) or ``steps``
-  (levels of +-amplitude and +-amplitude/2 in a seeded order, each held ``bit_s``). It
-  starts ``start_s`` after the first sample. A slow position loop (an acceleration
+  order 9, +-amplitude, one bit every ``bit_s``; with ``level_spread`` each bit's
+  magnitude varies, seeded, between ``(1 - level_spread)`` and 1 times the amplitude, so
+  that the current loop holds its set-point at many levels, not two), ``chirp`` (a sine
+  sweeping from ``chirp_start_hz`` to ``chirp_end_hz`` over ``chirp_sweep_s``, repeated)
+  or ``steps`` (levels of +-amplitude and +-amplitude/2 in a seeded order, each held
+  ``bit_s``). It starts ``start_s`` after the first sample. A slow position loop (an acceleration
   ``-position_k_x (x - center_m) - position_k_v x_dot``) keeps the cart near the centre,
   and a guard recentres it: where the cart, braked at the excitation's own
   acceleration, would stop within ``margin_m`` of the safe range, the excitation
@@ -65,6 +67,10 @@ class ExperimentParams:
                                 positive)
     chirp_sweep_s: float = param(10.0, "chirp: length of one sweep (then it starts again)",
                                  "s", positive)
+    level_spread: float = param(0.0, "prbs: each bit's magnitude is the amplitude times 1 "
+                                "minus this fraction of a seeded uniform draw, so the held "
+                                "current levels spread over the current sensor's codes",
+                                "", in_range(0.0, 0.9))
     seed: int = param(1, "prbs and steps: seed of the sequence", "", in_range(0, 2**31 - 1))
     start_s: float = param(0.5, "the excitation starts this long after the first sample",
                            "s", nonnegative)
@@ -98,15 +104,29 @@ def prbs_bits(seed: int) -> np.ndarray:
     return bits
 
 
-def _step_levels(seed: int, n: np.ndarray) -> np.ndarray:
-    """Level of step ``n``: +-1 or +-1/2, from a hash of (seed, n) (SplitMix64)."""
+def _hash(seed: int, n: np.ndarray) -> np.ndarray:
+    """SplitMix64's output for (seed, n): 64 well-mixed bits per index, as uint64."""
     with np.errstate(over="ignore"):
         z = np.asarray(n, dtype=np.uint64) + np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15)
         z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
         z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        z = z ^ (z >> np.uint64(31))
-    choice = (z & np.uint64(3)).astype(np.int64)
+        return z ^ (z >> np.uint64(31))
+
+
+def _step_levels(seed: int, n: np.ndarray) -> np.ndarray:
+    """Level of step ``n``: +-1 or +-1/2, from a hash of (seed, n) (SplitMix64)."""
+    choice = (_hash(seed, n) & np.uint64(3)).astype(np.int64)
     return np.array([1.0, -1.0, 0.5, -0.5])[choice]
+
+
+def _bit_scale(seed: int, spread: float, n: np.ndarray) -> np.ndarray:
+    """The magnitude of bit ``n`` (counted from the start, not within the sequence's
+    period) as a fraction of the amplitude: ``1 - spread u`` with ``u`` uniform in
+    [0, 1) from the top 53 bits of a hash of (seed, n); 1 with no spread."""
+    if spread == 0.0:
+        return np.ones(np.shape(n))
+    u = (_hash(seed ^ 0x5bd1e995, n) >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
+    return 1.0 - spread * u
 
 
 def excitation_signal(params: ExperimentParams, t: ArrayLike) -> np.ndarray:
@@ -121,8 +141,9 @@ def excitation_signal(params: ExperimentParams, t: ArrayLike) -> np.ndarray:
     a = params.amplitude_n
     if params.signal == "prbs":
         bits = prbs_bits(params.seed)
-        n = np.floor(tau / params.bit_s + 1e-9).astype(np.int64) % len(bits)
-        value = a * (2.0 * bits[n] - 1.0)
+        n = np.floor(tau / params.bit_s + 1e-9).astype(np.int64)
+        value = a * _bit_scale(params.seed, params.level_spread, n) * (
+            2.0 * bits[n % len(bits)] - 1.0)
     elif params.signal == "steps":
         n = np.floor(tau / params.bit_s + 1e-9).astype(np.int64)
         value = a * _step_levels(params.seed, n)
