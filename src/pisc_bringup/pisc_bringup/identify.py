@@ -30,10 +30,12 @@ a lockstep simulation it is ``delay`` alone (the plant's ``actuator.command_dela
 (each parameter, each component of a segment's initial state), forward differences.
 
 **Stopping.** Each pass of ``least_squares`` ends as usual (on the cost, the step or
-the gradient) or once the next Gauss-Newton step would move every unknown by less than
-a hundredth of its standard error (:func:`_within_standard_error`): along the R-J_m
-valley the cost keeps falling by parts in 10^9 an evaluation, which the data cannot
-tell from nothing, and such fits used to run out of evaluations.
+the gradient), once the next Gauss-Newton step would move every unknown by less than
+a hundredth of its standard error (:func:`_within_standard_error`), or once five
+iterations together gained less than a move of a quarter standard error would
+(:func:`_stalled`): along the R-J_m valley the cost keeps falling by parts in 10^9 an
+evaluation, which the data cannot tell from nothing, and such fits used to run out of
+evaluations.
 
 **Uncertainty.** The 95 % intervals come from the Jacobian at the optimum, with a
 cluster-robust (sandwich) covariance over segments: the quantisation error of a slowly
@@ -1105,9 +1107,9 @@ def _within_standard_error(jac: np.ndarray, r: np.ndarray, z: np.ndarray,
     not. Along a valley (R and J_m, docs/identification.md) each step lowers a cost of
     some 10^4 by 10^-4 or so: far below what the data can tell, and an ``ftol`` of 1e-9
     kept such fits going until they ran out of evaluations. The standard errors here are
-    Gauss-Newton's, ``s^2 (J^T J)^-1`` with ``s^2`` the residuals' mean square, no
-    wider than the sandwich the intervals use when the residuals are correlated, so the
-    rule stops no earlier than one on the reported intervals would."""
+    Gauss-Newton's, ``s^2 (J^T J)^-1`` with ``s^2`` the residuals' mean square (cheap at
+    every step; the reported intervals use the sandwich, which was wider in the fits
+    looked at)."""
     fraction = STOP_FRACTION if fraction is None else fraction
     n, p = jac.shape
     if n <= p:
@@ -1139,8 +1141,8 @@ def _stalled(costs: Sequence[float], dof: int) -> bool:
     A fit whose Gauss-Newton steps promise more than they deliver, step after step, is
     at the resolution of its own residuals (each segment's initial state is solved
     anew at every evaluation, to a tolerance): through the driver, a draw whose last
-    pass went on for 100 evaluations gained 0.01-0.2 of a cost of 26,071 an iteration,
-    the step promising about 0.6 (docs/identification.md)."""
+    pass went on for 100 evaluations gained 0.01-0.2 of a cost of 26,071 an iteration
+    while its Gauss-Newton step stayed 0.16-0.92 of the delay's standard error."""
     if len(costs) <= STALL_ITERATIONS or dof <= 0:
         return False
     s2 = costs[-1] / dof
