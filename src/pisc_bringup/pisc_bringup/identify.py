@@ -1108,8 +1108,7 @@ def _within_standard_error(jac: np.ndarray, r: np.ndarray, z: np.ndarray,
     some 10^4 by 10^-4 or so: far below what the data can tell, and an ``ftol`` of 1e-9
     kept such fits going until they ran out of evaluations. The standard errors here are
     Gauss-Newton's, ``s^2 (J^T J)^-1`` with ``s^2`` the residuals' mean square (cheap at
-    every step; the reported intervals use the sandwich, which was wider in the fits
-    looked at)."""
+    every step; the reported intervals use the sandwich)."""
     fraction = STOP_FRACTION if fraction is None else fraction
     n, p = jac.shape
     if n <= p:
