@@ -125,6 +125,7 @@ def _bit_scale(seed: int, spread: float, n: np.ndarray) -> np.ndarray:
     [0, 1) from the top 53 bits of a hash of (seed, n); 1 with no spread."""
     if spread == 0.0:
         return np.ones(np.shape(n))
+    # (the seed altered by a constant: these draws are not those of _step_levels)
     u = (_hash(seed ^ 0x5bd1e995, n) >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
     return 1.0 - spread * u
 
