@@ -6,8 +6,9 @@
 
 It prints ``device /dev/pts/N``: give that path to the driver (``driver.port``). Every
 5 ms it sends the frame ``0xAA, IR_hi, IR_lo, CUR_hi, CUR_lo, CNT_hi, CNT_lo`` of the
-simulated state, encoded through the inverse calibrations and quantised like the real
-converters (:mod:`pisc_model.sensors`); each command byte is applied the moment it
+simulated state with the parameter file's measurement noise (``noise.*``), encoded
+through the inverse calibrations and quantised like the real converters
+(:mod:`pisc_model.sensors`); each command byte is applied the moment it
 arrives, as the firmware does: PWM duty ``magnitude << 1``, bit 7 the direction, the
 duty 254 giving the full-scale voltage (SPEC section 4).
 
@@ -212,10 +213,14 @@ class Firmware:
     last_byte_s: float | None = None  # firmware time of the last command byte
     trip_delay_s: float | None = None  # last trip: its time after the last byte
     _changes: list[tuple[float, float]] = field(default_factory=list)
+    # the sensors' noise (``noise.*``), drawn as the simulator's sampled plant draws it
+    _noise: np.random.Generator | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.watchdog_s) and self.watchdog_s >= 0.0):
             raise ValueError(f"watchdog = {self.watchdog_s} s must be a finite number >= 0")
+        noise = self.plant.config.noise
+        self._noise = np.random.default_rng(noise.seed) if noise.any else None
 
     @property
     def watchdog_periods(self) -> int:
@@ -225,7 +230,12 @@ class Firmware:
         return max(1, math.ceil(self.watchdog_s / self.plant.config.loop.period_s - 1e-9))
 
     def frame(self) -> bytes:
-        ir, cur, count = self.plant.raw_measurement(self.state)
+        """The frame of the state now: the sensors read with the voltage applied (the
+        current of a quasi-static armature depends on it) and the parameter file's
+        measurement noise (``noise.*``, one standard normal draw per sensor and frame
+        from ``noise.seed``, as the simulator's plant node draws them)."""
+        noise = None if self._noise is None else self._noise.standard_normal(3)
+        ir, cur, count = self.plant.raw_measurement(self.state, self.applied_v, noise)
         count16 = ((int(count) + 0x8000) & 0xFFFF) - 0x8000  # the 16-bit counter register
         return struct.pack(">BHHh", HEADER, int(ir), int(cur), count16)
 
@@ -390,7 +400,8 @@ class Rig:
             y = self.firmware.state
             self.log.write(f"{self.firmware.time_s:.6f},{now:.6f},{sent_unix:.6f},"
                            f"{y[X]:.9g},{y[X_DOT]:.9g},"
-                           f"{y[THETA]:.9g},{y[THETA_DOT]:.9g},{float(self.firmware.plant.current(y)):.9g},"
+                           f"{y[THETA]:.9g},{y[THETA_DOT]:.9g},"
+                           f"{float(self.firmware.plant.current(y, self.firmware.applied_v)):.9g},"
                            f"{self.firmware.applied_v:.6g}\n")
 
     def _receive(self, period_start: float) -> None:

@@ -51,6 +51,53 @@ def test_frame_is_the_quantised_measurement_big_endian(plant):
     assert int(count) == round(-0.1 / (2 * math.pi / 4000))  # -64 counts
 
 
+def test_frames_carry_the_parameter_files_measurement_noise():
+    """noise.* of the rig's parameter file: each frame reads the sensors with fresh draws
+    (the virtual rig ignored them before 2026-12-03, so its bags had none)."""
+    from pisc_model import sensors
+
+    config, _ = load_plant(None, {"noise.current_std_a": 0.05, "noise.theta_std_rad": 0.004,
+                                  "noise.seed": 3, "models.sensor_filters": False})
+    plant = Plant(config)
+    state = plant.initial_state(0.0, 0.0, math.pi, 0.0, 0.2)
+    fw = Firmware(plant, state.copy())
+    frames = [struct.unpack(">BHHh", fw.frame()) for _ in range(4000)]
+    _, _, cur, count = np.array(frames, dtype=float).T
+    _, theta, current = sensors.decode(config.sensors, np.zeros_like(cur), cur, count)
+    # the decoded reading scatters by the noise (plus a code's uniform quantisation error)
+    s = config.sensors
+    step = s.current_scale_a_per_v * s.adc_span_v / 2 ** s.adc_bits  # one code, 12.3 mA
+    assert np.std(current) == pytest.approx(math.hypot(0.05, step / math.sqrt(12)), rel=0.05)
+    assert np.mean(current) == pytest.approx(0.2, abs=step)
+    assert np.std(theta - math.pi) == pytest.approx(0.004, rel=0.1)
+    # the same seed draws the same frames; without noise every frame is the same
+    again = Firmware(plant, state.copy())
+    assert [struct.unpack(">BHHh", again.frame()) for _ in range(10)] == frames[:10]
+    quiet = Plant(load_plant(None, {"models.sensor_filters": False})[0])
+    quiet = Firmware(quiet, state.copy())
+    assert len({quiet.frame() for _ in range(50)}) == 1
+
+
+def test_a_quasi_static_armatures_current_is_read_with_the_voltage_applied():
+    """With L di/dt = 0 (2.81) the current is (u - k_e x_dot / r) / R of the voltage held:
+    the frame reads it as the sampled plant does, not the current of 0 V."""
+    config, _ = load_plant(None, {"models.armature": "quasi_static",
+                                  "models.sensor_filters": False})
+    plant = Plant(config)
+    state = plant.initial_state(0.0, 0.1, math.pi, 0.0)
+    fw = Firmware(plant, state.copy())
+    ref = SampledPlant(plant, state.copy())
+    fw.receive(0x40, 0.0)
+    fw.advance()
+    ref.command(fw.applied_v, 0.0)
+    ref.advance()
+    cur = struct.unpack(">BHHh", fw.frame())[2]
+    from pisc_model import sensors
+    assert sensors.decode(config.sensors, 0, cur, 0)[2] == pytest.approx(
+        ref.sample().current_a, abs=1e-12)
+    assert ref.sample().current_a > 0.35  # 5.8 V over 14 ohm, less the back EMF
+
+
 def test_the_count_register_wraps_at_16_bits(plant):
     turns = 9.0  # 36000 counts: past the int16 range
     fw = Firmware(plant, plant.initial_state(0.0, 0.0, math.pi + turns * 2 * math.pi, 0.0))
