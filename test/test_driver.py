@@ -40,7 +40,14 @@ from pisc_msgs_py.convert import (
     motor_sample_to_msg,
     stamp_from_msg,
 )
-from pisc_msgs_py.topics import DIAGNOSTICS, JOINT_STATES, MODE, MOTOR_CURRENT, VOLTAGE
+from pisc_msgs_py.topics import (
+    DIAGNOSTICS,
+    JOINT_STATES,
+    MODE,
+    MOTOR_CURRENT,
+    VOLTAGE,
+    VOLTAGE_SENT,
+)
 from pisc_msgs_py.types import Mode, MotorSample
 from pisc_plant.virtual_rig import RigProcess
 
@@ -390,6 +397,58 @@ def test_the_driver_answers_every_frame_while_the_controllers_are_silent_until_i
             driver.kill()
         answerer.node.destroy_node()
         rig.stop()
+
+
+def test_every_byte_the_driver_writes_is_published_as_written(tmp_path, env_for_domain,
+                                                             ros_context):
+    """/pisc/motor/voltage_sent: one message per byte written, which the rig (an outside
+    observer) counts as received. An answer carries the stamp of the sample it answers
+    and the voltage its byte encodes; once the controllers fall silent the driver's own
+    bytes say so (held, then 0 V once the command is stale)."""
+    rig = start_rig(tmp_path)
+    driver = start_driver(env_for_domain, rig.device)
+    answerer = Answerer(ros_context, 3.0)
+    answerer.answering = False  # until the observer hears the driver's publisher
+    observer = Node("voltage_sent_observer", context=ros_context)
+    sent: list[tuple[int, str, float]] = []
+    sub = observer.create_subscription(
+        message_class(VOLTAGE_SENT.type), VOLTAGE_SENT.name,
+        lambda m: sent.append((stamp_from_msg(m.header.stamp), m.header.frame_id,
+                               m.effort[0])), qos_profile(VOLTAGE_SENT.qos))
+    answerer.executor.add_node(observer)
+    try:
+        assert answerer.spin_until(lambda: sub.get_publisher_count() > 0, 30.0)
+        answerer.answering = True
+        assert answerer.spin_until(lambda: len(sent) > 250, 30.0), len(sent)
+        answerer.answering = False  # the controllers die
+        answerer.spin_until(lambda: False, 0.5)
+        driver.send_signal(signal.SIGTERM)
+        driver.communicate(timeout=20)
+        answerer.spin_until(lambda: False, 0.3)  # the last messages
+        received = rig.status()["bytes_received"]
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+        answerer.node.destroy_node()
+        observer.destroy_node()
+        rig.stop()
+    answers = [m for m in sent if m[1] == "answer"]
+    own = [m for m in sent if m[1] != "answer"]
+    print(f"{received} bytes received by the rig; {len(answers)} answers and {len(own)} of "
+          f"the driver's own published")
+    assert received == len(sent) + 1  # and the 0 V sent on stopping, not published
+    assert {m[1] for m in sent} <= {"answer", "hold", "zero"}
+    volts = command_voltage(encode_command(3.0))
+    # 0 V until the driver has pinned the answering node as the command's one publisher
+    # (docs/safety.md), then the answers' 3 V as the byte encodes it
+    volts_sent = [v for _, _, v in answers]
+    pinned = next(k for k, v in enumerate(volts_sent) if v != 0.0)
+    print(f"answers sent as 0 V before the pin: {pinned}")
+    assert volts_sent[pinned:] == pytest.approx([volts] * (len(answers) - pinned), abs=1e-12)
+    assert len(answers) - pinned > 150 and {m[0] for m in answers} <= set(answerer.sent)
+    stamps = [m[0] for m in answers]
+    assert stamps == sorted(set(stamps))  # one answer per sample, in order
+    assert own[-1][1:] == ("zero", 0.0) and sent[-1] == own[-1]
 
 
 def test_missing_or_busy_port_or_bad_parameter_refuses_to_start_and_says_why(tmp_path, env_for_domain):

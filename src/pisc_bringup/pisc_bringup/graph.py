@@ -108,6 +108,7 @@ from pisc_msgs_py.topics import (
     SIM_STATE,
     STATE,
     VOLTAGE,
+    VOLTAGE_SENT,
     Topic,
     graph_topics_named,
 )
@@ -136,7 +137,7 @@ NODE_KINDS: dict[tuple[str, str], NodeKind] = {
         (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, CLOCK, DIAGNOSTICS), "source"),
     ("pisc_driver", "driver_node"): NodeKind(
         "pisc_driver.driver_node", "DriverNode", (VOLTAGE,),
-        (JOINT_STATES, MOTOR_CURRENT, DIAGNOSTICS), "source"),
+        (JOINT_STATES, MOTOR_CURRENT, VOLTAGE_SENT, DIAGNOSTICS), "source"),
     ("pisc_control", "estimator_node"): NodeKind(
         "pisc_control.estimator_node", "EstimatorNode", (JOINT_STATES,), (STATE, DIAGNOSTICS),
         "controller"),

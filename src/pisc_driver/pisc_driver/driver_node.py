@@ -10,7 +10,10 @@ From the first command sent until the node stops, every frame is answered: a fra
 controllers leave unanswered gets the byte held (0 V once the newest command is stale)
 when the next frame arrives, so the firmware's command watchdog trips only when this
 process is gone or stalled (docs/driver-protocol.md). On stopping (SIGINT, SIGTERM, a
-parameter change) it sends 0 V and then nothing.
+parameter change) it sends 0 V and then nothing. Each byte written while it runs is
+published on ``/pisc/motor/voltage_sent`` right after the write (the voltage it encodes,
+whether it answers a sample or is the driver's own hold or 0 V), so a bag keeps what the
+rig was sent and when.
 
 The same guards as the plant (docs/safety.md, :mod:`pisc_msgs_py.watchdog`): the command
 publisher of ``driver.command_node`` is pinned when first seen, and while any other
@@ -28,6 +31,7 @@ import time
 from typing import Any
 
 from pisc_driver.driver import ZERO, DriverCore, DriverParams
+from pisc_driver.protocol import command_voltage
 from pisc_driver.link import LinkError, SerialLink
 from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, run_node
 from pisc_msgs_py.convert import (
@@ -36,7 +40,7 @@ from pisc_msgs_py.convert import (
     motor_sample_to_msg,
     stamp_from_msg,
 )
-from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE
+from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE, VOLTAGE_SENT
 from pisc_msgs_py.types import JointSample, MotorSample
 from pisc_msgs_py.watchdog import (
     CHAIN,
@@ -57,6 +61,7 @@ class DriverNode(PiscNode):
         self._lock = threading.Lock()  # the core and the port, shared with the reader
         self._joint_pub = self.publisher(JOINT_STATES)
         self._current_pub = self.publisher(MOTOR_CURRENT)
+        self._sent_pub = self.publisher(VOLTAGE_SENT)  # each byte as it is written
         self._sub = self.subscription(VOLTAGE, self._on_voltage)
         # newest stamp out of each stage of the chain, to say which one stopped
         self._upstream: dict[str, int] = {}
@@ -131,14 +136,26 @@ class DriverNode(PiscNode):
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def _send(self, byte: int) -> None:
-        """Write a command byte (under the lock); the reader alone closes a failed port."""
+    def _send(self, byte: int) -> bool:
+        """Write a command byte (under the lock); whether the port took it. The reader
+        alone closes a failed port."""
         if self._link.is_open:
             try:
-                if not self._link.write(byte):
-                    self._unwritten += 1
+                if self._link.write(byte):
+                    return True
+                self._unwritten += 1
             except LinkError:
                 self._unwritten += 1  # the reader finds the port gone and reports it
+        return False
+
+    def _sent(self, stamp_ns: int, byte: int, origin: str) -> None:
+        """Say on VOLTAGE_SENT that ``byte`` was written just now (outside the lock: the
+        write is not delayed by it, and its publish time is the write's to within the
+        call)."""
+        msg = motor_sample_to_msg(MotorSample(stamp_ns, command_voltage(byte,
+                                                                       self._core.actuator)))
+        msg.header.frame_id = origin
+        self._sent_pub.publish(msg)
 
     def _on_voltage(self, msg: Any) -> None:
         command = self.parse(msg, motor_sample_from_msg, "voltage command", WARN)
@@ -150,9 +167,10 @@ class DriverNode(PiscNode):
             core = self._core
             byte = core.command(command.stamp_ns, command.value, self._now_ns(),
                                 refused=not admitted)
-            if byte is not None:
-                self._send(byte)
+            written = byte is not None and self._send(byte)
             resumed, core.resumed_from = core.resumed_from, None
+        if written:
+            self._sent(command.stamp_ns, byte, "answer")
         if resumed is not None:
             self.diagnose(OK, f"command watchdog: commands resumed at sample "
                           f"{core.watchdog.answered} (0 V from sample {resumed})",
@@ -172,8 +190,10 @@ class DriverNode(PiscNode):
         now = self._now_ns()
         with self._lock:
             byte = self._core.hold_off(self._pin.intruders)
-            if byte is not None:
-                self._send(byte)
+            written = byte is not None and self._send(byte)
+            newest = self._core.newest_stamp_ns
+        if written and newest >= 0:
+            self._sent(newest, byte, "zero")
         if change.intruders:
             intruders = ", ".join(change.intruders)
             self._report(ERROR, f"another publisher on {VOLTAGE.name}: {intruders}; the "
@@ -214,9 +234,11 @@ class DriverNode(PiscNode):
                 with self._lock:
                     samples = core.receive(data, now) if data else []
                     byte, fault = core.tick(now)
-                    if byte is not None:
-                        self._send(byte)
+                    written = byte is not None and self._send(byte)
                     trip = core.new_trip
+                    newest = core.newest_stamp_ns
+                if written and newest >= 0:
+                    self._sent(newest, byte, "zero" if byte == ZERO else "hold")
                 if samples and not self._subscribers_ready():
                     self.dropped_before_ready += len(samples)
                     samples = []

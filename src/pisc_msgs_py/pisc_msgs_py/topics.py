@@ -53,6 +53,7 @@ __all__ = [
     "STATE",
     "Topic",
     "VOLTAGE",
+    "VOLTAGE_SENT",
 ]
 
 
@@ -112,6 +113,18 @@ VOLTAGE = Topic(
     "/pisc/motor/voltage", "sensor_msgs/msg/JointState", CONTROL_QOS,
     "armature voltage command u [V] (effort of joint motor), PI output (3.47)",
 )
+# What went out on the wire, for analysis and identification: the controllers' voltage is
+# what they asked for; the driver may send 0 V instead (a stale command, a silent device, a
+# second publisher) or repeat the last byte for a frame left unanswered, and only it knows
+# when the byte left. Published right after each write, so its publish time, which a bag
+# keeps, is the write time.
+VOLTAGE_SENT = Topic(
+    "/pisc/motor/voltage_sent", "sensor_msgs/msg/JointState", CONTROL_QOS,
+    "driver only: the voltage of each command byte written to the rig [V] (effort of joint "
+    "motor, as the byte encodes it), published as it is written; stamp: the sample it "
+    "answers, or for a byte of the driver's own the newest sample; frame_id: answer, hold "
+    "or zero",
+)
 SIM_STATE = Topic(
     "/pisc/sim/true_state", "sensor_msgs/msg/JointState", CONTROL_QOS,
     "simulator only: true state (cart, pendulum, motor: position, velocity; motor effort "
@@ -131,7 +144,7 @@ CLOCK = Topic(
 #: The topics a run records by default.
 GRAPH_TOPICS = (
     JOINT_STATES, MOTOR_CURRENT, STATE, CART_FORCE, MODE, CURRENT_SETPOINT, VOLTAGE,
-    SIM_STATE, DIAGNOSTICS, CLOCK,
+    VOLTAGE_SENT, SIM_STATE, DIAGNOSTICS, CLOCK,
 )
 # The rig drawn for RViz and Foxglove (pisc_bringup markers_node), on request only
 # (``pisc_graph --markers``). Each array holds the whole picture; the last few are kept
