@@ -19,11 +19,19 @@ stop (the IR reading saturates there: the stops lie beyond the sensor's range), 
 current sensor saturated, a sample was missing, or a voltage arrived a period late.
 
 **Timing.** Each voltage acts from the time it reached the rig: in a run on the wall
-clock (the driver and a rig, or its virtual rig) that is the cycle's own
-sample-to-voltage latency, which the bag keeps (the publish times of the sample and
-of the voltage), plus a constant the fit can estimate (``delay``: the time from the
-frame leaving the rig to its stamp and from the voltage's publication to the rig); in
-a lockstep simulation it is ``delay`` alone (the plant's ``actuator.command_delay_s``).
+clock (the driver and a rig, or its virtual rig) that is the cycle's own latency from
+the rig's tick, plus a constant the fit can estimate (``delay``). The bag gives the
+latency from the sample's stamp to the voltage: to the driver's write of the byte
+(``/pisc/motor/voltage_sent``; bags before 2026-12-03 have only the controllers'
+publication of ``/pisc/motor/voltage``, earlier than the write by the callback's wait),
+and from the rig's tick to the stamp, the read's delay, which :func:`read_delays`
+estimates from the stamps. The voltage is the byte's: a sample the driver did not answer
+(its answer came too late) or in whose period it wrote a byte of its own (0 V, a hold)
+is left out. Measured against the virtual rig's own record of each byte's arrival (a
+60 s run, 2026-12-03): the voltages' publication explained the arrival times with a
+correlation of 0.45-0.57 (another run), the writes 0.81 (0.27 ms robust spread), the
+writes with the reads' delays 0.93 (0.13 ms). In a lockstep simulation the latency is
+``delay`` alone (the plant's ``actuator.command_delay_s``).
 
 **The Jacobian** is one batched call of the compiled kernel: a plant set
 (:func:`pisc_plant.plant.plant_set`) with one rig per segment and per perturbation
@@ -70,7 +78,7 @@ from pisc_bringup.bag import BagError, bag_topics, read_bag
 from pisc_sim.configuration import load_graph_config, params_file_text
 from pisc_msgs_py.config import ConfigError
 from pisc_msgs_py.convert import MessageError, joint_sample_from_msg, motor_sample_from_msg
-from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE
+from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE, VOLTAGE_SENT
 from pisc_model import sensors
 from pisc_model.params import ModelParams, NoiseParams, SensorParams
 from pisc_plant import kernel
@@ -187,10 +195,13 @@ class Recording:
     theta: np.ndarray  # measured angle, rad
     current: np.ndarray  # measured current, A
     voltage: np.ndarray  # the voltage answering each sample, V
-    latency_s: np.ndarray  # sample to voltage (wall clock), 0 in lockstep
+    latency_s: np.ndarray  # the rig's sample to its voltage (wall clock), 0 in lockstep
     wall_clock: bool
     experiment: str = "none"
     params_file: Path | None = None  # the run's controllers' parameter file, if any
+    # wall clock: each sample's time from the rig's tick to its stamp, estimated from the
+    # stamps (:func:`read_delays`; included in latency_s), None when not estimated
+    read_delay_s: np.ndarray | None = None
 
     @property
     def duration_s(self) -> float:
@@ -219,6 +230,34 @@ def _experiment_of(params_file: Path) -> str:
         return "none"
 
 
+def read_delays(stamps_ns: np.ndarray, period_s: float, window: int = 200
+                ) -> np.ndarray | None:
+    """Each sample's time from the rig's tick to its stamp (s, the earliest 0), or None.
+
+    The rig samples on its own timer, every period; the driver stamps a frame when it
+    has read it, so a late read makes a late stamp, not a late sample. With the k-th
+    sample taken at tick k, stamp_k - k T is the read's delay plus a constant and the
+    two clocks' drift: a line through each ``window``'s earliest stamp (a read that met
+    no delay) is the ticks' time, and each stamp's distance above it is its read's delay.
+    None when the stamps do not follow one tick each (a frame lost: some window's
+    earliest is half a period or more off the line), or the run is shorter than two
+    windows."""
+    n = len(stamps_ns)
+    if n < 2 * window:
+        return None
+    k = np.arange(n)
+    offset = (stamps_ns - stamps_ns[0]) * 1e-9 - k * period_s
+    earliest = np.array([i + int(np.argmin(offset[i:i + window]))
+                         for i in range(0, n, window)])
+    slope, intercept = np.polyfit(k[earliest], offset[earliest], 1)
+    line = intercept + slope * k
+    off_line = offset[earliest] - line[earliest]
+    if np.ptp(off_line) >= 0.5 * period_s:
+        return None
+    delay = offset - line
+    return delay - delay.min()
+
+
 def read_recording(bag: str | Path) -> Recording:
     """The measured samples of a bag; :class:`IdentifyError` when it cannot serve."""
     bag = Path(bag)
@@ -235,17 +274,27 @@ def read_recording(bag: str | Path) -> Recording:
     joints: dict[int, tuple[float, float, int | None]] = {}
     current: dict[int, float] = {}
     voltage: dict[int, tuple[float, int | None]] = {}
+    # through the driver: what each byte written asked for, and when it was written
+    written: dict[int, tuple[float, int | None]] = {}
+    own: set[int] = set()  # samples in whose period the driver wrote a byte of its own
     try:
-        for m in read_bag(bag, list(MEASURED)):
+        for m in read_bag(bag, [*MEASURED, *([VOLTAGE_SENT.name] if VOLTAGE_SENT.name in
+                                             topics else [])]):
             if m.topic == JOINT_STATES.name:
                 s = joint_sample_from_msg(m.message)
                 joints[s.stamp_ns] = (s.position_m, s.angle_rad, m.publish_time_ns)
             elif m.topic == MOTOR_CURRENT.name:
                 c = motor_sample_from_msg(m.message)
                 current[c.stamp_ns] = c.value
-            else:
+            elif m.topic == VOLTAGE.name:
                 v = motor_sample_from_msg(m.message)
                 voltage[v.stamp_ns] = (v.value, m.publish_time_ns)
+            else:
+                v = motor_sample_from_msg(m.message)
+                if m.message.header.frame_id == "answer":
+                    written.setdefault(v.stamp_ns, (v.value, m.publish_time_ns))
+                else:
+                    own.add(v.stamp_ns)
     except BagError as exc:
         raise IdentifyError(str(exc)) from None
     except MessageError as exc:
@@ -253,6 +302,12 @@ def read_recording(bag: str | Path) -> Recording:
     empty = [name for name, d in zip(MEASURED, (joints, current, voltage), strict=True) if not d]
     if empty:
         raise IdentifyError(f"{bag}: no messages on {', '.join(empty)}: nothing was measured")
+    if written:
+        # the bytes as written: a sample the driver did not answer (its answer came too
+        # late) or in whose period it wrote a byte of its own (a hold, 0 V) gets no
+        # voltage, and the model leaves its period out
+        voltage = {k: written.get(k, (math.nan, None)) if k not in own else (math.nan, None)
+                   for k in voltage}
     stamps = np.array(sorted(set(joints) & set(current) & set(voltage)), dtype=np.int64)
     if len(stamps) < 20:
         raise IdentifyError(f"{bag}: only {len(stamps)} complete samples (position, angle, "
@@ -271,8 +326,14 @@ def read_recording(bag: str | Path) -> Recording:
                         for v, j in sent])
     params_file = bag / CONTROLLERS_PARAMS
     params = params_file if params_file.is_file() else None
+    read = None
+    if wall:
+        period = float(np.median(np.diff(stamps))) * 1e-9
+        read = read_delays(stamps, period)
+        if read is not None:
+            latency = latency + read
     return Recording(str(bag), stamps, x, theta, i, u, latency, wall,
-                     _experiment_of(params) if params else "none", params)
+                     _experiment_of(params) if params else "none", params, read)
 
 
 # -- segments --------------------------------------------------------------------------
@@ -343,18 +404,24 @@ def make_segments(recordings: Sequence[Recording], s: SensorParams, period_s: fl
         gaps = np.diff(r.stamps_ns) * 1e-9 / period_s
         # a transition k -> k + 1 the model can follow: the next sample one period on, the
         # voltage answering k applied within the period
-        steady = (gaps > 0.5) & (gaps < 1.5) if r.wall_clock else np.abs(gaps - 1.0) < 1e-3
+        if r.read_delay_s is not None:  # one tick each (read_delays): a late read is
+            steady = np.ones(n - 1, dtype=bool)  # a late stamp, not a missing sample
+        elif r.wall_clock:
+            steady = (gaps > 0.5) & (gaps < 1.5)
+        else:
+            steady = np.abs(gaps - 1.0) < 1e-3
         timely = r.latency_s[:-1] < 0.9 * period_s
-        finite = (np.isfinite(r.x) & np.isfinite(r.theta) & np.isfinite(r.current)
-                  & np.isfinite(r.voltage))
-        good = steady & timely & finite[:-1] & finite[1:]
+        finite = np.isfinite(r.x) & np.isfinite(r.theta) & np.isfinite(r.current)
+        answered = np.isfinite(r.voltage[:-1])  # (through the driver: as it wrote it)
+        good = steady & timely & finite[:-1] & finite[1:] & answered
         stop = (np.rint(ir) <= 0) | (np.rint(ir) >= top)
         saturated = (np.rint(cur) <= 0) | (np.rint(cur) >= top)
         reasons = {}
         for j in np.flatnonzero(~good):
             reasons[j] = ("a sample missing or out of time" if not steady[j] else
                           "the voltage arrived a period late" if not timely[j] else
-                          "a value that is not finite")
+                          "a value that is not finite" if not (finite[j] and finite[j + 1])
+                          else "no answer written to the rig, or a byte of the driver's own")
         # runs of good transitions; a segment starts one sample after its run begins (the
         # voltage acting at its start is then known)
         start = 0
@@ -407,8 +474,10 @@ def make_segments(recordings: Sequence[Recording], s: SensorParams, period_s: fl
         ir, cur, cnt = _codes(s, r)
         on = grids[3 * k:3 * k + 3]
         sl = slice(lo, lo + count)
-        u[row, :count] = r.voltage[sl]
-        u[row, count:] = r.voltage[lo + count - 1]
+        # (the last sample's voltage acts after the segment: NaN there when the driver
+        # wrote no answer to it)
+        u[row, :count] = np.nan_to_num(r.voltage[sl])
+        u[row, count:] = u[row, count - 1]
         before[row] = r.voltage[lo - 1]
         latency[row, :count] = r.latency_s[sl]
         half = 0.5  # a code stands for the middle of its step (the ADC truncates)
@@ -1215,9 +1284,11 @@ def format_report(result: Result) -> str:
     lines = []
     recs = result.recordings
     seconds = sum(r.duration_s for r in recs)
+    written = any(r.read_delay_s is not None for r in recs)
     clock = ("wall clock: each voltage from its recorded latency "
-             f"(median {np.median(np.concatenate([r.latency_s for r in recs])) * 1e3:.2f} ms) "
-             "plus delay" if any(r.wall_clock for r in recs) else "lockstep: delay only")
+             f"(median {np.median(np.concatenate([r.latency_s for r in recs])) * 1e3:.2f} ms"
+             f"{', the reads estimated from the stamps' if written else ''}) plus delay"
+             if any(r.wall_clock for r in recs) else "lockstep: delay only")
     lines.append(f"recordings      {len(recs)} ({result.cycles} samples, {seconds:.1f} s); "
                  f"{clock}")
     used = seg.size.sum() * result.base.loop.period_s

@@ -10,11 +10,13 @@ pseudo-terminal with the drawn plant as its parameter file, ``pisc_graph --scene
 excitation --driver PORT`` (both under SCHED_FIFO, as ``test/test_driver.py`` runs them),
 in real time, on a ROS domain it claims (unless ROS_DOMAIN_ID is set); ``--via
 lockstep`` simulates the same experiment in this process (the pure closed loop, the
-graph's cores), with the distribution's command latency and measurement noise. Both run
+graph's cores), with the distribution's command latency. Both run
 the ``excitation`` scene's experiment (its ``experiment.*`` parameters and, unless
 ``--duration`` says otherwise, its length). The hidden plant of each draw: the motor's
-R, L, J_m and b_m, the cart's Coulomb and viscous friction and the pivot's friction from
-the distribution (default ``thesis-rig``), the rig's masses and lengths the thesis's
+R, L, J_m and b_m, the cart's Coulomb and viscous friction, the pivot's friction and the
+sensors' measurement noise from the distribution (default ``thesis-rig``; through the
+driver the virtual rig has read its sensors with that noise since 2026-12-03, and had
+none before), the rig's masses and lengths the thesis's
 (thesis Table 6.1: measured, and J_m cannot be told from the cart's mass otherwise).
 b_m / r^2 acts as cart viscous friction, so the truth the cart viscous estimate is
 compared with is b_c + (b_m - b_m,base) / r^2.
@@ -50,8 +52,10 @@ from pisc_msgs_py.config import ConfigError, load_params_file, parse_overrides
 DRAWN = ("motor.resistance_ohm", "motor.inductance_h", "motor.rotor_inertia_kgm2",
          "motor.viscous_friction_nms", "friction.cart_coulomb_n",
          "friction.cart_viscous_ns_per_m", "friction.pivot_viscous_nms")
-LOCKSTEP_ALSO = ("noise.x_std_m", "noise.theta_std_rad", "noise.current_std_a",
-                 "actuator.command_delay_s")
+#: The sensors' measurement noise, drawn too (the virtual rig reads its sensors with it)
+NOISE = ("noise.x_std_m", "noise.theta_std_rad", "noise.current_std_a")
+#: Drawn for lockstep runs only: through the driver the latency is the machine's own
+LOCKSTEP_ALSO = ("actuator.command_delay_s",)
 FIT = "R,L,J_m,cart_coulomb,cart_viscous,pivot_viscous,delay,current_offset"
 #: Tolerances of issue 14: relative, and an absolute floor (the larger wins).
 TOLERANCE = {"R": (0.05, 0.0), "J_m": (0.05, 0.0), "cart_coulomb": (0.10, 0.005),
@@ -75,15 +79,17 @@ class Outcome:
 
 
 def draw_truths(draws: int, seed: int, distribution: str = "thesis-rig",
-                lockstep: bool = False) -> list[dict[str, float]]:
-    """The hidden plants: ``DRAWN`` (and for lockstep ``LOCKSTEP_ALSO``) of each draw."""
+                lockstep: bool = False, noise: bool = False) -> list[dict[str, float]]:
+    """The hidden plants: ``DRAWN`` of each draw, with ``noise`` the sensors' noise
+    (``NOISE``, and ``noise.seed`` = seed + draw) and for lockstep ``LOCKSTEP_ALSO``."""
     from pisc_bringup.uncertainty import load_distribution
 
     config, _, _ = load_run_config("default")
     dist = load_distribution(distribution, config)
     sample = dist.draw(draws, seed)
-    keep = DRAWN + (LOCKSTEP_ALSO if lockstep else ())
-    return [{k: float(v) for k, v in sample.one(k).items() if k in keep}
+    keep = DRAWN + (NOISE if noise else ()) + (LOCKSTEP_ALSO if lockstep else ())
+    return [{**{k: float(v) for k, v in sample.one(k).items() if k in keep},
+             **({"noise.seed": seed + k} if noise else {})}
             for k in range(draws)]
 
 
@@ -266,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError as exc:  # (its text names --set)
             raise ConfigError(str(exc).replace("--set", "--truth", 1)) from None
         truths = [{**t, **fixed} for t in draw_truths(args.draws, args.seed, args.distribution,
-                                                      args.via == "lockstep")]
+                                                      args.via == "lockstep", noise=True)]
     except ConfigError as exc:
         print(f"identify_bench: {exc}", file=sys.stderr)
         return 2

@@ -222,11 +222,13 @@ def test_a_fit_without_voltage_or_with_an_unknown_name_is_refused(excitation_log
 # -- pisc_identify on bags -------------------------------------------------------------
 
 
-def _cdr(type_name: str, stamp_ns: int, names: list[str], **fields) -> bytes:
+def _cdr(type_name: str, stamp_ns: int, names: list[str], frame_id: str = "",
+         **fields) -> bytes:
     msg = TS.types[type_name]
     header = TS.types["std_msgs/msg/Header"](
         stamp=TS.types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9,
-                                                      nanosec=stamp_ns % 10**9), frame_id="")
+                                                      nanosec=stamp_ns % 10**9),
+        frame_id=frame_id)
     empty = np.array([], dtype=float)
     values = {"position": empty, "velocity": empty, "effort": empty}
     values.update({k: np.asarray(v, dtype=float) for k, v in fields.items()})
@@ -467,3 +469,89 @@ def test_the_bench_says_how_well_each_recording_kept_time():
     assert line.endswith("; latency median 0.80 ms, p99 5.00 ms"), line
     # lockstep records no latency: nothing said
     assert "latency" not in format_outcome(outcome(np.zeros(1000)))
+
+
+def test_the_benchs_hidden_rigs_draw_the_sensors_noise_when_asked():
+    """The virtual rig reads its sensors with noise.*: the bench draws it from the
+    distribution's ranges (thesis-rig: up to one step of each sensor) with a seed per draw."""
+    from pisc_bringup.identify_bench import DRAWN, NOISE, draw_truths
+
+    plain = draw_truths(4, 5)
+    noisy = draw_truths(4, 5, noise=True)
+    assert all(set(t) == set(DRAWN) for t in plain)
+    highs = {"noise.x_std_m": 0.00043, "noise.theta_std_rad": 0.00157,
+             "noise.current_std_a": 0.0123}  # distributions/thesis-rig.yaml
+    for k, (a, b) in enumerate(zip(plain, noisy)):
+        assert {key: b[key] for key in DRAWN} == a  # the same rig
+        assert b["noise.seed"] == 5 + k
+        for key in NOISE:
+            assert 0.0 <= b[key] <= highs[key], (key, b[key])
+    assert len({t["noise.current_std_a"] for t in noisy}) == 4
+
+
+def test_through_the_driver_the_bytes_as_written_time_each_voltage(tmp_path):
+    """A bag with /pisc/motor/voltage_sent (the driver's record of each byte written):
+    each voltage is the one its byte encodes and acts from the write's time, not the
+    controllers' publication; a sample answered late (no byte) or in whose period the
+    driver wrote a byte of its own (0 V) has no voltage and its period is left out."""
+    from pisc_msgs_py.topics import VOLTAGE_SENT
+
+    js = "sensor_msgs/msg/JointState"
+    n, t0, period = 400, 1_800_000_000_000_000_000, 5_000_000
+
+    def bag(with_sent: bool):
+        path = tmp_path / f"driver-{with_sent}"
+        writer = BagWriter(path, [JOINT_STATES, MOTOR_CURRENT, VOLTAGE, VOLTAGE_SENT])
+        for k in range(n):
+            stamp = t0 + k * period
+            writer.write(JOINT_STATES.name, _cdr(js, stamp, ["cart", "pendulum"],
+                                                 position=[0.0, math.pi]), stamp + 20_000,
+                         stamp + 10_000)
+            writer.write(MOTOR_CURRENT.name, _cdr(js, stamp, ["motor"], effort=[0.1]),
+                         stamp + 20_000, stamp + 10_000)
+            writer.write(VOLTAGE.name, _cdr(js, stamp, ["motor"], effort=[1.0]),
+                         stamp + 900_000, stamp + 810_000)
+            if with_sent and k != 100:  # sample 100: its answer came too late to send
+                writer.write(VOLTAGE_SENT.name, _cdr(js, stamp, ["motor"], "answer",
+                                                     effort=[0.993]),
+                             stamp + 1_400_000, stamp + 1_310_000)
+            if with_sent and k == 200:  # the driver's own 0 V in sample 200's period
+                writer.write(VOLTAGE_SENT.name, _cdr(js, stamp, ["motor"], "zero",
+                                                     effort=[0.0]),
+                             stamp + 4_100_000, stamp + 4_000_000)
+        writer.close()
+        return idf.read_recording(path)
+
+    plain, written = bag(False), bag(True)
+    assert plain.wall_clock and written.wall_clock
+    np.testing.assert_allclose(plain.latency_s, 0.8e-3, rtol=1e-9)
+    np.testing.assert_array_equal(plain.voltage, 1.0)
+    answered = np.ones(n, dtype=bool)
+    answered[[100, 200]] = False
+    np.testing.assert_allclose(written.latency_s[answered], 1.3e-3, rtol=1e-9)
+    np.testing.assert_array_equal(written.voltage[answered], 0.993)
+    assert np.isnan(written.voltage[[100, 200]]).all()
+    config = load_run_config("default")[0].plant
+    segments = idf.make_segments([written], config.sensors, 0.005)
+    gaps = [(a, b) for _, a, b, why in segments.left_out
+            if why == "no answer written to the rig, or a byte of the driver's own"]
+    assert gaps == [(pytest.approx(0.5), pytest.approx(0.505)),
+                    (pytest.approx(1.0), pytest.approx(1.005))], segments.left_out
+
+
+def test_the_reads_delays_come_from_the_stamps_against_the_rigs_ticks():
+    """A rig ticks every period on its own clock (here 20 ppm slow against the host's);
+    the driver stamps each frame when it reads it. Stamps minus the ticks' line give each
+    read's delay (from the earliest); a lost frame (two ticks between stamps) is not one
+    tick each, and no estimate is made."""
+    rng = np.random.default_rng(4)
+    n, period = 6000, 0.005
+    ticks = np.arange(n) * period * (1 + 20e-6)
+    delay = 0.0004 + rng.exponential(0.0008, n)  # a floor, and late reads
+    delay[rng.integers(0, n, 60)] += 0.012  # stalls past two periods
+    stamps = (1_800_000_000 * 10**9 + np.round((ticks + delay) * 1e9)).astype(np.int64)
+    est = idf.read_delays(stamps, period)
+    np.testing.assert_allclose(est, delay - delay.min(), atol=2e-6)
+    lost = np.delete(stamps, 3000)  # frame 3000 lost: later stamps one tick further on
+    assert idf.read_delays(lost, period) is None
+    assert idf.read_delays(stamps[:300], period) is None  # shorter than two windows
