@@ -16,7 +16,7 @@ voltages; the armature current starts at its quasi-static value). Model error an
 drift then cannot accumulate over a run, and an unstable upright would not dominate.
 A segment is left out, and the report says so, when in it the cart was at an end
 stop (the IR reading saturates there: the stops lie beyond the sensor's range), the
-current sensor saturated, a sample was missing, or a voltage arrived a period late.
+current sensor saturated, a sample was missing, or a voltage arrived two periods late.
 
 **Timing.** Each voltage acts from the time it reached the rig: in a run on the wall
 clock (the driver and a rig, or its virtual rig) that is the cycle's own latency from
@@ -26,8 +26,8 @@ latency from the sample's stamp to the voltage: to the driver's write of the byt
 publication of ``/pisc/motor/voltage``, earlier than the write by the callback's wait),
 and from the rig's tick to the stamp, the read's delay, which :func:`read_delays`
 estimates from the stamps. The voltage is the byte's: a sample the driver did not answer
-(its answer came too late) or in whose period it wrote a byte of its own (0 V, a hold)
-is left out. Measured against the virtual rig's own record of each byte's arrival (a
+(its answer came too late) or in whose period it wrote 0 V of its own is left out; one
+that reached the rig after the next tick acts from there, in the next period. Measured against the virtual rig's own record of each byte's arrival (a
 60 s run, 2026-12-03): the voltages' publication explained the arrival times with a
 correlation of 0.45-0.57 (another run), the writes 0.81 (0.27 ms robust spread), the
 writes with the reads' delays 0.93 (0.13 ms). In a lockstep simulation the latency is
@@ -95,6 +95,9 @@ STATE_SCALE = np.array([0.002, 0.02, 0.002, 0.05, 0.005, 0.005])  # x, x', th, t
 STATE_NAMES = ("x", "x_dot", "theta", "theta_dot", "v_ir", "v_cur")
 CHANNELS = ("IR position", "encoder angle", "current")
 STEP = 1e-6  # forward-difference step, in units of each unknown's scale
+#: A voltage reaching the rig later than this many periods after its sample is left out;
+#: one after the next tick acts from its arrival in the next period (make_segments)
+LATE_PERIODS = 1.9
 #: An estimate is reported as identified when its 95 % interval's half-width is at most
 #: this fraction of it (or a tenth of the parameter's typical size, for a value near 0)
 IDENTIFIABLE = 0.25
@@ -276,7 +279,7 @@ def read_recording(bag: str | Path) -> Recording:
     voltage: dict[int, tuple[float, int | None]] = {}
     # through the driver: what each byte written asked for, and when it was written
     written: dict[int, tuple[float, int | None]] = {}
-    own: set[int] = set()  # samples in whose period the driver wrote a byte of its own
+    own: set[int] = set()  # samples in whose period the driver wrote 0 V of its own
     try:
         for m in read_bag(bag, [*MEASURED, *([VOLTAGE_SENT.name] if VOLTAGE_SENT.name in
                                              topics else [])]):
@@ -293,7 +296,7 @@ def read_recording(bag: str | Path) -> Recording:
                 v = motor_sample_from_msg(m.message)
                 if m.message.header.frame_id == "answer":
                     written.setdefault(v.stamp_ns, (v.value, m.publish_time_ns))
-                else:
+                elif m.message.header.frame_id == "zero":  # (a hold repeats the last byte)
                     own.add(v.stamp_ns)
     except BagError as exc:
         raise IdentifyError(str(exc)) from None
@@ -304,8 +307,8 @@ def read_recording(bag: str | Path) -> Recording:
         raise IdentifyError(f"{bag}: no messages on {', '.join(empty)}: nothing was measured")
     if written:
         # the bytes as written: a sample the driver did not answer (its answer came too
-        # late) or in whose period it wrote a byte of its own (a hold, 0 V) gets no
-        # voltage, and the model leaves its period out
+        # late) or in whose period it wrote 0 V of its own gets no voltage, and the model
+        # leaves its period out
         voltage = {k: written.get(k, (math.nan, None)) if k not in own else (math.nan, None)
                    for k in voltage}
     stamps = np.array(sorted(set(joints) & set(current) & set(voltage)), dtype=np.int64)
@@ -348,12 +351,16 @@ class Segments:
     first: np.ndarray  # (n,) index of each segment's first sample in its recording
     size: np.ndarray  # (n,) samples in each segment
     u: np.ndarray  # (n, length) voltage answering sample j (padded)
-    u_before: np.ndarray  # (n,) the voltage acting when the segment begins
+    u_before: np.ndarray  # (n,) the voltage answering the sample before the first
     latency: np.ndarray  # (n, length) s
     measured: np.ndarray  # (n, length, 3): IR and current ADC voltages, angle (step middles)
     mask: np.ndarray  # (n, length, 3) bool: residuals that count
     guess: np.ndarray  # (n, 6) initial state guesses
     left_out: list[tuple[str, float, float, str]] = field(default_factory=list)
+    # the voltage before u_before and u_before's latency: the one acting at the start when
+    # u_before arrives in the segment's first period (None: every voltage on time)
+    u_before2: np.ndarray | None = None
+    latency_before: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -373,7 +380,9 @@ class Segments:
         return Segments(size, self.owner[keep], self.first[keep], self.size[keep],
                         self.u[keep, :size], self.u_before[keep], self.latency[keep, :size],
                         self.measured[keep, :size], self.mask[keep, :size],
-                        self.guess[keep], left)
+                        self.guess[keep], left,
+                        None if self.u_before2 is None else self.u_before2[keep],
+                        None if self.latency_before is None else self.latency_before[keep])
 
 
 def _codes(s: SensorParams, r: Recording) -> tuple[np.ndarray, ...]:
@@ -410,7 +419,10 @@ def make_segments(recordings: Sequence[Recording], s: SensorParams, period_s: fl
             steady = (gaps > 0.5) & (gaps < 1.5)
         else:
             steady = np.abs(gaps - 1.0) < 1e-3
-        timely = r.latency_s[:-1] < 0.9 * period_s
+        # the voltage answering k reaches the rig before tick k + 2 (LATE_PERIODS: with
+        # a margin for the fitted delay); one that comes after tick k + 1 acts in the
+        # next period, as the model simulates it
+        timely = r.latency_s[:-1] < LATE_PERIODS * period_s
         finite = np.isfinite(r.x) & np.isfinite(r.theta) & np.isfinite(r.current)
         answered = np.isfinite(r.voltage[:-1])  # (through the driver: as it wrote it)
         good = steady & timely & finite[:-1] & finite[1:] & answered
@@ -419,9 +431,9 @@ def make_segments(recordings: Sequence[Recording], s: SensorParams, period_s: fl
         reasons = {}
         for j in np.flatnonzero(~good):
             reasons[j] = ("a sample missing or out of time" if not steady[j] else
-                          "the voltage arrived a period late" if not timely[j] else
+                          "the voltage arrived two periods late" if not timely[j] else
                           "a value that is not finite" if not (finite[j] and finite[j + 1])
-                          else "no answer written to the rig, or a byte of the driver's own")
+                          else "no answer written to the rig, or 0 V of the driver's own")
         # runs of good transitions; a segment starts one sample after its run begins (the
         # voltage acting at its start is then known)
         start = 0
@@ -463,6 +475,8 @@ def make_segments(recordings: Sequence[Recording], s: SensorParams, period_s: fl
     n = len(pieces)
     u = np.zeros((n, size))
     before = np.zeros(n)
+    before2 = np.zeros(n)
+    latency_before = np.zeros(n)
     latency = np.zeros((n, size))
     measured = np.zeros((n, size, 3))
     mask = np.zeros((n, size, 3), dtype=bool)
@@ -479,6 +493,11 @@ def make_segments(recordings: Sequence[Recording], s: SensorParams, period_s: fl
         u[row, :count] = np.nan_to_num(r.voltage[sl])
         u[row, count:] = u[row, count - 1]
         before[row] = r.voltage[lo - 1]
+        # (the one before it, if known: else a late u_before is taken as acting from the
+        # start)
+        two = r.voltage[lo - 2] if lo >= 2 else math.nan
+        before2[row] = two if math.isfinite(two) else before[row]
+        latency_before[row] = r.latency_s[lo - 1]
         latency[row, :count] = r.latency_s[sl]
         half = 0.5  # a code stands for the middle of its step (the ADC truncates)
         measured[row, :count, 0] = s.adc_ref_low_v + (
@@ -498,7 +517,7 @@ def make_segments(recordings: Sequence[Recording], s: SensorParams, period_s: fl
                       measured[row, 0, 0], measured[row, 0, 2])
     owner, first, sizes = (np.array(v) for v in zip(*pieces, strict=True))
     return Segments(size, owner, first, sizes, u, before, latency, measured, mask, guess,
-                    left_out)
+                    left_out, before2, latency_before)
 
 
 # -- the model -------------------------------------------------------------------------
@@ -623,7 +642,16 @@ class Problem:
             self.sensors.current_scale_a_per_v)
         u = seg.u[rows]
         latency = seg.latency[rows]
+        period = self.period
+        # the voltage acting at the first sample; one arriving after it (late) is pending
         acting = seg.u_before[rows]
+        pending = np.full(rigs, np.nan)  # arrival of a late voltage in this period, s
+        pending_u = acting.copy()
+        if seg.latency_before is not None:
+            d = seg.latency_before[rows] + delay
+            late = d >= period
+            acting = np.where(late, seg.u_before2[rows], acting)
+            pending = np.where(late, np.minimum(d - period, 0.999 * period), np.nan)
         y = np.empty((rigs, plant.size))
         y[:, idx["x"]] = y0[:, 0]
         y[:, idx["x_dot"]] = y0[:, 1]
@@ -634,7 +662,6 @@ class Problem:
         y[:, idx["v_cur"]] = y0[:, 5]
         length = seg.length
         out = np.empty((rigs, length, 3))
-        period = self.period
         for j in range(length):
             out[:, j, 0] = y[:, idx["v_ir"]]
             out[:, j, 1] = y[:, idx["theta"]]
@@ -643,11 +670,26 @@ class Problem:
                 states[:, j] = y
             if j == length - 1:
                 break
-            d = np.clip(latency[:, j] + delay, 0.0, 0.999 * period)
-            if np.any(d > 0.0):
-                y = plant.advance(y, acting, d)
-            y = plant.advance(y, u[:, j], period - d)
-            acting = u[:, j]
+            # in this period: the late voltage of the sample before arrives at ``pending``
+            # (if any), then this sample's at d, unless it is late too (d >= period);
+            # bytes reach the rig in the order they were written
+            t = np.zeros(rigs)
+            if not np.all(np.isnan(pending)):
+                has = ~np.isnan(pending)
+                t = np.where(has, pending, 0.0)
+                if np.any(t > 0.0):
+                    y = plant.advance(y, acting, t)
+                acting = np.where(has, pending_u, acting)
+            arrival = np.clip(latency[:, j] + delay, 0.0, 1.999 * period)
+            late = arrival >= period
+            d = np.where(late, period, np.maximum(arrival, t))
+            if np.any(d > t):
+                y = plant.advance(y, acting, d - t)
+            acting = np.where(late, acting, u[:, j])
+            if np.any(d < period):
+                y = plant.advance(y, acting, period - d)
+            pending = np.where(late, arrival - period, np.nan)
+            pending_u = u[:, j]
         if not np.all(np.isfinite(out)):
             raise FitError("the model diverged (a value that is not finite) at " + ", ".join(
                 f"{k} = {np.asarray(v).ravel()[0]:.4g}" for k, v in values.items()
@@ -768,11 +810,16 @@ class Problem:
         single = Plant(_with_values(self.base, {BY_KEY[k].name: v for k, v in values.items()
                                                 if k not in NOT_PLANT}))
         index = single.index["v_cur"]
-        cycle = np.arange(length - 1)[None, :] < (seg.size - 1)[:, None]  # (n, length - 1)
+        period = self.period
+        # cycles whose voltage and the one before came on time (the late ones keep theirs)
+        before = (np.zeros(n_seg) if seg.latency_before is None else seg.latency_before)
+        previous = np.concatenate([before[:, None], seg.latency[:, :-2]], axis=1)
+        on_time = ((seg.latency[:, :-1] + values["delay"] < 0.999 * period)
+                   & (previous + values["delay"] < period))
+        cycle = (np.arange(length - 1)[None, :] < (seg.size - 1)[:, None]) & on_time
         y = states[:, :-1][cycle]
         acting = np.concatenate([seg.u_before[:, None], seg.u[:, :-1]], axis=1)[:, :-1][cycle]
         new = seg.u[:, :-1][cycle]
-        period = self.period
         d0 = np.clip(seg.latency[:, :-1][cycle] + values["delay"], 0.0, 0.999 * period)
         shift = np.where(d0 + 1e-4 < 0.999 * period, 1e-4, -1e-4)
 

@@ -463,7 +463,10 @@ class Rig:
                     if self.firmware.trips != trips:
                         self.watchdog_trip_time = now
                 started = True
-                period_start = now
+                # the PIC's timer samples on time: a late wake of this process delays the
+                # frame's sending, not the period, and bytes apply from the tick's time
+                # (a wake a period or more late is an overrun: from now)
+                period_start = next_tick if now - next_tick < period else now
                 self._send_frame(now)
                 next_tick += period
                 if now - next_tick > 4 * period:  # far behind (machine overloaded)
