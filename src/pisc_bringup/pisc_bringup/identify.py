@@ -24,14 +24,16 @@ the rig's tick, plus a constant the fit can estimate (``delay``). The bag gives 
 latency from the sample's stamp to the voltage: to the driver's write of the byte
 (``/pisc/motor/voltage_sent``; bags before 2026-12-03 have only the controllers'
 publication of ``/pisc/motor/voltage``, earlier than the write by the callback's wait),
-and from the rig's tick to the stamp, the read's delay, which :func:`read_delays`
+and from the rig's tick to the stamp, the read's delay, which :func:`rig_ticks`
 estimates from the stamps. The voltage is the byte's: a sample the driver did not answer
 (its answer came too late) or in whose period it wrote 0 V of its own is left out; one
 that reached the rig after the next tick acts from there, in the next period. Measured against the virtual rig's own record of each byte's arrival (a
 60 s run, 2026-12-03): the voltages' publication explained the arrival times with a
 correlation of 0.45-0.57 (another run), the writes 0.81 (0.27 ms robust spread), the
-writes with the reads' delays 0.93 (0.13 ms). In a lockstep simulation the latency is
-``delay`` alone (the plant's ``actuator.command_delay_s``).
+writes with the reads' delays 0.93 (0.13 ms), and 0.95 (0.11 ms) once the virtual rig
+timed its periods from its timer's ticks (docs/identification.md, "Timing"). In a
+lockstep simulation the latency is ``delay`` alone (the plant's
+``actuator.command_delay_s``).
 
 **The Jacobian** is one batched call of the compiled kernel: a plant set
 (:func:`pisc_plant.plant.plant_set`) with one rig per segment and per perturbation
@@ -202,8 +204,10 @@ class Recording:
     wall_clock: bool
     experiment: str = "none"
     params_file: Path | None = None  # the run's controllers' parameter file, if any
-    # wall clock: each sample's time from the rig's tick to its stamp, estimated from the
-    # stamps (:func:`read_delays`; included in latency_s), None when not estimated
+    # wall clock: each sample's tick of the rig's timer (a frame lost skips one) and its
+    # time from that tick to its stamp (included in latency_s), estimated from the stamps
+    # (:func:`rig_ticks`); None when not estimated
+    ticks: np.ndarray | None = None
     read_delay_s: np.ndarray | None = None
 
     @property
@@ -233,32 +237,63 @@ def _experiment_of(params_file: Path) -> str:
         return "none"
 
 
-def read_delays(stamps_ns: np.ndarray, period_s: float, window: int = 200
-                ) -> np.ndarray | None:
-    """Each sample's time from the rig's tick to its stamp (s, the earliest 0), or None.
+def rig_ticks(stamps_ns: np.ndarray, period_s: float, window: int = 200
+              ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(each sample's tick of the rig's timer, its time from that tick to its stamp in s,
+    the earliest 0), or None when the stamps do not show the ticks.
 
     The rig samples on its own timer, every period; the driver stamps a frame when it
-    has read it, so a late read makes a late stamp, not a late sample. With the k-th
-    sample taken at tick k, stamp_k - k T is the read's delay plus a constant and the
-    two clocks' drift: a line through each ``window``'s earliest stamp (a read that met
-    no delay) is the ticks' time, and each stamp's distance above it is its read's delay.
-    None when the stamps do not follow one tick each (a frame lost: some window's
-    earliest is half a period or more off the line), or the run is shorter than two
+    has read it, so a late read makes a late stamp, not a late sample. With sample k
+    taken at tick n_k, stamp_k - n_k T is the read's delay plus a constant and the two
+    clocks' drift, and its least value over the next ``window`` samples (a read that met
+    no delay) is the constant and drift alone. A frame lost (the parser refuses one whose
+    bytes came apart, a byte dropped) raises that least value by a period for good from
+    the next sample on: n_k = k + the lost frames before k. A line through each window's
+    earliest stamp is then the ticks' time, and each stamp's distance above it its read's
+    delay (reads late by half a period or more just before a lost frame would put the
+    loss early: a sample just after a skipped tick and a tenth of a period or more below
+    the line goes to the tick before). None when the result is not one line (some window's earliest half a period
+    or more off it: a stall longer than the window, say) or the run is shorter than two
     windows."""
     n = len(stamps_ns)
     if n < 2 * window:
         return None
     k = np.arange(n)
-    offset = (stamps_ns - stamps_ns[0]) * 1e-9 - k * period_s
-    earliest = np.array([i + int(np.argmin(offset[i:i + window]))
-                         for i in range(0, n, window)])
-    slope, intercept = np.polyfit(k[earliest], offset[earliest], 1)
-    line = intercept + slope * k
-    off_line = offset[earliest] - line[earliest]
-    if np.ptp(off_line) >= 0.5 * period_s:
+    t = (stamps_ns - stamps_ns[0]) * 1e-9
+    offset = t - k * period_s
+    padded = np.concatenate([offset, np.full(window - 1, np.inf)])
+    ahead = np.lib.stride_tricks.sliding_window_view(padded, window).min(axis=1)
+    # lost frames: a rise of half a period or more over the level, which follows the
+    # least value down and up by less than a quarter period (the clocks' drift)
+    ticks = k.copy()
+    level, count = ahead[0], 0
+    for j in range(n):
+        x = (ahead[j] - level) / period_s - count
+        if x >= 0.5:
+            count += int(np.rint(x))
+        elif x < 0.25:
+            level = ahead[j] - count * period_s
+        ticks[j] += count
+
+    def fit() -> tuple[np.ndarray, np.ndarray]:
+        offset = t - ticks * period_s
+        earliest = np.array([i + int(np.argmin(offset[i:i + window]))
+                             for i in range(0, n, window)])
+        slope, intercept = np.polyfit(ticks[earliest], offset[earliest], 1)
+        return offset - (intercept + slope * ticks), earliest
+
+    delay, earliest = fit()
+    # reads late by half a period or more just before a lost frame put the loss early:
+    # such a sample then sits a period before its tick; it belongs to the tick before
+    early = np.flatnonzero(delay < -0.1 * period_s)
+    for j in early:
+        if j == 0 or ticks[j - 1] < ticks[j] - 1:
+            ticks[j] -= 1
+    if early.size:
+        delay, earliest = fit()
+    if np.ptp(delay[earliest]) >= 0.5 * period_s:
         return None
-    delay = offset - line
-    return delay - delay.min()
+    return ticks, delay - delay.min()
 
 
 def read_recording(bag: str | Path) -> Recording:
@@ -329,14 +364,15 @@ def read_recording(bag: str | Path) -> Recording:
                         for v, j in sent])
     params_file = bag / CONTROLLERS_PARAMS
     params = params_file if params_file.is_file() else None
-    read = None
+    ticks = read = None
     if wall:
         period = float(np.median(np.diff(stamps))) * 1e-9
-        read = read_delays(stamps, period)
-        if read is not None:
+        found = rig_ticks(stamps, period)
+        if found is not None:
+            ticks, read = found
             latency = latency + read
     return Recording(str(bag), stamps, x, theta, i, u, latency, wall,
-                     _experiment_of(params) if params else "none", params, read)
+                     _experiment_of(params) if params else "none", params, ticks, read)
 
 
 # -- segments --------------------------------------------------------------------------
@@ -413,8 +449,8 @@ def make_segments(recordings: Sequence[Recording], s: SensorParams, period_s: fl
         gaps = np.diff(r.stamps_ns) * 1e-9 / period_s
         # a transition k -> k + 1 the model can follow: the next sample one period on, the
         # voltage answering k applied within the period
-        if r.read_delay_s is not None:  # one tick each (read_delays): a late read is
-            steady = np.ones(n - 1, dtype=bool)  # a late stamp, not a missing sample
+        if r.ticks is not None:  # (rig_ticks) a late read is a late stamp, and only a
+            steady = np.diff(r.ticks) == 1  # frame lost is a sample missing
         elif r.wall_clock:
             steady = (gaps > 0.5) & (gaps < 1.5)
         else:

@@ -543,22 +543,33 @@ def test_through_the_driver_the_bytes_as_written_time_each_voltage(tmp_path):
                     (pytest.approx(1.0), pytest.approx(1.005))], segments.left_out
 
 
-def test_the_reads_delays_come_from_the_stamps_against_the_rigs_ticks():
+def test_the_rigs_ticks_and_the_reads_delays_come_from_the_stamps():
     """A rig ticks every period on its own clock (here 20 ppm slow against the host's);
-    the driver stamps each frame when it reads it. Stamps minus the ticks' line give each
-    read's delay (from the earliest); a lost frame (two ticks between stamps) is not one
-    tick each, and no estimate is made."""
+    the driver stamps each frame when it reads it. Stamps against the ticks' line give
+    each read's delay (from the earliest) and each sample's tick, a lost frame skipping
+    one, even when the reads around it were late; a stall longer than the estimate's
+    window (one second) is not taken for lost frames: no estimate then."""
     rng = np.random.default_rng(4)
     n, period = 6000, 0.005
-    ticks = np.arange(n) * period * (1 + 20e-6)
-    delay = 0.0004 + rng.exponential(0.0008, n)  # a floor, and late reads
+    ticks = np.arange(n + 3)
+    delay = 0.0004 + rng.exponential(0.0008, n + 3)  # a floor, and late reads
     delay[rng.integers(0, n, 60)] += 0.012  # stalls past two periods
-    stamps = (1_800_000_000 * 10**9 + np.round((ticks + delay) * 1e9)).astype(np.int64)
-    est = idf.read_delays(stamps, period)
-    np.testing.assert_allclose(est, delay - delay.min(), atol=2e-6)
-    lost = np.delete(stamps, 3000)  # frame 3000 lost: later stamps one tick further on
-    assert idf.read_delays(lost, period) is None
-    assert idf.read_delays(stamps[:300], period) is None  # shorter than two windows
+    delay[2995:3001] += np.linspace(0.0, 0.004, 6)  # late reads up to a lost frame
+
+    def stamps(keep, drift=20e-6):
+        t = ticks[keep] * period * (1 + drift) + delay[keep]
+        return (1_800_000_000 * 10**9 + np.round(t * 1e9)).astype(np.int64)
+
+    keep = np.delete(np.arange(n + 3), [3000, 4500, 4501])  # three frames lost
+    # (300 ppm: 9 ms, almost two periods, in 30 s; it tilts each second's least stamp
+    # by up to 0.3 ms, which biases the line by some 10 us)
+    for drift, atol in ((20e-6, 2e-6), (-300e-6, 2e-5)):
+        found, read = idf.rig_ticks(stamps(keep, drift), period)
+        np.testing.assert_array_equal(found, keep)
+        np.testing.assert_allclose(read, delay[keep] - delay[keep].min(), atol=atol)
+    delay[1000:1300] += 0.004  # every read of 1.5 s late by 4 ms
+    assert idf.rig_ticks(stamps(keep), period) is None
+    assert idf.rig_ticks(stamps(keep)[:300], period) is None  # shorter than two windows
 
 
 def test_a_voltage_after_the_next_tick_acts_from_its_arrival_in_the_next_period():
