@@ -27,13 +27,13 @@ publication of ``/pisc/motor/voltage``, earlier than the write by the callback's
 and from the rig's tick to the stamp, the read's delay, which :func:`rig_ticks`
 estimates from the stamps. The voltage is the byte's: a sample the driver did not answer
 (its answer came too late) or in whose period it wrote 0 V of its own is left out; one
-that reached the rig after the next tick acts from there, in the next period. Measured against the virtual rig's own record of each byte's arrival (a
-60 s run, 2026-12-03): the voltages' publication explained the arrival times with a
-correlation of 0.45-0.57 (another run), the writes 0.81 (0.27 ms robust spread), the
-writes with the reads' delays 0.93 (0.13 ms), and 0.95 (0.11 ms) once the virtual rig
-timed its periods from its timer's ticks (docs/identification.md, "Timing"). In a
-lockstep simulation the latency is ``delay`` alone (the plant's
-``actuator.command_delay_s``).
+that reached the rig after the next tick acts from there, in the next period. Measured
+against the virtual rig's own record of each byte's arrival (a 60 s run, 2026-12-03):
+the voltages' publication explained the arrival times with a correlation of 0.45-0.57
+(another run), the writes 0.81 (0.27 ms robust spread), the writes with the reads'
+delays 0.93 (0.13 ms), and 0.95 (0.11 ms) once the virtual rig timed its periods from
+its timer's ticks (docs/identification.md, "Timing"). In a lockstep simulation the
+latency is ``delay`` alone (the plant's ``actuator.command_delay_s``).
 
 **The Jacobian** is one batched call of the compiled kernel: a plant set
 (:func:`pisc_plant.plant.plant_set`) with one rig per segment and per perturbation
@@ -252,9 +252,9 @@ def rig_ticks(stamps_ns: np.ndarray, period_s: float, window: int = 200
     earliest stamp is then the ticks' time, and each stamp's distance above it its read's
     delay (reads late by half a period or more just before a lost frame would put the
     loss early: a sample just after a skipped tick and a tenth of a period or more below
-    the line goes to the tick before). None when the result is not one line (some window's earliest half a period
-    or more off it: a stall longer than the window, say) or the run is shorter than two
-    windows."""
+    the line goes to the tick before). None when the result is not one line (some
+    window's earliest half a period or more off it: a stall longer than the window, say)
+    or the run is shorter than two windows."""
     n = len(stamps_ns)
     if n < 2 * window:
         return None

@@ -493,7 +493,8 @@ def test_through_the_driver_the_bytes_as_written_time_each_voltage(tmp_path):
     """A bag with /pisc/motor/voltage_sent (the driver's record of each byte written):
     each voltage is the one its byte encodes and acts from the write's time, not the
     controllers' publication; a sample answered late (no byte) or in whose period the
-    driver wrote a byte of its own (0 V) has no voltage and its period is left out."""
+    driver wrote 0 V of its own has no voltage and its period is left out; a hold (the
+    last byte again) changes nothing."""
     from pisc_msgs_py.topics import VOLTAGE_SENT
 
     js = "sensor_msgs/msg/JointState"

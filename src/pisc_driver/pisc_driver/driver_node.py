@@ -237,8 +237,6 @@ class DriverNode(PiscNode):
                     written = byte is not None and self._send(byte)
                     trip = core.new_trip
                     newest = core.newest_stamp_ns
-                if written and newest >= 0:
-                    self._sent(newest, byte, "zero" if byte == ZERO else "hold")
                 if samples and not self._subscribers_ready():
                     self.dropped_before_ready += len(samples)
                     samples = []
@@ -251,6 +249,8 @@ class DriverNode(PiscNode):
                         # (names the port: a recorder started with this process may
                         # have missed the "opened" status of its start)
                         self._report(OK, f"link up on {link.port}", now)
+                if written and newest >= 0:  # (after the samples: they start a cycle)
+                    self._sent(newest, byte, "zero" if byte == ZERO else "hold")
                 if trip is not None:
                     self._report(ERROR, f"{fault} (the stage that stopped is named when it "
                                  "has fallen behind)", trip.stamp_ns, sample=trip.sample,
