@@ -404,7 +404,8 @@ def test_every_byte_the_driver_writes_is_published_as_written(tmp_path, env_for_
     """/pisc/motor/voltage_sent: one message per byte written, which the rig (an outside
     observer) counts as received. An answer carries the stamp of the sample it answers
     and the voltage its byte encodes; once the controllers fall silent the driver's own
-    bytes say so (held, then 0 V once the command is stale)."""
+    bytes say so (held, then 0 V once the command is stale). Counted with the driver
+    running and quiet (the rig silent: no frame, no byte), not across its stop."""
     rig = start_rig(tmp_path)
     driver = start_driver(env_for_domain, rig.device)
     answerer = Answerer(ros_context, 3.0)
@@ -418,14 +419,18 @@ def test_every_byte_the_driver_writes_is_published_as_written(tmp_path, env_for_
     answerer.executor.add_node(observer)
     try:
         assert answerer.spin_until(lambda: sub.get_publisher_count() > 0, 30.0)
+        # (and the driver's writer ours: discovery matches the two ends one at a time,
+        # and a message published before its writer has matched a reader is not its)
+        answerer.spin_until(lambda: False, 2.0)
         answerer.answering = True
         assert answerer.spin_until(lambda: len(sent) > 250, 30.0), len(sent)
         answerer.answering = False  # the controllers die
         answerer.spin_until(lambda: False, 0.5)
-        driver.send_signal(signal.SIGTERM)
-        driver.communicate(timeout=20)
-        answerer.spin_until(lambda: False, 0.3)  # the last messages
+        rig.request(silence_s=30.0)  # no frames: the driver has nothing more to answer
+        answerer.spin_until(lambda: False, 1.0)  # (its silence fault: 0 V, if not sent)
         received = rig.status()["bytes_received"]
+        answerer.spin_until(lambda: False, 0.5)  # the last messages
+        assert rig.status()["bytes_received"] == received  # quiet
     finally:
         if driver.poll() is None:
             driver.kill()
@@ -436,7 +441,7 @@ def test_every_byte_the_driver_writes_is_published_as_written(tmp_path, env_for_
     own = [m for m in sent if m[1] != "answer"]
     print(f"{received} bytes received by the rig; {len(answers)} answers and {len(own)} of "
           f"the driver's own published")
-    assert received == len(sent) + 1  # and the 0 V sent on stopping, not published
+    assert received == len(sent)
     assert {m[1] for m in sent} <= {"answer", "hold", "zero"}
     volts = command_voltage(encode_command(3.0))
     # 0 V until the driver has pinned the answering node as the command's one publisher
