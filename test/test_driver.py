@@ -181,6 +181,7 @@ def run_swing_up(tmp_path, env, *rig_args: str, during=None) -> tuple[int, str, 
     return rc, output, bag, final
 
 
+@pytest.mark.realtime
 def test_swing_up_and_catch_through_the_driver_and_the_virtual_rig(tmp_path, env_for_domain):
     rc, output, bag, final = run_swing_up(tmp_path, env_for_domain)
     summary = summarise_bag(bag, 0.005)
@@ -207,6 +208,7 @@ def test_swing_up_and_catch_through_the_driver_and_the_virtual_rig(tmp_path, env
     assert final["last_byte"] == 0  # the graph's end: the driver sent 0 V last
 
 
+@pytest.mark.realtime
 def test_device_silence_is_a_fault_and_zero_volts_within_20_ms(tmp_path, env_for_domain):
     rig = start_rig(tmp_path, "--x0", "0.0")
     try:
@@ -226,6 +228,7 @@ def test_device_silence_is_a_fault_and_zero_volts_within_20_ms(tmp_path, env_for
     assert any(s.message.startswith("device silent: no frame for") for s in faults), faults
 
 
+@pytest.mark.realtime
 def test_byte_drops_at_1e_2_during_balance_do_not_drop_the_pendulum(tmp_path, env_for_domain):
     def drop_bytes(rig: RigProcess) -> None:
         wait_cycles(rig, 700)  # 3.5 s: caught at about 1.5 s
@@ -245,6 +248,7 @@ def test_byte_drops_at_1e_2_during_balance_do_not_drop_the_pendulum(tmp_path, en
     assert int(values["rehunts"]) > 50 and int(values["bytes_discarded"]) > 50, values
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_killing_the_driver_leaves_zero_volts_as_the_last_byte(tmp_path, env_for_domain,
                                                                 ros_context, signum):
@@ -318,6 +322,7 @@ def start_driver(env, port: str) -> subprocess.Popen:
         text=True)
 
 
+@pytest.mark.realtime
 def test_sigkill_of_the_driver_while_driving_leaves_zero_volts_by_the_rig_watchdog(
         tmp_path, env_for_domain, ros_context):
     """Issue 15: SIGKILL of the process holding the driver left the last byte's voltage
@@ -358,6 +363,7 @@ def test_sigkill_of_the_driver_while_driving_leaves_zero_volts_by_the_rig_watchd
         rig.stop()
 
 
+@pytest.mark.realtime
 def test_the_driver_answers_every_frame_while_the_controllers_are_silent_until_it_stops(
         tmp_path, env_for_domain, ros_context):
     """While the driver lives the rig's watchdog never trips, the controllers silent or
@@ -399,6 +405,7 @@ def test_the_driver_answers_every_frame_while_the_controllers_are_silent_until_i
         rig.stop()
 
 
+@pytest.mark.realtime
 def test_every_byte_the_driver_writes_is_published_as_written(tmp_path, env_for_domain,
                                                              ros_context):
     """/pisc/motor/voltage_sent: one message per byte written, which the rig (an outside
@@ -566,6 +573,7 @@ class DriverWatch:
         return [(t, s) for t, s in self.statuses if _level(s) == 2 and text in s.message]
 
 
+@pytest.mark.realtime
 def test_a_visitor_answering_every_sample_drives_nothing_through_the_driver(
         tmp_path, env_for_domain, ros_context):
     """Issue 15: the driver took commands from anyone on /pisc/motor/voltage. Now none of
@@ -640,16 +648,20 @@ def _start_balancing(tmp_path, env, ros_context, processes: bool):
                             lambda: Mode.CATCH in watch.modes or graph.poll() is not None, 30.0)
         assert graph.poll() is None, graph.communicate()
         spin_until(executor, lambda: False, 1.0)
-        assert rig.status()["applied_v"] != 0.0 or caught
+        assert rig.status()["applied_v"] != 0.0 or caught, (
+            rig.status(), watch.modes, [(t, _level(s), s.name, s.message)
+                                        for t, s in watch.statuses[-6:]])
     except BaseException:
         if graph is not None and graph.poll() is None:
             graph.kill()
-            graph.communicate()
+            _, err = graph.communicate()
+            print("pisc_graph's standard error:", err[-4000:], sep="\n")  # shown on failure
         rig.stop()
         raise
     return rig, graph, probe, watch, executor, caught
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("stage", ["estimator", "supervisor", "current_loop"])
 def test_sigkill_of_a_controller_through_the_driver_zeroes_the_rig_and_names_it(
         tmp_path, env_for_domain, ros_context, stage):
@@ -699,6 +711,7 @@ def test_sigkill_of_a_controller_through_the_driver_zeroes_the_rig_and_names_it(
     print(f"0 V at the rig's tick {(zero - killed_ns * 1e-9) * 1e3:.1f} ms after the kill")
 
 
+@pytest.mark.realtime
 def test_sigkill_of_the_controllers_process_leaves_the_driver_to_zero_the_rig(
         tmp_path, env_for_domain, ros_context):
     """Issue 15: SIGKILL of ``pisc_graph --driver`` left the last byte's voltage applied.

@@ -161,6 +161,7 @@ def test_a_scenes_plant_block_and_plant_set_reach_the_run(tmp_path, monkeypatch)
     assert seen[0].plant_config == "thesis" and seen[0].config == "default"
 
 
+@pytest.mark.realtime
 def test_wall_clock_graph_in_one_process_catches(tmp_path, domain_id):
     result = run_graph(RunOptions(overrides={"initial.x_m": 0.0}, duration_s=10.0,
                                   clock="wall", bag_dir=tmp_path / "wall", domain_id=domain_id))

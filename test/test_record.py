@@ -353,7 +353,7 @@ def start_graph_with_watch(args: list[str], bag: Path, env, ros_context):
     return graph, VoltageWatch(ros_context)
 
 
-@pytest.mark.parametrize("clock", ["lockstep", "wall"])
+@pytest.mark.parametrize("clock", ["lockstep", pytest.param("wall", marks=pytest.mark.realtime)])
 def test_a_killed_recorder_is_noticed_within_a_period_and_the_run_stops(
         tmp_path, ros_context, env_for_domain, clock):
     """Issue 15: SIGKILL of pisc_record 5 s into a 20 s run went unnoticed until the end,
@@ -417,6 +417,7 @@ def replay_bag_of(bag):
     return replay_bag(bag)
 
 
+@pytest.mark.realtime
 def test_a_killed_recorder_in_a_driver_run_leaves_the_rig_at_zero_volts(
         tmp_path, ros_context, env_for_domain):
     """Through the serial driver and the virtual rig: the run stops at once and the

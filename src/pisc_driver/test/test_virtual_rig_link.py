@@ -45,6 +45,7 @@ def rig():
     process.stop()
 
 
+@pytest.mark.realtime
 def test_rig_paces_frames_every_5_ms_and_applies_a_byte(rig):
     link = SerialLink(rig.device, read_timeout_s=0.01)
     link.open()
@@ -69,6 +70,7 @@ def test_rig_paces_frames_every_5_ms_and_applies_a_byte(rig):
         link.close()
 
 
+@pytest.mark.realtime
 def test_rig_injects_faults_on_request(rig):
     link = SerialLink(rig.device, read_timeout_s=0.01)
     link.open()
@@ -107,6 +109,7 @@ def wait_status(rig: RigProcess, predicate, timeout_s: float = 5.0) -> dict:
         time.sleep(0.002)
 
 
+@pytest.mark.realtime
 def test_the_watchdog_zeroes_the_motor_when_the_bytes_stop_and_the_next_byte_resumes(tmp_path):
     """Issue 15: the host that stops sending (crashed) leaves 0 V, not its last byte.
     Judged on the rig's own clock (its log, one line per period), not the wall clock."""
@@ -143,6 +146,7 @@ def test_the_watchdog_zeroes_the_motor_when_the_bytes_stop_and_the_next_byte_res
     assert runs[-1][0] == 0.0
 
 
+@pytest.mark.realtime
 def test_without_the_watchdog_the_last_byte_is_held_as_the_thesis_firmware_holds_it():
     rig = RigProcess(["--x0", "0.05", "--watchdog-ms", "0"])
     link = SerialLink(rig.device, read_timeout_s=0.01)

@@ -1,0 +1,18 @@
+"""Hooks for every test of the project (src/*/test and test/)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """A realtime test fails at once, saying why, when other tests run beside it: its
+    outcome depends on the machine keeping the wall clock, which a second worker of the
+    suite takes from it (``./pisc test`` runs on both cores and leaves them out)."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1 and item.get_closest_marker("realtime") is not None:
+        pytest.fail(f"a realtime test with {workers} test workers beside each other: it "
+                    "needs the machine to itself; run it alone: ./pisc test -m realtime "
+                    "(pytest -n 0)", pytrace=False)
