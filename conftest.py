@@ -6,6 +6,12 @@ import os
 
 import pytest
 
+from pisc_bringup.dds import FASTDDS_PROFILE, FASTDDS_PROFILES
+
+# The tests' own nodes and the graphs they run in this process use the Fast DDS profile
+# pisc_graph gives its nodes; set before the process's first DDS participant reads it.
+os.environ.setdefault(FASTDDS_PROFILES, str(FASTDDS_PROFILE))
+
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
     """A realtime test fails at once, saying why, when other tests run beside it: its

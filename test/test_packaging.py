@@ -62,6 +62,8 @@ def test_installed_configuration_and_node_run_from_the_install(install, env_for_
     launch = bringup / "launch"  # ros2 launch pisc_bringup sim.launch.xml
     assert sorted(p.name for p in launch.glob("*.launch.xml")) == [
         "rig.launch.xml", "sim.launch.xml"]
+    assert (bringup / "config" / "fastdds.xml").read_bytes() == (
+        ROOT / "src" / "pisc_bringup" / "config" / "fastdds.xml").read_bytes()
     env = dict(env_for_domain)
     env["PYTHONPATH"] = os.pathsep.join(
         str(p) for p in install.glob("*/lib/python3*/site-packages"))

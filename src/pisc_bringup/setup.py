@@ -13,6 +13,7 @@ setup(
         ('share/pisc_bringup', ['package.xml']),
         ('share/' + package_name + '/distributions', glob('distributions/*.yaml')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.xml')),
+        ('share/' + package_name + '/config', glob('config/*.xml')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,

@@ -92,6 +92,7 @@ from pisc_sim.configuration import load_run_config, write_params_file
 from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
 from pisc_control.supervisor import Supervisor
+from pisc_bringup.dds import dds_environment
 from pisc_msgs_py.processes import console_command
 from pisc_msgs_py.base_node import freeze_startup_objects, message_class, qos_profile
 from pisc_msgs_py.config import ConfigError, load_params_file, parse_overrides
@@ -386,9 +387,6 @@ class RunResult:
         return {topic: sent - self.recorded[topic] for topic, sent in self.published.items()
                 if topic in self.recorded and self.recorded[topic] < sent}
 
-
-# ROS 2 (Jazzy) discovery range: LOCALHOST, SUBNET (the ROS default), OFF or SYSTEM_DEFAULT
-DISCOVERY_RANGE = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 
 EXECUTORS = {"events": EventsExecutor, "single": SingleThreadedExecutor,
              "multi": MultiThreadedExecutor}
@@ -706,9 +704,9 @@ def run_graph(options: RunOptions) -> RunResult:
     recorded = recorded_topics(options.record) + tuple(
         t for n in graph.observers for t in n.publishes if t is not DIAGNOSTICS)
     timeout = options.timeout_s or (60.0 + 20.0 * options.duration_s)
-    env = dict(os.environ)
-    # discovery stays on this machine unless the user asked for more (docs/safety.md)
-    env.setdefault(DISCOVERY_RANGE, "LOCALHOST")
+    # discovery stays on this machine unless the user asked for more (docs/safety.md);
+    # PISC's Fast DDS profile unless the user gives one
+    env = dds_environment(dict(os.environ))
     if options.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(options.domain_id)
 
@@ -759,7 +757,8 @@ def run_graph(options: RunOptions) -> RunResult:
         graph = _read_again(graph, options, files, run_args)
         source = graph.source
         if options.processes:
-            children = _start_processes(graph, watcher, env, recorded)
+            children = _start_processes(graph, watcher, env, recorded,
+                                        source_waits=lockstep)
             for node in graph.observers:  # the lockstep plant starts once the recorder
                 children.insert(0, _spawn(node.command(), env, subprocess.DEVNULL))  # matched it
             # a node process that dies ends the run at once; the plant's watchdog has
@@ -810,7 +809,7 @@ def run_graph(options: RunOptions) -> RunResult:
         # object, nodes left undestroyed in reference cycles with their DDS endpoints)
         gc.unfreeze()
         # the plant first, so the controllers see no sample after their peers stopped
-        failures = [_stop(child)[0] for child in reversed(children)]
+        failures = _stop_all(children)
         for node in [*reversed(nodes), watcher]:  # the plant or driver first: 0 V
             node.destroy_node()
         context.try_shutdown()
@@ -954,14 +953,15 @@ STOP_PATIENCE_S = 20.0  # a stopping child that uses no CPU for this long is kil
 STOP_LIMIT_S = 600.0  # and one still busy after this long
 
 
-def _stop(child: subprocess.Popen) -> tuple[str, str]:
-    """SIGTERM a child (SIGINT may be ignored in background jobs) and wait for it: while
-    it keeps using the CPU (a recorder finishing a long bag on a loaded machine), up to
-    :data:`STOP_LIMIT_S`; SIGKILL once it used none for :data:`STOP_PATIENCE_S`.
+def _stop(child: subprocess.Popen, signalled: bool = False) -> tuple[str, str]:
+    """SIGTERM a child (SIGINT may be ignored in background jobs; not again when
+    ``signalled``) and wait for it: while it keeps using the CPU (a recorder finishing a
+    long bag on a loaded machine), up to :data:`STOP_LIMIT_S`; SIGKILL once it used none
+    for :data:`STOP_PATIENCE_S`.
 
     Returns (what went wrong or "", its standard output).
     """
-    if child.poll() is None:
+    if not signalled and child.poll() is None:
         child.send_signal(signal.SIGTERM)
     started = time.monotonic()
     ticks = _cpu_ticks(child.pid)
@@ -982,6 +982,21 @@ def _stop(child: subprocess.Popen) -> tuple[str, str]:
         return (f"{Path(child.args[0]).name} exited with status {child.returncode}: "
                 f"{_stderr_of(child).decode(errors='replace').strip()}"), output
     return "", output
+
+
+def _stop_all(children: Sequence[subprocess.Popen]) -> list[str]:
+    """Stop the run's node processes: the last (the plant or the driver) first, so that
+    the controllers see no sample after their peers stopped, then the rest at once (one
+    after another, each took 0.16-0.22 s to shut its node down here). Returns what went
+    wrong with each, in the order stopped."""
+    if not children:
+        return []
+    *rest, source = children
+    failures = [_stop(source)[0]]
+    for child in rest:
+        if child.poll() is None:
+            child.send_signal(signal.SIGTERM)
+    return failures + [_stop(child, signalled=True)[0] for child in reversed(rest)]
 
 
 def _check_recorder(recorder: subprocess.Popen) -> None:
@@ -1026,10 +1041,22 @@ def _matched(nodes: Sequence[Node], recorded: Sequence[Topic],
 
 
 def _start_processes(graph: Graph, watcher: Node, env: dict[str, str],
-                     recorded: Sequence[Topic] = GRAPH_TOPICS) -> list[subprocess.Popen]:
-    """Start the launch file's controllers, each as its own process, wait until they are
-    connected, then start its source (the plant or the driver)."""
+                     recorded: Sequence[Topic] = GRAPH_TOPICS,
+                     source_waits: bool = False) -> list[subprocess.Popen]:
+    """Start the launch file's controllers, each as its own process, and wait until they
+    are connected; then start its source (the plant or the driver), last in the list.
+
+    With ``source_waits`` (the lockstep plant, which samples nothing until the runner
+    subscribes to /clock, the last subscriber it waits for) the source starts with the
+    controllers, so that it loads while they do (2-3 s of a 10 s run here, 2026-12-03);
+    its own subscriptions are not counted as the controllers'."""
     children = [_spawn(node.command(), env, subprocess.DEVNULL) for node in graph.controllers]
+    if source_waits:
+        children.append(_spawn(graph.source.command(), env, subprocess.DEVNULL))
+
+    def subscribers(topic: Topic) -> int:
+        return sum(1 for info in watcher.get_subscriptions_info_by_topic(topic.name)
+                   if info.node_name != graph.source.name)
 
     def connected() -> bool:
         for child in children:
@@ -1041,14 +1068,15 @@ def _start_processes(graph: Graph, watcher: Node, env: dict[str, str],
                     continue
                 expected = (expected_subscribers(topic, topic in recorded, graph.controllers)
                             + (topic is VOLTAGE))
-                if watcher.count_subscribers(topic.name) < expected:
+                if subscribers(topic) < expected:
                     return False
             if watcher.count_publishers(node.publishes[0].name) < 1:
                 return False
         return True
 
     _wait(connected, 60.0, "the node processes to connect")
-    children.append(_spawn(graph.source.command(), env, subprocess.DEVNULL))
+    if not source_waits:
+        children.append(_spawn(graph.source.command(), env, subprocess.DEVNULL))
     return children
 
 
@@ -1094,9 +1122,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="model error: override a parameter of the plant only (after "
                         "--set), e.g. --plant-set motor.resistance_ohm=18.2")
     args = parser.parse_args(argv)
-    # this process's nodes and every process it starts discover on this machine only,
-    # unless the environment says otherwise (docs/safety.md)
-    os.environ.setdefault(DISCOVERY_RANGE, "LOCALHOST")
+    # this process's nodes and every process it starts discover on this machine only and
+    # use PISC's Fast DDS profile, unless the environment says otherwise (docs/safety.md,
+    # docs/architecture.md); before this process's first DDS participant, which reads it
+    dds_environment(os.environ)
     try:
         overrides = parse_overrides(args.set)
     except ConfigError as exc:

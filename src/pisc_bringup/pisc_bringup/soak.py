@@ -562,8 +562,9 @@ def run(options: SoakOptions, out: Path, domain_id: int,
     from pisc_sim.configuration import config_path
     from pisc_plant.virtual_rig import RigProcess
 
-    env = dict(os.environ)
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    from pisc_bringup.dds import dds_environment
+
+    env = dds_environment(dict(os.environ))  # what pisc_graph gives its processes
     env["ROS_DOMAIN_ID"] = str(domain_id)
     schedule = fault_schedule(options.seed, options.duration_s) if options.faults else None
     rig = observer = graph = None

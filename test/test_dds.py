@@ -1,0 +1,70 @@
+"""PISC's Fast DDS profile and the DDS environment pisc_graph gives its processes."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+from pisc_bringup.dds import (
+    DISCOVERY_RANGE,
+    FASTDDS_PROFILE,
+    FASTDDS_PROFILES,
+    dds_environment,
+)
+
+# a node with a reliable publisher: Fast DDS reads the profile when its first participant
+# is made, and names what it cannot parse (on stdout, its log's console)
+_NODE = """
+import rclpy
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+rclpy.init()
+node = Node("profile_probe")
+node.create_publisher(JointState, "/profile_probe", 10)
+node.destroy_node()
+rclpy.shutdown()
+print("made")
+"""
+
+NS = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+
+
+def _make_a_node(profile, env_for_domain):
+    env = dict(env_for_domain, **{FASTDDS_PROFILES: str(profile)})
+    return subprocess.run([sys.executable, "-c", _NODE], env=env, capture_output=True,
+                          text=True, timeout=60)
+
+
+def test_fast_dds_reads_the_profile_without_an_error(env_for_domain, tmp_path):
+    good = _make_a_node(FASTDDS_PROFILE, env_for_domain)
+    assert good.returncode == 0 and good.stdout == "made\n", good.stdout + good.stderr
+    # and the check sees an error: the same profile with a duration that is not a number
+    broken = tmp_path / "broken.xml"
+    broken.write_text(FASTDDS_PROFILE.read_text().replace("<sec>0</sec>", "<sec>zero</sec>"))
+    bad = _make_a_node(broken, env_for_domain)
+    said = bad.stdout + bad.stderr
+    assert "XMLPARSER" in said and "<heartbeatPeriod>" in said, said
+
+
+def test_the_profile_is_the_default_writers_with_a_heartbeat_every_100_ms():
+    root = ET.parse(FASTDDS_PROFILE).getroot()
+    writers = root.findall("f:data_writer", NS)
+    assert len(writers) == 1 and writers[0].get("is_default_profile") == "true"
+    period = writers[0].find("f:times/f:heartbeatPeriod", NS)
+    seconds = int(period.find("f:sec", NS).text) + int(period.find("f:nanosec", NS).text) * 1e-9
+    assert seconds == 0.1
+    # nothing else: the ROS QoS of every topic stays the code's (qos_profile)
+    assert [e.tag.split("}")[1] for e in root.iter()] == [
+        "profiles", "data_writer", "times", "heartbeatPeriod", "sec", "nanosec"]
+
+
+def test_the_environment_gets_the_profile_and_local_discovery_unless_it_has_its_own():
+    assert dds_environment({}) == {DISCOVERY_RANGE: "LOCALHOST",
+                                   FASTDDS_PROFILES: str(FASTDDS_PROFILE)}
+    own = {DISCOVERY_RANGE: "SUBNET", FASTDDS_PROFILES: "/etc/my_profile.xml"}
+    assert dds_environment(dict(own)) == own
+    assert FASTDDS_PROFILE.is_file()
+    # what the tests' own processes run with (conftest.py), as pisc_graph's do
+    assert os.environ[FASTDDS_PROFILES] == str(FASTDDS_PROFILE)
