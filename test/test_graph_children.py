@@ -70,3 +70,13 @@ def test_cpu_ticks_grow_with_work():
     while time.process_time() < end:
         pass
     assert graph._cpu_ticks(os.getpid()) > before
+
+
+def test_the_recorders_counts_are_read_past_fast_dds_log_lines_on_its_stdout():
+    output = ("/pisc/joint_states 2001\n"
+              "\x1b[37;1m2026-12-03 14:39:37.461 \x1b[31;1m[\x1b[37;1mXMLProfileManager\x1b[31;1m "
+              "Error] \x1b[37mCould not extract any profile\x1b[34;1m -> Function "
+              "\x1b[36mextractProfiles\x1b[m\n"
+              "/clock 2001\n/pisc/motor/voltage_sent 0\n")
+    assert graph.recorded_counts(output) == {"/pisc/joint_states": 2001, "/clock": 2001,
+                                             "/pisc/motor/voltage_sent": 0}

@@ -836,11 +836,7 @@ def run_graph(options: RunOptions) -> RunResult:
             f"the run did not reach {options.duration_s} s within {timeout:.0f} s of wall "
             f"time (last voltage stamp: {progress.last_ns})")
     wall = time.monotonic() - started
-    recorded = {}
-    for line in recorder_output.splitlines():
-        topic, _, count = line.rpartition(" ")
-        if topic:
-            recorded[topic] = int(count)
+    recorded = recorded_counts(recorder_output)
     summary = summarise_bag(bag_dir, config.loop.period_s)
     started_as = [Path(c.args[0]).name for c in children]
     result = RunResult(bag_dir, summary, recorded, wall, started_as, dict(published),
@@ -849,6 +845,18 @@ def run_graph(options: RunOptions) -> RunResult:
         print(f"pisc_graph: the bag misses {lost} of the {published[topic]} messages "
               f"published on {topic}", file=sys.stderr)
     return result
+
+
+def recorded_counts(output: str) -> dict[str, int]:
+    """What pisc_record said it wrote, from its standard output: a line ``TOPIC COUNT``
+    a topic. Other lines are Fast DDS's log, which writes there too (a profile it cannot
+    read, say); before 2026-12-03 such a line ended the run with a ValueError."""
+    counts = {}
+    for line in output.splitlines():
+        topic, _, count = line.rpartition(" ")
+        if topic.startswith("/") and " " not in topic and count.isdigit():
+            counts[topic] = int(count)
+    return counts
 
 
 # After a node process died: the longest the run waits for the plant (or the driver) to

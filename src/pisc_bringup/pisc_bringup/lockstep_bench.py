@@ -193,7 +193,12 @@ def main(argv: list[str] | None = None) -> int:
         return _reader(args.reader)
     if args.repeat < 1 or args.hops < 2 or not args.duration > 0:
         parser.error("--repeat >= 1, --hops >= 2 and --duration > 0")
+    from pisc_bringup.dds import dds_environment
     from pisc_msgs_py.processes import DomainClaim
+
+    # the graph's own DDS environment (Fast DDS profile), as pisc_graph gives it to its
+    # nodes, before this process's first participant
+    dds_environment(os.environ)
 
     def claimed(run: Callable[[int], object]) -> object:
         claim = DomainClaim()
