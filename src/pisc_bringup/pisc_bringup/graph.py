@@ -87,12 +87,12 @@ from rclpy.task import Future
 import yaml
 
 from pisc_bringup.bag import BagError, RepairReport, repair_bag
+from pisc_bringup.dds import dds_environment
 from pisc_bringup.launch_file import LaunchError, launch_path, read_launch
 from pisc_sim.configuration import load_run_config, write_params_file
 from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
 from pisc_control.supervisor import Supervisor
-from pisc_bringup.dds import dds_environment
 from pisc_msgs_py.processes import console_command
 from pisc_msgs_py.base_node import freeze_startup_objects, message_class, qos_profile
 from pisc_msgs_py.config import ConfigError, load_params_file, parse_overrides
