@@ -2,8 +2,10 @@
 
 Runs a scene's closed loop (default: the thesis rig at full fidelity, its own
 integrator) for many rigs at once through :func:`pisc_sim.closed_loop.simulate_batch`
-(the controllers' numpy cores over arrays, the plant's compiled kernel over rows in
-parallel) and prints the rate, with the plant's share measured apart.
+(the controllers compiled, :mod:`pisc_sim.batch_controllers`, and the plant's compiled
+kernel, each over the rigs in parallel) and prints the rate, with the plant's share
+measured apart and the same run with the controllers' numpy cores over arrays (what the
+batch ran before they were compiled; the same bits) for comparison.
 """
 
 from __future__ import annotations
@@ -43,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = scene.config
     integ = cfg.plant.integrator
     starts = np.linspace(-0.1, 0.1, args.rigs)
-    simulate_batch(cfg, starts, 0.01)  # compile or load every path this size takes
+    for controllers in ("compiled", "numpy"):  # compile or load every path this size takes
+        simulate_batch(cfg, starts, 0.01, controllers=controllers)
     from pisc_msgs_py.progress import progress_bar
 
     # a bar of the cycles on stderr when it is a terminal (one call a cycle, all rigs)
@@ -53,6 +56,10 @@ def main(argv: list[str] | None = None) -> int:
                                  hold_start_s=min(6.0, args.duration),
                                  progress=lambda k, n: bar.to(k, n))
         wall = time.perf_counter() - start
+    start = time.perf_counter()
+    simulate_batch(cfg, starts, args.duration, hold_start_s=min(6.0, args.duration),
+                   controllers="numpy")
+    numpy_wall = time.perf_counter() - start
     periods = int(round(args.duration / cfg.loop.period_s)) + 1
     plant = Plant(cfg.plant)
     y = plant.initial_state(starts)
@@ -67,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{integ.method} {integ.substeps} steps/period, {numba.get_num_threads()} threads")
     print(f"closed loop: {wall:.2f} s wall, {sim_seconds / wall:.0f} simulated s per wall s, "
           f"{wall / periods / args.rigs * 1e9:.0f} ns per rig and period")
+    print(f"closed loop, numpy controller cores: {numpy_wall:.2f} s wall, "
+          f"{sim_seconds / numpy_wall:.0f} simulated s per wall s "
+          f"(compiled {numpy_wall / wall:.2f}x as fast)")
     print(f"plant alone: {plant_wall / args.rigs * 1e9:.0f} ns per rig and period "
           f"({cfg.loop.period_s * args.rigs / plant_wall:.0f} simulated s per wall s)")
     caught = np.isfinite(outcome.caught_at_s)

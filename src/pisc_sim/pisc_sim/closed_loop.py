@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from pisc_sim import batch_controllers
 from pisc_sim.configuration import GraphConfig
 from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
 from pisc_control.estimator import EstimatorState, estimator_update
@@ -146,6 +147,7 @@ def simulate_batch(
     plant: PlantConfig | None = None,
     noise_seed: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    controllers: str = "compiled",
 ) -> BatchOutcome:
     """The cycle of :func:`simulate` for many starting states at once.
 
@@ -167,7 +169,13 @@ def simulate_batch(
     reading of the state one period earlier moving at the initial velocities, so that
     the first difference (4.7), (4.9) sees the initial rates instead of zero: a rig
     that was already moving. ``progress(k, n)`` is called after each of the n cycles.
+
+    ``controllers``: ``"compiled"`` runs the controllers of every rig in one compiled
+    pass a cycle (:mod:`pisc_sim.batch_controllers`, the same bits as the numpy cores;
+    experiments fall back to the cores), ``"numpy"`` runs the numpy cores over arrays.
     """
+    if controllers not in ("compiled", "numpy"):
+        raise ValueError(f"controllers = {controllers!r}: 'compiled' or 'numpy'")
     plant_config = config.simulated_plant if plant is None else plant
     sim = Plant(plant_config)
     i0 = config.initial
@@ -195,6 +203,14 @@ def simulate_batch(
                                    np.broadcast_to(start[3], shape))
     sup_state = SupervisorState()
     cl_state = CurrentLoopState(np.zeros_like(x0))
+    compiled = None
+    if controllers == "compiled" and batch_controllers.supported(config):
+        rigs = x0.size
+        compiled = batch_controllers.BatchControllers(
+            config, supervisor.gain, rigs,
+            EstimatorState(*(np.broadcast_to(v, shape).reshape(-1) for v in (
+                est_state.x_m, est_state.theta_rad, est_state.x_dot_mps,
+                est_state.theta_dot_radps))) if prime_estimator else None)
     applied = np.zeros_like(x0)
     caught_at = np.full(x0.shape, np.inf)
     first_catch = np.full(x0.shape, np.inf)
@@ -214,13 +230,19 @@ def simulate_batch(
         t = k * period
         draws = None if rng is None else rng.standard_normal(x0.shape + (3,))
         x, theta, current = sim.measurement(y, applied, draws)
-        est_state, x_dot, theta_dot = estimator_update(
-            config.estimator, period, est_state, x, theta)
-        sup_state, force, mode = supervisor.update(sup_state, x, x_dot, theta, theta_dot)
-        fault = mode == Mode.FAULT.code
+        if compiled is not None:
+            _, mode, i_d, voltage = (v.reshape(shape) for v in compiled.step(
+                *(np.broadcast_to(v, shape).reshape(-1) for v in (x, theta, current))))
+            fault = mode == Mode.FAULT.code
+        else:
+            est_state, x_dot, theta_dot = estimator_update(
+                config.estimator, period, est_state, x, theta)
+            sup_state, force, mode = supervisor.update(sup_state, x, x_dot, theta, theta_dot)
+            fault = mode == Mode.FAULT.code
+            cl_state, i_d, voltage = current_loop_cycle(
+                config.plant.motor, config.current_loop, period, cl_state, force, current,
+                fault)
         faulted |= fault
-        cl_state, i_d, voltage = current_loop_cycle(
-            config.plant.motor, config.current_loop, period, cl_state, force, current, fault)
         command = plant_command(plant_config, setpoint_a=i_d, voltage_v=voltage)
         catching = mode == Mode.CATCH.code
         entered = catching & (previous_mode != Mode.CATCH.code)

@@ -1,0 +1,176 @@
+"""The compiled batch controllers give the numpy cores' bits, rig by rig, cycle by cycle."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
+from pisc_control.estimator import EstimatorState, estimator_update
+from pisc_control.supervisor import Supervisor, SupervisorState
+from pisc_msgs_py.types import Mode
+from pisc_plant.command import plant_command
+from pisc_plant.plant import Plant
+from pisc_sim.batch_controllers import BatchControllers, supported
+from pisc_sim.closed_loop import simulate_batch
+from pisc_sim.scene import load_scene
+
+# the default configuration has every option on (energy pump with its guard, N = 7
+# differences low-passed, settling catch reference, energy band, start-up distance); the
+# others switch them off one by one or take the thesis's law (3.30)
+CONFIGS = {
+    "default": {},
+    "thesis law": {"swing_up.law": "lyapunov", "switching.energy_band_j": 0.0},
+    "thesis scene": None,
+    "plain differences": {"estimator.velocity_filter_hz": 0.0,
+                          "estimator.difference_periods": 1},
+    "no guard, no settling, no start-up": {"swing_up.guard_accel_mps2": 0.0,
+                                            "catch.settle_rate_mps": 0.0,
+                                            "startup.distance_m": 0.0},
+}
+
+
+def _config(name: str):
+    if CONFIGS[name] is None:
+        return load_scene("thesis-gains").config
+    return load_scene("thesis-rig", CONFIGS[name]).config
+
+
+def _bits(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=float).view(np.int64)
+
+
+class _Cores:
+    """The numpy cores over arrays, as simulate_batch ran them before compiling."""
+
+    def __init__(self, config, rigs: int) -> None:
+        self.config = config
+        self.supervisor = Supervisor(config.supervisor)
+        self.est, self.sup = EstimatorState(), SupervisorState()
+        self.cl = CurrentLoopState(np.zeros(rigs))
+
+    def step(self, x, theta, current):
+        c, period = self.config, self.config.loop.period_s
+        self.est, x_dot, theta_dot = estimator_update(c.estimator, period, self.est, x, theta)
+        self.sup, force, mode = self.supervisor.update(self.sup, x, x_dot, theta, theta_dot)
+        self.cl, i_d, voltage = current_loop_cycle(
+            c.plant.motor, c.current_loop, period, self.cl, force, current,
+            mode == Mode.FAULT.code)
+        return force, mode, i_d, voltage
+
+
+def _compare(config, measurements) -> dict[str, int]:
+    """Feed the same measurements to both; assert every output's bits; count the modes."""
+    rigs = len(measurements[0][0])
+    cores = _Cores(config, rigs)
+    compiled = BatchControllers(config, cores.supervisor.gain, rigs)
+    modes = {m: 0 for m in Mode}
+    for k, (x, theta, current) in enumerate(measurements):
+        want = cores.step(x, theta, current)
+        got = compiled.step(x, theta, current)
+        for name, w, g in zip(("force", "mode", "i_d", "voltage"), want, got):
+            assert np.array_equal(_bits(w), _bits(g)), (
+                f"cycle {k}: {name} differs in {np.sum(_bits(w) != _bits(g))} rigs")
+        for m in Mode:
+            modes[m] += int(np.sum(got[1] == m.code))
+    return modes
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_closed_loop_bit_for_bit(name):
+    """200 rigs from spread starts through 3 s: every cycle's force, mode, i_d
+    and voltage of the compiled pass equal the numpy cores' to the bit."""
+    config = _config(name)
+    rigs = 200
+    plant = Plant(config.simulated_plant)
+    # half hanging (the swing-up), half near upright (the catch, whatever the law)
+    theta0 = np.concatenate([np.linspace(np.pi - 0.5, np.pi + 0.5, rigs // 2),
+                             np.linspace(-0.4, 0.4, rigs - rigs // 2)])
+    y = plant.initial_state(np.linspace(-0.12, 0.08, rigs), 0.0, theta0, 0.0)
+    cores = _Cores(config, rigs)
+    compiled = BatchControllers(config, cores.supervisor.gain, rigs)
+    period = config.loop.period_s
+    applied = np.zeros(rigs)
+    seen = set()
+    for k in range(int(3.0 / period)):
+        x, theta, current = plant.measurement(y, applied)
+        want = cores.step(x, theta, current)
+        got = compiled.step(x, theta, current)
+        for label, w, g in zip(("force", "mode", "i_d", "voltage"), want, got):
+            assert np.array_equal(_bits(w), _bits(g)), f"{name}, cycle {k}: {label} differs"
+        seen.update(int(m) for m in np.unique(got[1]))
+        applied = plant_command(config.simulated_plant, setpoint_a=want[2], voltage_v=want[3])
+        y = plant.advance(y, applied, period)
+    # the runs cover both laws' branches: swing-up and catch both happened
+    assert {Mode.SWING_UP.code, Mode.CATCH.code} <= seen
+
+
+def test_hostile_measurements_bit_for_bit():
+    """Random walks through every branch: NaN and infinite readings (faults that latch
+    at different cycles), the safe range's edges and beyond, angles many turns away
+    and at the wrap's boundary (+-pi), currents that wind the integral to its limits."""
+    config = _config("default")
+    rng = np.random.default_rng(7)
+    rigs, cycles = 300, 400
+    x = rng.uniform(-0.2, 0.1, rigs)
+    theta = rng.uniform(-20.0, 20.0, rigs)
+    theta[:10] = np.pi
+    theta[10:20] = -np.pi
+    current = np.zeros(rigs)
+    measurements = []
+    for k in range(cycles):
+        x = x + rng.normal(0.0, 0.004, rigs)
+        theta = theta + rng.normal(0.0, 0.05, rigs)
+        theta[20:60] = rng.normal(0.0, 0.02, 40)  # near upright: the catch and its exit
+        current = rng.normal(0.0, 3.0, rigs) * (k % 50 < 25)
+        xs, ts, cs = x.copy(), theta.copy(), current.copy()
+        xs[60:70] = np.where(k == 100 + np.arange(10) * 20, np.nan, xs[60:70])
+        ts[70:75] = np.where(k == 150, np.inf, ts[70:75])
+        cs[75:80] = np.where(k >= 200, -np.inf, cs[75:80])
+        xs[80:85] = config.supervisor.safety.x_max_m  # on the edge: in range
+        xs[85:90] = np.nextafter(config.supervisor.safety.x_min_m, -1.0)  # just outside
+        measurements.append((xs, ts, cs))
+    with np.errstate(invalid="ignore", over="ignore"):  # the numpy cores' NaN warnings
+        modes = _compare(config, measurements)
+    assert all(n > 0 for n in modes.values()), modes
+
+
+def test_primed_estimator_and_shapes_match_the_cores():
+    """simulate_batch over a 2-D grid of starts with a primed estimator, per-rig command
+    delays and sensor noise: compiled and numpy controllers give identical outcomes."""
+    scene = load_scene("thesis-rig", {"noise.x_std_m": 1e-4, "noise.theta_std_rad": 1e-3,
+                                      "noise.current_std_a": 0.01})
+    config = scene.config
+    x0 = np.linspace(-0.1, 0.05, 6)[:, None]
+    theta0 = np.linspace(-0.3, 0.3, 5)[None, :]
+    delay = np.linspace(0.0, 0.004, 30).reshape(6, 5)
+    kwargs = dict(theta0_rad=theta0, theta_dot0_radps=0.5, prime_estimator=True,
+                  command_delay_s=delay, hold_start_s=1.0)
+    a = simulate_batch(config, x0, 2.0, controllers="compiled", **kwargs)
+    b = simulate_batch(config, x0, 2.0, controllers="numpy", **kwargs)
+    for field in dataclasses.fields(a):
+        got, want = getattr(a, field.name), getattr(b, field.name)
+        assert got.shape == (6, 5)
+        assert np.array_equal(got, want), field.name
+    assert np.isfinite(a.caught_at_s).sum() > 0
+
+
+def test_experiments_run_on_the_numpy_cores():
+    config = load_scene("excitation").config
+    assert not supported(config)
+    with pytest.raises(ValueError, match="experiment.kind = .*numpy cores"):
+        BatchControllers(config, Supervisor(config.supervisor).gain, 3)
+    compiled = simulate_batch(config, np.zeros(3), 0.5)
+    numpy_cores = simulate_batch(config, np.zeros(3), 0.5, controllers="numpy")
+    assert np.array_equal(compiled.x_max_m, numpy_cores.x_max_m)
+
+
+def test_unknown_controllers_and_wrong_shapes_are_refused():
+    config = _config("default")
+    with pytest.raises(ValueError, match="controllers = 'fast': 'compiled' or 'numpy'"):
+        simulate_batch(config, np.zeros(2), 0.1, controllers="fast")
+    compiled = BatchControllers(config, Supervisor(config.supervisor).gain, 4)
+    with pytest.raises(ValueError, match=r"shape \(3,\), \(4,\), \(4,\): want \(4,\) each"):
+        compiled.step(np.zeros(3), np.zeros(4), np.zeros(4))
