@@ -5,7 +5,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from pisc_control.current_loop import CurrentLoopParams, CurrentLoopState, current_loop_cycle
+from pisc_control.current_loop import CurrentLoopParams
+from pisc_control.scalar import OneRigCurrentLoop
 from pisc_msgs_py.base_node import ERROR, OK, PiscNode, ResendCache, run_node
 from pisc_msgs_py.convert import (
     cart_force_from_msg,
@@ -26,7 +27,8 @@ class CurrentLoopNode(PiscNode):
             {"loop": LoopParams, "motor": MotorParams, "current_loop": CurrentLoopParams},
             **kwargs,
         )
-        self._state = CurrentLoopState()
+        loop, motor, params = self.config
+        self._loop = OneRigCurrentLoop(motor, params, loop.period_s)
         self._pairs: StampPairer[CartForce, MotorSample] = StampPairer()
         self._fault = ""
         self._cycles = 0
@@ -42,6 +44,11 @@ class CurrentLoopNode(PiscNode):
     def build(self, flat: dict[str, Any]) -> tuple[LoopParams, MotorParams, CurrentLoopParams]:
         return (self.section(flat, "loop"), self.section(flat, "motor"),
                 self.section(flat, "current_loop"))
+
+    def on_config(self, config: tuple[LoopParams, MotorParams, CurrentLoopParams]) -> None:
+        self.config = config
+        loop, motor, params = config
+        self._loop.configure(motor, params, loop.period_s)
 
     def _on_force(self, msg: Any) -> None:
         self._pair(self.parse(msg, cart_force_from_msg, "cart_force"), self._pairs.add_first)
@@ -70,14 +77,11 @@ class CurrentLoopNode(PiscNode):
                           report.stamp_ns)
 
     def _cycle(self, force: CartForce, current: MotorSample) -> None:
-        loop, motor, params = self.config
-        self._state, i_d, voltage = current_loop_cycle(
-            motor, params, loop.period_s, self._state, force.force_n, current.value,
-            fault=bool(self._fault))
+        i_d, voltage = self._loop.step(force.force_n, current.value, bool(self._fault))
         self._answers.publish(
             force.stamp_ns,
-            (self._setpoint_pub, motor_sample_to_cdr(MotorSample(force.stamp_ns, float(i_d)))),
-            (self._voltage_pub, motor_sample_to_cdr(MotorSample(force.stamp_ns, float(voltage)))))
+            (self._setpoint_pub, motor_sample_to_cdr(MotorSample(force.stamp_ns, i_d))),
+            (self._voltage_pub, motor_sample_to_cdr(MotorSample(force.stamp_ns, voltage))))
         self._cycles += 1
         if self.routine_diagnostics(self._cycles) and not self._fault:
             self.diagnose(OK, "regulating current", force.stamp_ns, cycles=self._cycles,

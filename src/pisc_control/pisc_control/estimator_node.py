@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from pisc_control.estimator import EstimatorParams, EstimatorState, estimator_update
+from pisc_control.estimator import EstimatorParams
+from pisc_control.scalar import OneRigEstimator
 from pisc_msgs_py.base_node import OK, PiscNode, ResendCache, run_node
 from pisc_msgs_py.convert import joint_sample_from_msg, state_to_cdr
 from pisc_msgs_py.topics import JOINT_STATES, STATE
@@ -15,7 +16,8 @@ from pisc_model.params import LoopParams
 class EstimatorNode(PiscNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("estimator", {"loop": LoopParams, "estimator": EstimatorParams}, **kwargs)
-        self._state = EstimatorState()
+        loop, params = self.config
+        self._estimator = OneRigEstimator(params, loop.period_s)
         self._samples = 0
         self._answers = ResendCache()  # a resent sample: same answer, same state
         self._state_pub = self.publisher(STATE)
@@ -24,15 +26,18 @@ class EstimatorNode(PiscNode):
     def build(self, flat: dict[str, Any]) -> tuple[LoopParams, EstimatorParams]:
         return self.section(flat, "loop"), self.section(flat, "estimator")
 
+    def on_config(self, config: tuple[LoopParams, EstimatorParams]) -> None:
+        self.config = config
+        loop, params = config
+        self._estimator.configure(params, loop.period_s)
+
     def _on_joint_states(self, msg: Any) -> None:
         sample = self.parse(msg, joint_sample_from_msg, "joint_states")
         if sample is None or self._answers.resend(sample.stamp_ns):
             return
-        loop, params = self.config
-        self._state, x_dot, theta_dot = estimator_update(
-            params, loop.period_s, self._state, sample.position_m, sample.angle_rad)
+        x_dot, theta_dot = self._estimator.step(sample.position_m, sample.angle_rad)
         out = state_to_cdr(StateEstimate(
-            sample.stamp_ns, sample.position_m, float(x_dot), sample.angle_rad, float(theta_dot)))
+            sample.stamp_ns, sample.position_m, x_dot, sample.angle_rad, theta_dot))
         self._answers.publish(sample.stamp_ns, (self._state_pub, out))
         self._samples += 1
         if self.routine_diagnostics(self._samples):

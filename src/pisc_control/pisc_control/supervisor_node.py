@@ -13,9 +13,9 @@ from pisc_control.supervisor import (
     StartupParams,
     Supervisor,
     SupervisorConfig,
-    SupervisorState,
     SwitchingParams,
 )
+from pisc_control.scalar import OneRigSupervisor
 from pisc_control.swing_up import SwingUpParams
 from pisc_model.params import LoopParams, RigParams
 from pisc_msgs_py.base_node import ERROR, OK, PiscNode, ResendCache, run_node
@@ -38,7 +38,7 @@ SECTIONS = {
 class SupervisorNode(PiscNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("supervisor", SECTIONS, **kwargs)
-        self._state = SupervisorState()
+        self._supervisor = OneRigSupervisor(self.config)
         self._mode: Mode | None = None
         self._answers = ResendCache()  # a resent cycle: same force, same state
         self._force_pub = self.publisher(CART_FORCE)
@@ -49,20 +49,24 @@ class SupervisorNode(PiscNode):
     def build(self, flat: dict[str, Any]) -> Supervisor:
         return Supervisor(SupervisorConfig(**{s: self.section(flat, s) for s in SECTIONS}))
 
+    def on_config(self, config: Supervisor) -> None:
+        self.config = config
+        self._supervisor.configure(config)
+
     def _on_state(self, msg: Any) -> None:
         state = self.parse(msg, state_from_msg, "state")
         if state is None or self._answers.resend(state.stamp_ns):
             return
         supervisor: Supervisor = self.config
-        self._state, force, code = supervisor.update(
-            self._state, state.position_m, state.velocity_mps, state.angle_rad, state.rate_radps)
-        mode = Mode.from_code(int(code))
+        force, code = self._supervisor.step(state.position_m, state.velocity_mps,
+                                            state.angle_rad, state.rate_radps)
+        mode = Mode.from_code(code)
         if mode is not self._mode:
             # Announce a change before the force of the same cycle, so that the current
             # loop normally knows of a fault before it handles that cycle.
             reason = ""
             if mode is Mode.FAULT:
-                reason = supervisor.fault_reason(int(self._state.fault), state.position_m)
+                reason = supervisor.fault_reason(self._supervisor.fault, state.position_m)
                 self.diagnose(ERROR, f"fault: {reason}; force set to 0", state.stamp_ns)
             else:
                 reason = supervisor.experiment_reason()
@@ -71,7 +75,7 @@ class SupervisorNode(PiscNode):
             self._mode_pub.publish(mode_to_msg(ModeReport(state.stamp_ns, mode, reason)))
             self._mode = mode
         self._answers.publish(state.stamp_ns, (
-            self._force_pub, cart_force_to_cdr(CartForce(state.stamp_ns, float(force)))))
+            self._force_pub, cart_force_to_cdr(CartForce(state.stamp_ns, force))))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -19,6 +19,7 @@ from pisc_sim import batch_controllers
 from pisc_sim.configuration import GraphConfig
 from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
 from pisc_control.estimator import EstimatorState, estimator_update
+from pisc_control.scalar import OneRigCurrentLoop, OneRigEstimator, OneRigSupervisor
 from pisc_control.supervisor import Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
@@ -63,35 +64,29 @@ class Controllers:
     the current setpoint (4.2) and the PI voltage (3.47), or 0 V with the integral
     cleared in ``fault``. Values leave each stage as Python floats, as they cross a
     topic, so the pure simulation, the nodes and a regression replay compute the same
-    bits. Raises :class:`pisc_msgs_py.config.ConfigError` for an invalid configuration.
+    bits; each stage is the one-rig form of its core (:mod:`pisc_control.scalar`, the
+    numpy cores' bits without numpy's per-call cost). Raises
+    :class:`pisc_msgs_py.config.ConfigError` for an invalid configuration.
     """
 
     def __init__(self, config: GraphConfig) -> None:
         self.config = config
         self.supervisor = Supervisor(config.supervisor)
-        self.estimator_state = EstimatorState()
-        self.supervisor_state = SupervisorState()
-        self.current_loop_state = CurrentLoopState()
+        period = config.loop.period_s
+        self._estimator = OneRigEstimator(config.estimator, period)
+        self._supervisor = OneRigSupervisor(self.supervisor)
+        self._current_loop = OneRigCurrentLoop(config.plant.motor, config.current_loop, period)
 
     def step(self, position_m: float, angle_rad: float, current_a: float) -> CycleOutputs:
-        c = self.config
-        period = c.loop.period_s
-        self.estimator_state, x_dot, theta_dot = estimator_update(
-            c.estimator, period, self.estimator_state, position_m, angle_rad)
-        x_dot, theta_dot = float(x_dot), float(theta_dot)
-        self.supervisor_state, force, code = self.supervisor.update(
-            self.supervisor_state, position_m, x_dot, angle_rad, theta_dot)
-        force = float(force)
-        mode = Mode.from_code(int(code))
-        self.current_loop_state, i_d, voltage = current_loop_cycle(
-            c.plant.motor, c.current_loop, period, self.current_loop_state, force, current_a,
-            fault=mode is Mode.FAULT)
-        return CycleOutputs(x_dot, theta_dot, force, mode, float(i_d), float(voltage))
+        x_dot, theta_dot = self._estimator.step(position_m, angle_rad)
+        force, code = self._supervisor.step(position_m, x_dot, angle_rad, theta_dot)
+        mode = Mode.from_code(code)
+        i_d, voltage = self._current_loop.step(force, current_a, mode is Mode.FAULT)
+        return CycleOutputs(x_dot, theta_dot, force, mode, i_d, voltage)
 
     def fault_reason(self, position_m: float) -> str:
         """Why the supervisor faulted (empty when it has not)."""
-        fault = self.supervisor_state.fault
-        return "" if fault is None else self.supervisor.fault_reason(int(fault), position_m)
+        return self.supervisor.fault_reason(self._supervisor.fault, position_m)
 
 
 def simulate(config: GraphConfig, duration_s: float) -> CycleLog:
@@ -207,7 +202,7 @@ def simulate_batch(
     if controllers == "compiled" and batch_controllers.supported(config):
         rigs = x0.size
         compiled = batch_controllers.BatchControllers(
-            config, supervisor.gain, rigs,
+            config, supervisor, rigs,
             EstimatorState(*(np.broadcast_to(v, shape).reshape(-1) for v in (
                 est_state.x_m, est_state.theta_rad, est_state.x_dot_mps,
                 est_state.theta_dot_radps))) if prime_estimator else None)

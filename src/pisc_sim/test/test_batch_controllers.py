@@ -1,4 +1,5 @@
-"""The compiled batch controllers give the numpy cores' bits, rig by rig, cycle by cycle."""
+"""The one-rig controllers (the nodes') and the compiled batch pass give the numpy cores'
+bits, rig by rig, cycle by cycle."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import numpy as np
 import pytest
 
 from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
-from pisc_control.estimator import EstimatorState, estimator_update
+from pisc_control.estimator import EstimatorParams, EstimatorState, estimator_update
+from pisc_control.scalar import OneRigCurrentLoop, OneRigEstimator, OneRigSupervisor
 from pisc_control.supervisor import Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_plant.command import plant_command
@@ -61,18 +63,48 @@ class _Cores:
         return force, mode, i_d, voltage
 
 
-def _compare(config, measurements) -> dict[str, int]:
-    """Feed the same measurements to both; assert every output's bits; count the modes."""
+class _OneRigs:
+    """The nodes' one-rig controllers (pisc_control.scalar), one set per rig of ``rigs``."""
+
+    def __init__(self, config, rigs: list[int]) -> None:
+        period = config.loop.period_s
+        supervisor = Supervisor(config.supervisor)
+        self.rigs = rigs
+        self.each = [(OneRigEstimator(config.estimator, period), OneRigSupervisor(supervisor),
+                      OneRigCurrentLoop(config.plant.motor, config.current_loop, period))
+                     for _ in rigs]
+
+    def step(self, x, theta, current):
+        out = []
+        for r, (estimator, supervisor, loop) in zip(self.rigs, self.each):
+            x_dot, theta_dot = estimator.step(float(x[r]), float(theta[r]))
+            force, mode = supervisor.step(float(x[r]), x_dot, float(theta[r]), theta_dot)
+            i_d, voltage = loop.step(force, float(current[r]), mode == Mode.FAULT.code)
+            assert all(type(v) is float for v in (x_dot, theta_dot, force, i_d, voltage))
+            out.append((force, mode, i_d, voltage))
+        return [np.array(column) for column in zip(*out)]
+
+
+def _assert_same(k: int, want, got, rigs=slice(None)) -> None:
+    for name, w, g in zip(("force", "mode", "i_d", "voltage"), want, got):
+        w = np.asarray(w)[rigs]
+        assert np.array_equal(_bits(w), _bits(g)), (
+            f"cycle {k}: {name} differs in {np.sum(_bits(w) != _bits(g))} rigs")
+
+
+def _compare(config, measurements, one_rigs: list[int]) -> dict[str, int]:
+    """Feed the same measurements to all three; assert every output's bits; count the
+    modes."""
     rigs = len(measurements[0][0])
     cores = _Cores(config, rigs)
-    compiled = BatchControllers(config, cores.supervisor.gain, rigs)
+    compiled = BatchControllers(config, cores.supervisor, rigs)
+    single = _OneRigs(config, one_rigs)
     modes = {m: 0 for m in Mode}
     for k, (x, theta, current) in enumerate(measurements):
         want = cores.step(x, theta, current)
         got = compiled.step(x, theta, current)
-        for name, w, g in zip(("force", "mode", "i_d", "voltage"), want, got):
-            assert np.array_equal(_bits(w), _bits(g)), (
-                f"cycle {k}: {name} differs in {np.sum(_bits(w) != _bits(g))} rigs")
+        _assert_same(k, want, got)
+        _assert_same(k, want, single.step(x, theta, current), one_rigs)
         for m in Mode:
             modes[m] += int(np.sum(got[1] == m.code))
     return modes
@@ -81,7 +113,8 @@ def _compare(config, measurements) -> dict[str, int]:
 @pytest.mark.parametrize("name", list(CONFIGS))
 def test_closed_loop_bit_for_bit(name):
     """200 rigs from spread starts through 3 s: every cycle's force, mode, i_d
-    and voltage of the compiled pass equal the numpy cores' to the bit."""
+    and voltage of the compiled pass, and of the one-rig forms on every tenth rig, equal
+    the numpy cores' to the bit."""
     config = _config(name)
     rigs = 200
     plant = Plant(config.simulated_plant)
@@ -90,7 +123,9 @@ def test_closed_loop_bit_for_bit(name):
                              np.linspace(-0.4, 0.4, rigs - rigs // 2)])
     y = plant.initial_state(np.linspace(-0.12, 0.08, rigs), 0.0, theta0, 0.0)
     cores = _Cores(config, rigs)
-    compiled = BatchControllers(config, cores.supervisor.gain, rigs)
+    compiled = BatchControllers(config, cores.supervisor, rigs)
+    one_rigs = list(range(0, rigs, 10))  # the nodes' one-rig forms on every tenth rig
+    single = _OneRigs(config, one_rigs)
     period = config.loop.period_s
     applied = np.zeros(rigs)
     seen = set()
@@ -98,8 +133,8 @@ def test_closed_loop_bit_for_bit(name):
         x, theta, current = plant.measurement(y, applied)
         want = cores.step(x, theta, current)
         got = compiled.step(x, theta, current)
-        for label, w, g in zip(("force", "mode", "i_d", "voltage"), want, got):
-            assert np.array_equal(_bits(w), _bits(g)), f"{name}, cycle {k}: {label} differs"
+        _assert_same(k, want, got)
+        _assert_same(k, want, single.step(x, theta, current), one_rigs)
         seen.update(int(m) for m in np.unique(got[1]))
         applied = plant_command(config.simulated_plant, setpoint_a=want[2], voltage_v=want[3])
         y = plant.advance(y, applied, period)
@@ -118,11 +153,13 @@ def test_hostile_measurements_bit_for_bit():
     theta = rng.uniform(-20.0, 20.0, rigs)
     theta[:10] = np.pi
     theta[10:20] = -np.pi
+    theta[290:295] = 1e17  # no fraction: the wrap's floor must not overflow an integer
+    theta[295:300] = -3e300
     current = np.zeros(rigs)
     measurements = []
     for k in range(cycles):
         x = x + rng.normal(0.0, 0.004, rigs)
-        theta = theta + rng.normal(0.0, 0.05, rigs)
+        theta[:290] = theta[:290] + rng.normal(0.0, 0.05, 290)
         theta[20:60] = rng.normal(0.0, 0.02, 40)  # near upright: the catch and its exit
         current = rng.normal(0.0, 3.0, rigs) * (k % 50 < 25)
         xs, ts, cs = x.copy(), theta.copy(), current.copy()
@@ -133,7 +170,7 @@ def test_hostile_measurements_bit_for_bit():
         xs[85:90] = np.nextafter(config.supervisor.safety.x_min_m, -1.0)  # just outside
         measurements.append((xs, ts, cs))
     with np.errstate(invalid="ignore", over="ignore"):  # the numpy cores' NaN warnings
-        modes = _compare(config, measurements)
+        modes = _compare(config, measurements, list(range(0, rigs, 3)))
     assert all(n > 0 for n in modes.values()), modes
 
 
@@ -161,7 +198,7 @@ def test_experiments_run_on_the_numpy_cores():
     config = load_scene("excitation").config
     assert not supported(config)
     with pytest.raises(ValueError, match="experiment.kind = .*numpy cores"):
-        BatchControllers(config, Supervisor(config.supervisor).gain, 3)
+        BatchControllers(config, Supervisor(config.supervisor), 3)
     compiled = simulate_batch(config, np.zeros(3), 0.5)
     numpy_cores = simulate_batch(config, np.zeros(3), 0.5, controllers="numpy")
     assert np.array_equal(compiled.x_max_m, numpy_cores.x_max_m)
@@ -171,6 +208,61 @@ def test_unknown_controllers_and_wrong_shapes_are_refused():
     config = _config("default")
     with pytest.raises(ValueError, match="controllers = 'fast': 'compiled' or 'numpy'"):
         simulate_batch(config, np.zeros(2), 0.1, controllers="fast")
-    compiled = BatchControllers(config, Supervisor(config.supervisor).gain, 4)
+    compiled = BatchControllers(config, Supervisor(config.supervisor), 4)
     with pytest.raises(ValueError, match=r"shape \(3,\), \(4,\), \(4,\): want \(4,\) each"):
         compiled.step(np.zeros(3), np.zeros(4), np.zeros(4))
+
+
+def test_one_rig_forms_follow_a_parameter_change_as_the_cores_do():
+    """A node's parameters change mid-run (N of the differences 7 -> 3 -> 9, the catch
+    region, the PI gains): the one-rig forms carry their state over as the numpy cores'
+    state carries, to the bit."""
+    config = _config("default")
+    period = config.loop.period_s
+    rng = np.random.default_rng(3)
+    x = np.cumsum(rng.normal(0.0, 0.002, 300)) * 0.2
+    theta = np.cumsum(rng.normal(0.0, 0.02, 300)) * 0.3
+    current = rng.normal(0.0, 0.5, 300)
+    estimator = OneRigEstimator(config.estimator, period)
+    est_state = EstimatorState()
+    supervisor = Supervisor(config.supervisor)
+    one_sup, sup_state = OneRigSupervisor(supervisor), SupervisorState()
+    motor, params = config.plant.motor, config.current_loop
+    one_loop, loop_state = OneRigCurrentLoop(motor, params, period), CurrentLoopState()
+    est_params = config.estimator
+    for k in range(300):
+        if k in (100, 200):
+            est_params = EstimatorParams(est_params.velocity_filter_hz, 3 if k == 100 else 9)
+            estimator.configure(est_params, period)
+            cfg = dataclasses.replace(config.supervisor, switching=dataclasses.replace(
+                config.supervisor.switching, delta_s=0.3 if k == 100 else 0.25))
+            supervisor = Supervisor(cfg)
+            one_sup.configure(supervisor)
+            params = dataclasses.replace(params, k_pi=params.k_pi * (1.5 if k == 100 else 0.5))
+            one_loop.configure(motor, params, period)
+        est_state, x_dot, theta_dot = estimator_update(est_params, period, est_state,
+                                                       x[k], theta[k])
+        sup_state, force, mode = supervisor.update(sup_state, x[k], x_dot, theta[k],
+                                                   theta_dot)
+        loop_state, i_d, voltage = current_loop_cycle(motor, params, period, loop_state,
+                                                      force, current[k],
+                                                      mode == Mode.FAULT.code)
+        got_rates = estimator.step(float(x[k]), float(theta[k]))
+        assert _bits(got_rates).tolist() == _bits([x_dot, theta_dot]).tolist(), k
+        got_force, got_mode = one_sup.step(float(x[k]), got_rates[0], float(theta[k]),
+                                           got_rates[1])
+        assert (_bits(got_force), got_mode) == (_bits(force), int(mode)), k
+        got = one_loop.step(got_force, float(current[k]), got_mode == Mode.FAULT.code)
+        assert _bits(got).tolist() == _bits([i_d, voltage]).tolist(), k
+    assert one_sup.fault == 0
+
+
+def test_one_rig_supervisor_runs_an_experiment_on_the_numpy_core():
+    config = load_scene("excitation").config
+    supervisor = Supervisor(config.supervisor)
+    one, state = OneRigSupervisor(supervisor), SupervisorState()
+    for k in range(50):
+        x = 0.001 * k
+        state, force, mode = supervisor.update(state, x, 0.1, np.pi, 0.0)
+        assert one.step(x, 0.1, np.pi, 0.0) == (float(force), int(mode))
+    assert one.fault == int(state.fault)
