@@ -88,7 +88,8 @@ def test_launch_files_declare_the_nodes_pisc_graph_starts():
     assert sim[0].parameters == {
         "simulation.clock": "lockstep", "simulation.duration_s": 0.0,
         "simulation.min_subscribers": 1, "simulation.min_true_state_subscribers": 0,
-        "simulation.min_clock_subscribers": 0, "simulation.recorder_lag_samples": 0}
+        "simulation.min_clock_subscribers": 0, "simulation.recorder_lag_samples": 0,
+        "simulation.start_settle_s": 0.5}
     # model error: the plant's file is params unless plant_params says otherwise
     assert sim[0].param_files == sim[1].param_files
     thesis = SRC / "pisc_sim" / "config" / "thesis.yaml"
@@ -124,10 +125,12 @@ def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path
     g = graph._read_again(first, options, files, graph._run_args(options, first))
     assert [n.name for n in g.nodes] == ["estimator", "supervisor", "current_loop", "plant"]
     clocks = 5 if processes else 4
+    # in one process pisc_graph has seen every match before the plant starts: no settling
     assert g.source.parameters == {
         "simulation.clock": "lockstep", "simulation.duration_s": 3.0,
         "simulation.min_subscribers": 2, "simulation.min_true_state_subscribers": 1,
-        "simulation.min_clock_subscribers": clocks, "simulation.recorder_lag_samples": 20}
+        "simulation.min_clock_subscribers": clocks, "simulation.recorder_lag_samples": 20,
+        "simulation.start_settle_s": 0.5 if processes else 0.0}
     plant, estimator = g.source.flat(), g.controllers[0].flat()
     assert plant["motor.resistance_ohm"] == 18.2 and estimator["motor.resistance_ohm"] == 14.0
     assert estimator["initial.x_m"] == 0.05 and estimator["use_sim_time"] is True
@@ -138,7 +141,8 @@ def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path
         "-p", "simulation.clock:=lockstep", "-p", "simulation.duration_s:=3.0",
         "-p", "simulation.min_subscribers:=2", "-p", "simulation.min_true_state_subscribers:=1",
         "-p", f"simulation.min_clock_subscribers:={clocks}",
-        "-p", "simulation.recorder_lag_samples:=20"]
+        "-p", "simulation.recorder_lag_samples:=20",
+        "-p", f"simulation.start_settle_s:={0.5 if processes else 0.0}"]
     assert g.controllers[2].command()[-2:] == ["-p", "use_sim_time:=true"]
 
 
