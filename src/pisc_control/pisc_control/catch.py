@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import control
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -87,6 +86,11 @@ def catch_gain(rig: RigParams, params: CatchParams) -> np.ndarray:
     pole placement by python-control's ``place`` (Ackermann's ``acker`` when a pole is
     repeated, which ``place`` cannot do with one input); LQR by ``control.lqr``.
     """
+    # imported here: python-control (with scipy.signal and matplotlib) takes 1.3 s to
+    # import, which only the node that designs K should pay, not every node that imports
+    # the supervisor's module for its constants (the estimator, the current loop)
+    import control
+
     a, b = linearise_upright(rig)
     ctrb = control.ctrb(a, b)
     rank = np.linalg.matrix_rank(ctrb)
