@@ -13,11 +13,12 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from conftest import spin_until
-from pisc_bringup.bag import RawMessage, read_bag
+from pisc_bringup.bag import RawMessage, read_bag, read_bag_raw
 from pisc_bringup.play import play_bag, playback_plan
 from pisc_bringup.recorder_node import recording_qos
 from pisc_msgs_py.convert import motor_sample_from_msg, stamp_from_msg
-from pisc_msgs_py.topics import CLOCK, VOLTAGE
+from pisc_msgs_py.base_node import message_class
+from pisc_msgs_py.topics import CLOCK, GRAPH_TOPICS, VOLTAGE
 
 SWINGUP = Path(__file__).resolve().parent.parent / "bags" / "default-swingup"
 
@@ -47,6 +48,21 @@ def test_play_publishes_every_voltage_in_order_on_simulated_time(ros_context, do
     node.create_subscription(JointState, VOLTAGE.name,
                              lambda m: voltages.append(motor_sample_from_msg(m)),
                              recording_qos(VOLTAGE))
+    # a reader of every other played topic too: play waits for one on each, and each
+    # must receive every message
+    plan = playback_plan(read_bag_raw(SWINGUP))
+    played = {item.topic: item.type for item in plan if item.topic != VOLTAGE.name}
+    received = dict.fromkeys(played, 0)
+    topics = {t.name: t for t in GRAPH_TOPICS}
+
+    def count(topic: str):
+        def on_message(_: bytes) -> None:
+            received[topic] += 1
+        return on_message
+
+    for topic, type_name in played.items():
+        node.create_subscription(message_class(type_name), topic, count(topic),
+                                 recording_qos(topics[topic]), raw=True)
     node.create_subscription(Clock, CLOCK.name, lambda m: clocks.append(stamp_from_msg(m.clock)),
                              recording_qos(CLOCK))
     executor = SingleThreadedExecutor(context=ros_context)
@@ -62,7 +78,8 @@ def test_play_publishes_every_voltage_in_order_on_simulated_time(ros_context, do
     thread = threading.Thread(target=play)
     thread.start()
     try:
-        assert spin_until(executor, lambda: "counts" in result and len(voltages) >= 2001, 120.0)
+        assert spin_until(executor, lambda: "counts" in result and len(voltages) >= 2001
+                          and sum(received.values()) + len(voltages) >= len(plan), 120.0)
         # /clock is another reader: its last message may still be queued behind the voltage
         spin_until(executor, lambda: clocks and clocks[-1] == 10_000_000_000, 5.0)
     finally:
@@ -71,5 +88,7 @@ def test_play_publishes_every_voltage_in_order_on_simulated_time(ros_context, do
     recorded = [motor_sample_from_msg(m.message) for m in read_bag(SWINGUP, [VOLTAGE.name])]
     assert voltages == recorded  # same stamps, same values, same order
     assert result["counts"][VOLTAGE.name] == 2001 and result["counts"][CLOCK.name] == 2001
+    assert received == {topic: result["counts"][topic] for topic in played}
+    assert sum(received.values()) + len(voltages) == len(plan)
     assert result["wall"] >= 10.0 / 4.0  # paced: 10 s of run at 4x
     assert clocks == sorted(clocks) and clocks[-1] == 10_000_000_000
