@@ -56,10 +56,10 @@ class SampledPlant:
     def sample(self) -> Sample:
         noise = None if self._rng is None else self._rng.standard_normal(3)
         y = self.state
-        x, theta, current = self.plant.measurement(y, self.applied_v, noise)
+        x, theta, current = self.plant.measurement_one(y, self.applied_v, noise)
         true_current = self.plant.current(y, self.applied_v)
         return Sample(
-            self.index, float(x), float(theta), float(current),
+            self.index, x, theta, current,
             (float(y[X]), float(y[X_DOT]), float(y[THETA]), float(y[THETA_DOT]),
              float(true_current)),
         )

@@ -1,5 +1,6 @@
 """Full-fidelity plant: stability, conservation, armature, end stops, sampled interface."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -171,3 +172,39 @@ def test_a_simulated_command_latency_applies_the_voltage_that_long_into_the_peri
             s.advance()
     np.testing.assert_array_equal(a.state, b.state)
     assert not np.array_equal(b.state, c.state)
+
+
+@pytest.mark.parametrize("noisy", [False, True], ids=["exact", "noisy"])
+def test_one_rig_measurement_has_the_arrays_bits(noisy):
+    """The sampled plant's float measurement (measurement_one) equals measurement() to
+    the bit over states spread across the track and many turns, sensor voltages across
+    and beyond the ADC's range (saturated codes) and on its code edges, with and without
+    noise; other sensor models take measurement() itself."""
+    from pisc_model.params import NoiseParams
+
+    noise = NoiseParams(x_std_m=1e-3, theta_std_rad=1e-3, current_std_a=0.02) if noisy \
+        else NoiseParams()
+    plant = Plant(dataclasses.replace(DEFAULT, noise=noise))
+    s = plant.config.sensors
+    rng = np.random.default_rng(11)
+    n = 3000
+    y = plant.initial_state(rng.uniform(-0.25, 0.15, n), rng.normal(0.0, 0.5, n),
+                            rng.uniform(-30.0, 30.0, n), rng.normal(0.0, 5.0, n))
+    ir, cur = plant.layout.ir_index, plant.layout.current_sensor_index
+    y[:, ir] = rng.uniform(0.0, 4.0, n)  # below, across and above the ADC's 0.595-3.109 V
+    y[:, cur] = rng.uniform(0.0, 4.0, n)
+    edges = s.adc_ref_low_v + s.adc_lsb_v * rng.integers(0, s.adc_levels, 500)
+    y[:500, ir] = edges
+    y[500:1000, cur] = edges
+    y[1000:1500, THETA] = s.encoder_zero_rad + s.encoder_rad_per_count * (
+        rng.integers(-8000, 8000, 500) + 0.5)  # half a count: the rounding's edge
+    draws = rng.standard_normal((n, 3))
+    want = plant.measurement(y, 0.0, draws if noisy else None)
+    for k in range(n):
+        got = plant.measurement_one(y[k], 0.0, draws[k] if noisy else None)
+        assert all(type(v) is float for v in got)
+        assert np.array_equal(np.array(got).view(np.int64),
+                              np.array([w[k] for w in want]).view(np.int64)), k
+    ideal = Plant(dataclasses.replace(DEFAULT, models=dataclasses.replace(
+        DEFAULT.models, sensors="ideal", sensor_filters=False)))
+    assert ideal.measurement_one(ideal.initial_state(0.03, theta=0.2), 0.0) == (0.03, 0.2, 0.0)
