@@ -40,9 +40,12 @@ def _drop_stale_cache() -> None:
     """Remove the compiled pass's cache index when pisc_control.scalar is newer."""
     source = Path(scalar.__file__)
     cache = Path(__file__).parent / "__pycache__"
-    for index in cache.glob(f"{Path(__file__).stem}._cycle-*.nbi"):
-        if index.stat().st_mtime < source.stat().st_mtime:
-            index.unlink(missing_ok=True)
+    try:
+        for index in cache.glob(f"{Path(__file__).stem}._cycle-*.nbi"):
+            if index.stat().st_mtime < source.stat().st_mtime:
+                index.unlink(missing_ok=True)
+    except OSError:  # a read-only install: numba then keeps its cache elsewhere
+        pass
 
 
 _drop_stale_cache()
