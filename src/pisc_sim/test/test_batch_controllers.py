@@ -45,7 +45,7 @@ def _bits(a: np.ndarray) -> np.ndarray:
 
 
 class _Cores:
-    """The numpy cores over arrays, as simulate_batch ran them before compiling."""
+    """The numpy cores over arrays, as simulate_batch(controllers="numpy") runs them."""
 
     def __init__(self, config, rigs: int) -> None:
         self.config = config
