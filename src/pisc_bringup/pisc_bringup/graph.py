@@ -775,7 +775,10 @@ def run_graph(options: RunOptions) -> RunResult:
             if lockstep:  # the plant's last awaited subscriber: it may start now
                 watcher.create_subscription(message_class(CLOCK.type), CLOCK.name,
                                             lambda data: None, qos_profile(CLOCK.qos), raw=True)
-            executor: Any = SingleThreadedExecutor(context=context)
+            # the runner only watches here, but a SingleThreadedExecutor took 37 % of a
+            # core doing it (two messages a cycle) from the nodes' two cores; the
+            # EventsExecutor 11 % (docs/figures.md)
+            executor: Any = EXECUTORS[options.executor](context=context)
         else:
             for node in graph.controllers:
                 nodes.append(node.instantiate(context))
