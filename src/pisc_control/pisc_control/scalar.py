@@ -3,10 +3,10 @@
 The numpy cores (:mod:`pisc_control.estimator`, :mod:`pisc_control.supervisor`,
 :mod:`pisc_control.current_loop`) broadcast over arrays; on one rig, as a node runs
 them each cycle, numpy's cost per call is most of their time (the supervisor's update
-was about 150 us a cycle, a fifth of a lockstep cycle). The functions here do the same
-operations in the same order and grouping on floats, with the constants the cores form in
-Python formed the same way (:func:`supervisor_constants` and its kin), so they give the
-cores' bits: IEEE arithmetic is the same on a float and on an array element, numpy's
+took 19 % of a one-process lockstep cycle's py-spy samples, 2026-12-03). The functions
+here do the same operations in the same order and grouping on floats, with the
+constants the cores form in Python formed the same way (:func:`supervisor_constants` and
+its kin), so they give the cores' bits: IEEE arithmetic is the same on a float and on an array element, numpy's
 float64 ``sin`` and ``cos`` are the C library's, which ``math`` calls, and where ``math``
 raises (an infinite angle, the floor of NaN) the helpers give numpy's NaN instead
 (``pisc_sim/test/test_batch_controllers.py`` compares them with the cores over

@@ -613,10 +613,11 @@ class Plant:
         """:meth:`measurement` of one rig's state as floats, with the same bits.
 
         The sampled plant takes one measurement a period; numpy's per-call cost made it
-        about 60 us. With quantised sensors behind their RC filters (every scene but the
-        ideal ones) this does the same arithmetic on floats: the ADC codes (truncated,
-        saturated), the encoder count, and the host's conversions, the IR curve's power
-        through numpy (its float64 power is not the C library's). Other sensor models, a
+        a tenth of a one-process lockstep cycle (py-spy, 2026-12-03). With quantised
+        sensors behind their RC filters (every scene but the ideal ones) this does the
+        same arithmetic on floats: the ADC codes (truncated, saturated), the encoder
+        count, and the host's conversions, the IR curve's power through numpy (its
+        float64 power is not the C library's). Other sensor models, a
         plant set and a non-finite state take :meth:`measurement`."""
         models = self.config.models
         if (models.sensors == "ideal" or not models.sensor_filters or self.rigs is not None
