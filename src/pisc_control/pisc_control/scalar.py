@@ -6,9 +6,9 @@ them each cycle, numpy's cost per call is most of their time (the supervisor's u
 took 19 % of a one-process lockstep cycle's py-spy samples, 2026-12-03). The functions
 here do the same operations in the same order and grouping on floats, with the
 constants the cores form in Python formed the same way (:func:`supervisor_constants` and
-its kin), so they give the cores' bits: IEEE arithmetic is the same on a float and on an array element, numpy's
-float64 ``sin`` and ``cos`` are the C library's, which ``math`` calls, and where ``math``
-raises (an infinite angle, the floor of NaN) the helpers give numpy's NaN instead
+its kin), so they give the cores' bits: IEEE arithmetic is the same on a float and on
+an array element, numpy's float64 ``sin`` and ``cos`` are the C library's, which ``math``
+calls, and where ``math`` raises (an infinite angle, the floor of NaN) the helpers give numpy's NaN instead
 (``pisc_sim/test/test_batch_controllers.py`` compares them with the cores over
 closed-loop runs, hostile inputs and parameter changes). They are also the source the
 batch compiles (:mod:`pisc_sim.batch_controllers`): plain functions of floats, ints and
@@ -347,8 +347,9 @@ class OneRigSupervisor:
             self._numpy_state = SupervisorState()
         elif not scalar and self._state is not None:
             mode, fault, caught, target, ref = self._state
-            self._numpy_state = SupervisorState(np.int64(mode), np.int64(fault), np.float64(target),
-                                                np.bool_(caught), np.float64(ref))
+            self._numpy_state = SupervisorState(np.int64(mode), np.int64(fault),
+                                                np.float64(target), np.bool_(caught),
+                                                np.float64(ref))
             self._state = None
 
     @property
