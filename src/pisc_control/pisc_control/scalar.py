@@ -8,8 +8,8 @@ here do the same operations in the same order and grouping on floats, with the
 constants the cores form in Python formed the same way (:func:`supervisor_constants` and
 its kin), so they give the cores' bits: IEEE arithmetic is the same on a float and on
 an array element, numpy's float64 ``sin`` and ``cos`` are the C library's, which ``math``
-calls, and where ``math`` raises (an infinite angle, the floor of NaN) the helpers give numpy's NaN instead
-(``pisc_sim/test/test_batch_controllers.py`` compares them with the cores over
+calls, and where ``math`` raises (an infinite angle, the floor of NaN) the helpers give
+numpy's NaN instead (``pisc_sim/test/test_batch_controllers.py`` compares them with the cores over
 closed-loop runs, hostile inputs and parameter changes). They are also the source the
 batch compiles (:mod:`pisc_sim.batch_controllers`): plain functions of floats, ints and
 tuples, calling nothing but ``math`` and each other. :class:`OneRigEstimator`,
