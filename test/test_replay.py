@@ -206,6 +206,22 @@ def test_replay_command_exit_status_and_report():
     assert loose.returncode == 0 and "REPRODUCED (tolerance 0.1)" in loose.stdout
 
 
+def test_replay_runs_the_cores_without_the_plant_kernel():
+    """Replay's memory (issue 16, item 4: <= 200 MB for a 10-minute bag) leaves no room
+    for numba (75 MB imported): the configuration and the cores come without the plant's
+    kernel (pisc_plant.layout), and the batch controllers are imported only by a batch.
+    (python-control and scipy are: the catch gain is designed again, and the recorded K
+    kept when it is the same design.)"""
+    code = ("import sys\nfrom pisc_bringup.replay import replay_bag\n"
+            f"report = replay_bag({str(SWINGUP)!r})\nassert report.reproduced\n"
+            "print(sorted(m for m in ('numba', 'pisc_plant.kernel', "
+            "'pisc_sim.batch_controllers') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
 @pytest.mark.integration
 def test_replay_through_the_nodes_over_topics(domain_id):
     from pisc_bringup.replay_node import replay_nodes

@@ -62,12 +62,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numba
 import numpy as np
 
+from pisc_plant.layout import (  # noqa: F401 (re-exported: the kernel's layout)
+    METHODS, RK4, EXPRK4, ARM_FULL, ARM_QUASI_STATIC, ARM_FORCE, N_CONSTANTS, Layout, P_A1,
+    P_A2, P_ML, P_G, P_KF, P_BM, P_R, P_L, P_KER, P_BC, P_BP, P_FC, P_VC, P_WIR, P_WCUR,
+    P_IRO, P_IRS, P_IRX, P_CUROFF, P_CURSCALE, P_XMIN, P_XMAX, P_JROT,
+)
 from pisc_plant.vecmath import vcos, vpow, vsin, vtanh
 
 __all__ = [
@@ -85,41 +89,6 @@ __all__ = [
     "phi",
     "rhs_one",
 ]
-
-METHODS = ("rk4", "exprk4")
-RK4, EXPRK4 = 0, 1
-
-ARM_FULL, ARM_QUASI_STATIC, ARM_FORCE = 0, 1, 2
-
-# Indices into the packed constants.
-(P_A1, P_A2, P_ML, P_G, P_KF, P_BM, P_R, P_L, P_KER, P_BC, P_BP, P_FC, P_VC, P_WIR,
- P_WCUR, P_IRO, P_IRS, P_IRX, P_CUROFF, P_CURSCALE, P_XMIN, P_XMAX, P_JROT) = range(23)
-N_CONSTANTS = 23
-
-
-@dataclass(frozen=True)
-class Layout:
-    """Which components a scene's state has, and where."""
-
-    armature: int  # ARM_FULL, ARM_QUASI_STATIC or ARM_FORCE
-    filters: bool
-    end_stops: bool
-
-    @property
-    def current_index(self) -> int:
-        return 4 if self.armature == ARM_FULL else -1
-
-    @property
-    def ir_index(self) -> int:
-        return (5 if self.armature == ARM_FULL else 4) if self.filters else -1
-
-    @property
-    def current_sensor_index(self) -> int:
-        return self.ir_index + 1 if self.filters else -1
-
-    @property
-    def size(self) -> int:
-        return 4 + (self.armature == ARM_FULL) + 2 * self.filters
 
 
 def phi(k: int, z: float) -> float:

@@ -30,13 +30,14 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_msgs_py.config import ConfigError, in_range, one_of, param
 from pisc_model import sensors
-from pisc_plant import kernel
+from pisc_plant import layout
 from pisc_model.params import (
     ActuatorParams,
     FrictionParams,
@@ -64,9 +65,21 @@ __all__ = [
 STATE_NAMES = ("x", "x_dot", "theta", "theta_dot", "i", "v_ir", "v_cur")
 X, X_DOT, THETA, THETA_DOT = range(4)
 
+#: :mod:`pisc_plant.kernel`, imported by the first :class:`Plant` (it imports numba: a
+#: configuration alone does not need it, :mod:`pisc_plant.layout`)
+kernel: Any = None
+
+
+def _import_kernel() -> None:
+    global kernel
+    if kernel is None:
+        from pisc_plant import kernel as module
+        kernel = module
+
+
 RK4_STABILITY = 2.785  # classical RK4 is stable on the negative real axis for h |lam| < 2.785
-ARMATURE_CODES = {"full": kernel.ARM_FULL, "quasi_static": kernel.ARM_QUASI_STATIC,
-                  "ideal_force": kernel.ARM_FORCE}
+ARMATURE_CODES = {"full": layout.ARM_FULL, "quasi_static": layout.ARM_QUASI_STATIC,
+                  "ideal_force": layout.ARM_FORCE}
 
 
 @dataclass(frozen=True)
@@ -82,7 +95,7 @@ class IntegratorParams:
     """
 
     method: str = param("exprk4", "'exprk4' (exponential, stable at any step) or 'rk4' "
-                        "(classical Runge-Kutta)", "", one_of(*kernel.METHODS))
+                        "(classical Runge-Kutta)", "", one_of(*layout.METHODS))
     substeps: int = param(2, "integration steps per control period", "", in_range(1, 100000))
 
 
@@ -231,36 +244,36 @@ def pack_constants(c: PlantConfig) -> np.ndarray:
     for a plant set of n rigs (N_CONSTANTS, n), rig k's constants in column k (the
     kernel reads them in the blocks of :func:`pisc_plant.kernel.lanes`)."""
     rigs = rigs_of(c)
-    p = np.zeros(kernel.N_CONSTANTS if rigs is None else (kernel.N_CONSTANTS, rigs))
+    p = np.zeros(layout.N_CONSTANTS if rigs is None else (layout.N_CONSTANTS, rigs))
     rig, m, s, t, f = c.rig, c.motor, c.sensors, c.track, c.friction
     friction = c.models.friction
     reflected_mass, reflected_damping = _reflected(m)
-    p[kernel.P_A1] = rig.a1
+    p[layout.P_A1] = rig.a1
     # the rotor's inertia reflected to the cart, J_m / r^2, joins the cart row only
-    p[kernel.P_A2] = rig.a2 + (reflected_mass if c.models.has_current else 0.0)
-    p[kernel.P_ML] = rig.ml
-    p[kernel.P_G] = rig.gravity_mps2
-    p[kernel.P_KF] = m.force_per_amp
-    p[kernel.P_BM] = reflected_damping
-    p[kernel.P_R] = m.resistance_ohm
-    p[kernel.P_L] = m.inductance_h
-    p[kernel.P_KER] = m.back_emf_v_s_per_rad / m.wheel_radius_m
+    p[layout.P_A2] = rig.a2 + (reflected_mass if c.models.has_current else 0.0)
+    p[layout.P_ML] = rig.ml
+    p[layout.P_G] = rig.gravity_mps2
+    p[layout.P_KF] = m.force_per_amp
+    p[layout.P_BM] = reflected_damping
+    p[layout.P_R] = m.resistance_ohm
+    p[layout.P_L] = m.inductance_h
+    p[layout.P_KER] = m.back_emf_v_s_per_rad / m.wheel_radius_m
     if friction != "none":
-        p[kernel.P_BC] = f.cart_viscous_ns_per_m
-        p[kernel.P_BP] = f.pivot_viscous_nms
+        p[layout.P_BC] = f.cart_viscous_ns_per_m
+        p[layout.P_BP] = f.pivot_viscous_nms
     if friction == "coulomb":
-        p[kernel.P_FC] = f.cart_coulomb_n
-    p[kernel.P_VC] = f.coulomb_velocity_mps
-    p[kernel.P_WIR] = 2.0 * math.pi * s.ir_filter_hz
-    p[kernel.P_WCUR] = 2.0 * math.pi * s.current_filter_hz
-    p[kernel.P_IRO] = s.ir_origin_m
-    p[kernel.P_IRS] = s.ir_scale_m
-    p[kernel.P_IRX] = -1.0 / s.ir_exponent
-    p[kernel.P_CUROFF] = s.current_offset_a
-    p[kernel.P_CURSCALE] = s.current_scale_a_per_v
-    p[kernel.P_XMIN] = t.min_m
-    p[kernel.P_XMAX] = t.max_m
-    p[kernel.P_JROT] = rig.pendulum_inertia_kgm2 + rig.ml * rig.pendulum_com_m
+        p[layout.P_FC] = f.cart_coulomb_n
+    p[layout.P_VC] = f.coulomb_velocity_mps
+    p[layout.P_WIR] = 2.0 * math.pi * s.ir_filter_hz
+    p[layout.P_WCUR] = 2.0 * math.pi * s.current_filter_hz
+    p[layout.P_IRO] = s.ir_origin_m
+    p[layout.P_IRS] = s.ir_scale_m
+    p[layout.P_IRX] = -1.0 / s.ir_exponent
+    p[layout.P_CUROFF] = s.current_offset_a
+    p[layout.P_CURSCALE] = s.current_scale_a_per_v
+    p[layout.P_XMIN] = t.min_m
+    p[layout.P_XMAX] = t.max_m
+    p[layout.P_JROT] = rig.pendulum_inertia_kgm2 + rig.ml * rig.pendulum_com_m
     return p
 
 
@@ -279,10 +292,11 @@ class Plant:
     rigs: int | None
 
     def __init__(self, config: PlantConfig) -> None:
+        _import_kernel()
         self.config = config
         c = config
         models = c.models
-        self.layout = kernel.Layout(ARMATURE_CODES[models.armature], models.sensor_filters,
+        self.layout = layout.Layout(ARMATURE_CODES[models.armature], models.sensor_filters,
                                     models.end_stops)
         self._kernels = kernel.for_layout(self.layout)
         self.size = self.layout.size
@@ -302,9 +316,9 @@ class Plant:
             self.lam[..., self.layout.current_index] = (-c.motor.resistance_ohm
                                                         / c.motor.inductance_h)
         if models.sensor_filters:
-            self.lam[..., self.layout.ir_index] = -self._p[kernel.P_WIR]
-            self.lam[..., self.layout.current_sensor_index] = -self._p[kernel.P_WCUR]
-        self._method = kernel.METHODS.index(c.integrator.method)
+            self.lam[..., self.layout.ir_index] = -self._p[layout.P_WIR]
+            self.lam[..., self.layout.current_sensor_index] = -self._p[layout.P_WCUR]
+        self._method = layout.METHODS.index(c.integrator.method)
         self._coefficients: dict[float, np.ndarray] = {}
         # per-rig steps: the operator tables (by the steps' bytes, the latest last), the
         # armature's rate of each rig, the constants in the kernel's blocks
@@ -372,8 +386,8 @@ class Plant:
             return y[..., self.layout.current_index]
         applied = self.applied(command)
         if models.armature == "quasi_static":
-            return (applied - self._p[kernel.P_KER] * y[..., X_DOT]) / self._p[kernel.P_R]
-        return np.broadcast_to(applied / self._p[kernel.P_KF], y.shape[:-1]).astype(float)
+            return (applied - self._p[layout.P_KER] * y[..., X_DOT]) / self._p[layout.P_R]
+        return np.broadcast_to(applied / self._p[layout.P_KF], y.shape[:-1]).astype(float)
 
     def derivative(self, y: np.ndarray, command: ArrayLike) -> np.ndarray:
         """Full right-hand side y' for a command (for reference integrators and checks)."""
@@ -413,9 +427,9 @@ class Plant:
             filters = self.config.models.sensor_filters
             full = self.config.models.has_current_state
             coef = kernel.exp_coefficients(
-                self._p[kernel.P_WIR] if filters else 0.0,
-                self._p[kernel.P_WCUR] if filters else 0.0,
-                self._p[kernel.P_WCUR] / self._p[kernel.P_CURSCALE],
+                self._p[layout.P_WIR] if filters else 0.0,
+                self._p[layout.P_WCUR] if filters else 0.0,
+                self._p[layout.P_WCUR] / self._p[layout.P_CURSCALE],
                 kernel.armature_rate(self._p) if full else 0.0, step_s)
             if len(self._coefficients) < 64:
                 self._coefficients[step_s] = coef
@@ -437,9 +451,9 @@ class Plant:
             p = self._p if self.rigs is None else self._p_rows[0]  # the sensors are common
             filters = self.config.models.sensor_filters
             tables = np.empty((-(-rigs // kernel.BLOCK), kernel.N_TABLE * kernel.BLOCK))
-            kernel.exp_tables(p[kernel.P_WIR] if filters else 0.0,
-                              p[kernel.P_WCUR] if filters else 0.0,
-                              p[kernel.P_WCUR] / p[kernel.P_CURSCALE],
+            kernel.exp_tables(p[layout.P_WIR] if filters else 0.0,
+                              p[layout.P_WCUR] if filters else 0.0,
+                              p[layout.P_WCUR] / p[layout.P_CURSCALE],
                               self._armature_rates(rigs), steps_s, tables)
             while len(self._rig_tables) >= 4:
                 del self._rig_tables[next(iter(self._rig_tables))]
@@ -543,7 +557,7 @@ class Plant:
         n = max(1, math.ceil(longest / self.nominal_substep_s - 1e-9))
         steps = durations / n
         p = self._lane_constants(rigs)
-        tables = (self.rig_coefficients(steps) if self._method == kernel.EXPRK4
+        tables = (self.rig_coefficients(steps) if self._method == layout.EXPRK4
                   else np.empty((p.shape[0], 0)))
         stops = self.layout.end_stops
         if rigs <= kernel.CHUNK:

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from pisc_sim import batch_controllers
 from pisc_sim.configuration import GraphConfig
 from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
 from pisc_control.estimator import EstimatorState, estimator_update
@@ -199,13 +198,16 @@ def simulate_batch(
     sup_state = SupervisorState()
     cl_state = CurrentLoopState(np.zeros_like(x0))
     compiled = None
-    if controllers == "compiled" and batch_controllers.supported(config):
-        rigs = x0.size
-        compiled = batch_controllers.BatchControllers(
-            config, supervisor, rigs,
-            EstimatorState(*(np.broadcast_to(v, shape).reshape(-1) for v in (
-                est_state.x_m, est_state.theta_rad, est_state.x_dot_mps,
-                est_state.theta_dot_radps))) if prime_estimator else None)
+    if controllers == "compiled":
+        # numba: imported where it is used, not by this module's one-rig users (replay)
+        from pisc_sim import batch_controllers
+
+        if batch_controllers.supported(config):
+            compiled = batch_controllers.BatchControllers(
+                config, supervisor, x0.size,
+                EstimatorState(*(np.broadcast_to(v, shape).reshape(-1) for v in (
+                    est_state.x_m, est_state.theta_rad, est_state.x_dot_mps,
+                    est_state.theta_dot_radps))) if prime_estimator else None)
     applied = np.zeros_like(x0)
     caught_at = np.full(x0.shape, np.inf)
     first_catch = np.full(x0.shape, np.inf)
