@@ -35,6 +35,7 @@ setup(
             'pisc_tune = pisc_bringup.tune_cli:main',
             'pisc_identify = pisc_bringup.identify_cli:main',
             'pisc_soak = pisc_bringup.soak:main',
+            'pisc_bench = pisc_bringup.bench:main',
             'pisc_parser_bench = pisc_bringup.parser_bench:main',
         ],
     },

@@ -187,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", nargs="+", choices=STEPS, default=list(STEPS),
                         help="run these steps only (analyse and replay need finish)")
     parser.add_argument("--seed", type=int, default=16)
+    parser.add_argument("--json", type=Path, metavar="FILE",
+                        help="also write the figures to FILE (for pisc_bench)")
     parser.add_argument("--finish-step", help=argparse.SUPPRESS)  # the child of 'finish'
     args = parser.parse_args(argv)
     if args.finish_step:
@@ -263,9 +265,12 @@ def _bench(args: argparse.Namespace, root: Path) -> int:
               + (f"; {lines[-1]}" if len(lines) > 1 else ""))
     if args.keep or args.dir is not None:
         print(f"bags kept in {root}")
-    print(json.dumps({r["step"]: {k: round(v, 3) if isinstance(v, float) else v
-                                  for k, v in r.items() if k not in ("stdout", "stderr")}
-                      for r in results}))
+    figures = json.dumps({r["step"]: {k: round(v, 3) if isinstance(v, float) else v
+                                      for k, v in r.items() if k not in ("stdout", "stderr")}
+                          for r in results})
+    print(figures)
+    if args.json is not None:
+        args.json.write_text(figures + "\n")
     return 1 if failed else 0
 
 

@@ -11,9 +11,11 @@ batch ran before they were compiled; the same bits) for comparison.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -30,6 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rigs", type=int, default=10000)
     parser.add_argument("--duration", type=float, default=2.0, help="simulated seconds")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    parser.add_argument("--json", type=Path, metavar="FILE",
+                        help="also write the figures to FILE (for pisc_bench)")
     args = parser.parse_args(argv)
     if args.rigs < 1:
         parser.error(f"--rigs {args.rigs}: must be at least 1")
@@ -81,6 +85,15 @@ def main(argv: list[str] | None = None) -> int:
           f"({cfg.loop.period_s * args.rigs / plant_wall:.0f} simulated s per wall s)")
     caught = np.isfinite(outcome.caught_at_s)
     print(f"caught by the end: {int(caught.sum())} of {args.rigs}")
+    if args.json is not None:
+        args.json.write_text(json.dumps({
+            "scene": scene.name, "rigs": args.rigs, "duration_s": args.duration,
+            "threads": numba.get_num_threads(), "sim_s_per_s": sim_seconds / wall,
+            "ns_per_rig_period": wall / periods / args.rigs * 1e9,
+            "numpy_sim_s_per_s": sim_seconds / numpy_wall,
+            "plant_ns_per_rig_period": plant_wall / args.rigs * 1e9,
+            "plant_sim_s_per_s": cfg.loop.period_s * args.rigs / plant_wall,
+            "caught": int(caught.sum())}) + "\n")
     return 0
 
 

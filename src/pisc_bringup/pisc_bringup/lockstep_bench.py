@@ -2,6 +2,7 @@
 
     python -m pisc_bringup.lockstep_bench [--duration S] [--repeat N] [--hops N]
                                           [--no-processes] [--no-anchors]
+                                          [--no-graph] [--json FILE]
 
 **Anchors.** Two nodes in one process on an ``EventsExecutor`` pass a ``JointState``
 back and forth on two topics (publish, spin until the other's callback ran): the cost of
@@ -22,6 +23,7 @@ costs. The machine is shared: run it with ``uptime`` beside it.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import subprocess
@@ -187,6 +189,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hops", type=int, default=4000, help="hops per anchor")
     parser.add_argument("--no-processes", action="store_true", help="skip --processes")
     parser.add_argument("--no-anchors", action="store_true", help="skip the ping-pongs")
+    parser.add_argument("--no-graph", action="store_true", help="the ping-pongs only")
+    parser.add_argument("--json", type=Path, metavar="FILE",
+                        help="also write the figures to FILE (for pisc_bench)")
     parser.add_argument("--reader", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.reader is not None:
@@ -210,17 +215,21 @@ def main(argv: list[str] | None = None) -> int:
     print(f"lockstep_bench {time.strftime('%Y-%m-%d %H:%M:%S %Z')}, load "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     hop = float("nan")
+    figures: dict[str, object] = {"duration_s": args.duration, "anchors": {}, "graph": {}}
     if not args.no_anchors:
         for as_bytes in (False, True):
             for reader in (False, True):
                 wall, cpu = claimed(lambda d: ping_pong(args.hops, as_bytes, reader, d))
                 if as_bytes and reader:
                     hop = wall
+                figures["anchors"][f"{'bytes' if as_bytes else 'objects'}"
+                                   f"{'_reader' if reader else ''}"] = {"wall_s": wall,
+                                                                         "cpu_s": cpu}
                 print(f"anchor: ping-pong, {'bytes (raw)' if as_bytes else 'message objects'}"
                       f"{', KEEP_ALL reader in another process' if reader else ''}: "
                       f"{wall * 1e6:6.1f} us per hop wall, {cpu * 1e6:6.1f} us CPU", flush=True)
     for processes in (False, True):
-        if processes and args.no_processes:
+        if args.no_graph or (processes and args.no_processes):
             continue
         runs = [claimed(lambda d: _graph(args.duration, processes, d))
                 for _ in range(args.repeat)]
@@ -237,6 +246,14 @@ def main(argv: list[str] | None = None) -> int:
               f"{int(runs[0]['messages'])} messages recorded, "
               f"{'every one published' if all(r['complete'] for r in runs) else 'SOME MISSING'}",
               flush=True)
+        figures["graph"]["processes" if processes else "one_process"] = {
+            "loop_s": loop, "loops_s": loops, "cycles": cycles,
+            "cpu_s": None if processes else _median([r["cpu"] for r in runs]),
+            "wall_s": _median([r["wall"] for r in runs]),
+            "messages": int(runs[0]["messages"]),
+            "complete": all(bool(r["complete"]) for r in runs)}
+    if args.json is not None:
+        args.json.write_text(json.dumps(figures) + "\n")
     return 0
 
 
