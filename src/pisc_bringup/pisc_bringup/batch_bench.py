@@ -74,26 +74,26 @@ def main(argv: list[str] | None = None) -> int:
         y = plant.advance(y, u, cfg.loop.period_s)
     plant_wall = (time.perf_counter() - start) / 50
     sim_seconds = args.rigs * args.duration
-    print(f"scene {scene.name}, {args.rigs} rigs x {args.duration:g} s, integrator "
-          f"{integ.method} {integ.substeps} steps/period, {numba.get_num_threads()} threads")
-    print(f"closed loop: {wall:.2f} s wall, {sim_seconds / wall:.0f} simulated s per wall s, "
-          f"{wall / periods / args.rigs * 1e9:.0f} ns per rig and period")
-    print(f"closed loop, numpy controller cores: {numpy_wall:.2f} s wall, "
-          f"{sim_seconds / numpy_wall:.0f} simulated s per wall s "
-          f"(compiled {numpy_wall / wall:.2f}x as fast)")
-    print(f"plant alone: {plant_wall / args.rigs * 1e9:.0f} ns per rig and period "
-          f"({cfg.loop.period_s * args.rigs / plant_wall:.0f} simulated s per wall s)")
     caught = np.isfinite(outcome.caught_at_s)
-    print(f"caught by the end: {int(caught.sum())} of {args.rigs}")
+    f = {"scene": scene.name, "rigs": args.rigs, "duration_s": args.duration,
+         "threads": numba.get_num_threads(), "sim_s_per_s": sim_seconds / wall,
+         "ns_per_rig_period": wall / periods / args.rigs * 1e9,
+         "numpy_sim_s_per_s": sim_seconds / numpy_wall,
+         "plant_ns_per_rig_period": plant_wall / args.rigs * 1e9,
+         "plant_sim_s_per_s": cfg.loop.period_s * args.rigs / plant_wall,
+         "caught": int(caught.sum())}
+    print(f"scene {scene.name}, {args.rigs} rigs x {args.duration:g} s, integrator "
+          f"{integ.method} {integ.substeps} steps/period, {f['threads']} threads")
+    print(f"closed loop: {wall:.2f} s wall, {f['sim_s_per_s']:.0f} simulated s per wall s, "
+          f"{f['ns_per_rig_period']:.0f} ns per rig and period")
+    print(f"closed loop, numpy controller cores: {numpy_wall:.2f} s wall, "
+          f"{f['numpy_sim_s_per_s']:.0f} simulated s per wall s "
+          f"(compiled {numpy_wall / wall:.2f}x as fast)")
+    print(f"plant alone: {f['plant_ns_per_rig_period']:.0f} ns per rig and period "
+          f"({f['plant_sim_s_per_s']:.0f} simulated s per wall s)")
+    print(f"caught by the end: {f['caught']} of {args.rigs}")
     if args.json is not None:
-        args.json.write_text(json.dumps({
-            "scene": scene.name, "rigs": args.rigs, "duration_s": args.duration,
-            "threads": numba.get_num_threads(), "sim_s_per_s": sim_seconds / wall,
-            "ns_per_rig_period": wall / periods / args.rigs * 1e9,
-            "numpy_sim_s_per_s": sim_seconds / numpy_wall,
-            "plant_ns_per_rig_period": plant_wall / args.rigs * 1e9,
-            "plant_sim_s_per_s": cfg.loop.period_s * args.rigs / plant_wall,
-            "caught": int(caught.sum())}) + "\n")
+        args.json.write_text(json.dumps(f) + "\n")
     return 0
 
 

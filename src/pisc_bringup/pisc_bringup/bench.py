@@ -122,7 +122,8 @@ def rows(results: dict[str, Any]) -> list[Row]:
                            anchor=in_hops(hops["bytes_reader"]["wall_s"])))
     if kernel:
         out.append(Row("anchor: single-rig kernel, a 5 ms sample",
-                       f"{kernel_s * 1e6:.1f} us", anchor=f"error {kernel['kernel_error']:.1e}"))
+                       f"{kernel_s * 1e6:.1f} us",
+                       anchor=f"error {kernel['kernel_error']:.1e}"))
         method, rtol = ANCHOR_SCIPY
         out.append(Row(f"anchor: solve_ivp {method} rtol {rtol:.0e}, a sample",
                        f"{kernel['solve_ivp_s'] * 1e6:.0f} us",
@@ -147,7 +148,8 @@ def rows(results: dict[str, Any]) -> list[Row]:
                        g["loop_s"] <= target * duration / 10.0,
                        f"a cycle {in_hops(per_cycle)}" if hop else ""))
         out.append(Row(f"lockstep, {label}: every message recorded",
-                       f"{g['messages']} messages, " + ("all" if g["complete"] else "SOME MISSING"),
+                       f"{g['messages']} messages, "
+                       + ("all" if g["complete"] else "SOME MISSING"),
                        "all", g["complete"]))
     batch = results.get("batch")
     if batch:
@@ -264,80 +266,84 @@ def main(argv: list[str] | None = None) -> int:
                                "load_start": load, "steps": steps}
     failed: list[str] = []
 
-    def step(name: str, command: list[str], read: Callable[[], Any], ok: tuple[int, ...] = (0,),
-             **kwargs: Any) -> None:
+    def step(name: str, command: list[str], read: Callable[[int, float], Any],
+             ok: tuple[int, ...] = (0,), **kwargs: Any) -> Any:
+        """Run a step; its figures (``read(exit status, wall s)``), None if it failed."""
         log = out / f"{name}.log"
         rc, wall = _run_step(name, command, log, **kwargs)
         try:
-            value = read()
-        except (OSError, ValueError, KeyError) as exc:
-            value = None
-            why = f"no figures ({exc})"
-        else:
+            value = read(rc, wall)
             why = "" if rc in ok else f"exit {rc}"
-        if value is None or why:
+        except (OSError, ValueError, KeyError) as exc:
+            value, why = None, f"no figures ({exc})"
+        if why:
             failed.append(name)
-            print(f"pisc_bench: {name} failed: {why or 'no figures'}; the end of {log}:\n"
-                  f"{_tail(log)}", file=sys.stderr, flush=True)
-        if value is not None:
-            if isinstance(value, dict):
-                value.setdefault("step_wall_s", wall)
-            results[name] = value
+            print(f"pisc_bench: {name} failed: {why}; the end of {log}:\n{_tail(log)}",
+                  file=sys.stderr, flush=True)
+        return value
 
-    def load_json(path: Path) -> Callable[[], Any]:
-        return lambda: json.loads(path.read_text())
+    def load_json(path: Path) -> Callable[[int, float], Any]:
+        return lambda rc, wall: json.loads(path.read_text())
 
     if "anchors" in steps:
         hops, kernel = out / "anchors-hops.json", out / "anchors-kernel.json"
-        step("anchors", [python, "-m", "pisc_bringup.lockstep_bench", "--no-graph",
-                         "--json", str(hops)], load_json(hops))
-        hop_figures = results.pop("anchors", {}).get("anchors")
-        step("anchors-kernel", [python, "-m", "pisc_bringup.bench", "--kernel-anchors",
-                                str(kernel)], load_json(kernel))
-        results["anchors"] = {"hops": hop_figures or {},
-                              "kernel": results.pop("anchors-kernel", {})}
+        hop_figures = step("anchors", [python, "-m", "pisc_bringup.lockstep_bench",
+                                       "--no-graph", "--json", str(hops)], load_json(hops))
+        kernel_figures = step("anchors-kernel", [python, "-m", "pisc_bringup.bench",
+                                                 "--kernel-anchors", str(kernel)],
+                              load_json(kernel))
+        results["anchors"] = {"hops": (hop_figures or {}).get("anchors", {}),
+                              "kernel": kernel_figures or {}}
     if "first-run" in steps:
         clone = out / "first-run-clone"
         shutil.rmtree(clone, ignore_errors=True)
-        subprocess.run(["git", "clone", "-q", str(REPO), str(clone)], check=True)
-        env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHONPATH")}
-        env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep)
-                                      if not p.startswith(str(REPO)))
-        rc, wall = _run_step("first-run", ["./pisc", "run", "--duration", "10"],
-                             out / "first-run.log", cwd=clone, env=env)
-        results["first-run"] = {"rc": rc, "wall_s": wall}
-        if rc != 0:
+        cloned = subprocess.run(["git", "clone", "-q", str(REPO), str(clone)],
+                                capture_output=True, text=True, check=False)
+        if cloned.returncode != 0:
             failed.append("first-run")
-            print(f"pisc_bench: first-run failed; the end of its log:\n"
-                  f"{_tail(out / 'first-run.log')}", file=sys.stderr)
-        shutil.rmtree(clone, ignore_errors=True)
+            print(f"pisc_bench: first-run: cannot clone {REPO} (a git checkout is needed): "
+                  f"{cloned.stderr.strip()}", file=sys.stderr, flush=True)
+        else:
+            # the clone's own ./pisc and .venv, not this one's
+            env = {k: v for k, v in os.environ.items()
+                   if k not in ("VIRTUAL_ENV", "PYTHONPATH")}
+            env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep)
+                                          if not p.startswith(str(REPO)))
+            results["first-run"] = step("first-run", ["./pisc", "run", "--duration", "10"],
+                                        lambda rc, wall: {"rc": rc, "wall_s": wall},
+                                        cwd=clone, env=env)
+            shutil.rmtree(clone, ignore_errors=True)
     if "lockstep" in steps:
         path = out / "lockstep.json"
-        step("lockstep", [python, "-m", "pisc_bringup.lockstep_bench", "--no-anchors",
-                          "--repeat", str(args.repeat), "--json", str(path)], load_json(path))
+        results["lockstep"] = step("lockstep", [
+            python, "-m", "pisc_bringup.lockstep_bench", "--no-anchors", "--repeat",
+            str(args.repeat), "--json", str(path)], load_json(path))
     if "batch" in steps:
         path = out / "batch.json"
-        step("batch", [python, "-m", "pisc_bringup.batch_bench", "--rigs", str(args.rigs),
-                       "--json", str(path)], load_json(path))
+        results["batch"] = step("batch", [
+            python, "-m", "pisc_bringup.batch_bench", "--rigs", str(args.rigs), "--json",
+            str(path)], load_json(path))
     if "bag" in steps:
         path = out / "bag.json"
 
-        def read_bag() -> dict[str, Any]:
+        def read_bag(rc: int, wall: float) -> dict[str, Any]:
             tools = json.loads(path.read_text())
             return {"tools": tools, "seconds": args.bag_seconds,
                     "messages": max(r["messages"] for r in tools.values())}
 
-        step("bag", [python, "-m", "pisc_bringup.bag_bench", "--seconds",
-                     f"{args.bag_seconds:g}", "--dir", str(out / "bag"), "--json", str(path)],
-             read_bag)
+        results["bag"] = step("bag", [
+            python, "-m", "pisc_bringup.bag_bench", "--seconds", f"{args.bag_seconds:g}",
+            "--dir", str(out / "bag"), "--json", str(path)], read_bag)
         shutil.rmtree(out / "bag", ignore_errors=True)  # 100 MB a bag
     for name, extra in (("soak", []), ("soak-driver", ["--driver"])):
         if name in steps:
             directory = out / name
             shutil.rmtree(directory, ignore_errors=True)
-            step(name, [python, "-m", "pisc_bringup.soak", "--duration",
-                        f"{args.soak_seconds:g}", "--out", str(directory), *extra],
-                 load_json(directory / "report.json"), ok=(0, 1))  # 1: a target missed
+            results[name] = step(name, [
+                python, "-m", "pisc_bringup.soak", "--duration", f"{args.soak_seconds:g}",
+                "--out", str(directory), *extra], load_json(directory / "report.json"),
+                ok=(0, 1))  # 1: a target missed
+    results = {k: v for k, v in results.items() if v is not None}  # a failed step's
     results["load_end"] = " ".join(f"{x:.2f}" for x in os.getloadavg())
     results["failed"] = failed
     table = rows(results)

@@ -9,10 +9,10 @@ constants the cores form in Python formed the same way (:func:`supervisor_consta
 its kin), so they give the cores' bits: IEEE arithmetic is the same on a float and on
 an array element, numpy's float64 ``sin`` and ``cos`` are the C library's, which ``math``
 calls, and where ``math`` raises (an infinite angle, the floor of NaN) the helpers give
-numpy's NaN instead (``pisc_sim/test/test_batch_controllers.py`` compares them with the cores over
-closed-loop runs, hostile inputs and parameter changes). They are also the source the
-batch compiles (:mod:`pisc_sim.batch_controllers`): plain functions of floats, ints and
-tuples, calling nothing but ``math`` and each other. :class:`OneRigEstimator`,
+numpy's NaN instead (``pisc_sim/test/test_batch_controllers.py`` compares them with the
+cores over closed-loop runs, hostile inputs and parameter changes). They are also the
+source the batch compiles (:mod:`pisc_sim.batch_controllers`): plain functions of
+floats, ints and tuples, calling nothing but ``math`` and each other. :class:`OneRigEstimator`,
 :class:`OneRigSupervisor` and :class:`OneRigCurrentLoop` hold one rig's state for the
 nodes and :class:`pisc_sim.closed_loop.Controllers`.
 
