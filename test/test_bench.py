@@ -88,6 +88,12 @@ def test_bad_options_are_refused_with_their_names():
     bad = subprocess.run([sys.executable, "-m", "pisc_bringup.bench", "--only", "lunch"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "invalid choice: 'lunch'" in bad.stderr
+    bad = subprocess.run([sys.executable, "-m", "pisc_bringup.bench", "--only", "batch",
+                          "--skip", "batch"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "leave no step to run" in bad.stderr
+    bad = subprocess.run([sys.executable, "-m", "pisc_bringup.bench", "--out", __file__],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "exists and is not a directory" in bad.stderr
 
 
 @pytest.mark.bench

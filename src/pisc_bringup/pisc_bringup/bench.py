@@ -248,7 +248,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.soak_seconds < 15 or args.bag_seconds <= 0 or args.repeat < 1 or args.rigs < 1:
         parser.error("--soak-seconds >= 15, --bag-seconds > 0, --repeat >= 1, --rigs >= 1")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out}: exists and is not a directory")
     steps = [s for s in STEPS if s in args.only and s not in args.skip]
+    if not steps:
+        parser.error("--only and --skip leave no step to run")
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         out = args.out
