@@ -84,6 +84,52 @@ def test_structured_operators_equal_the_matrix_phi_functions():
             np.testing.assert_allclose(out, got[:, j], rtol=1e-12, atol=1e-300)
 
 
+def _exp_coefficients_one_by_one(w_ir, w_cur, c_v, lam, h):
+    """kernel.exp_coefficients as it was first written, in Python: every term a Python
+    float, added one at a time in the order s = 1/2, 1, k = 0..3, skipping alpha = 0."""
+    table = np.zeros((15, kernel.OP_WIDTH))
+    phi_cur = np.array([[kernel.phi(k, -s * h * w_cur) for k in range(4)]
+                        for s in kernel.STAGE_FRACTIONS])
+    for op, weights in enumerate(kernel.OP_WEIGHTS):
+        scale = 1.0 if op < 2 else h
+        for si, s in enumerate(kernel.STAGE_FRACTIONS):
+            sh = s * h
+            for k in range(4):
+                alpha = scale * weights[si, k]
+                if alpha == 0.0:
+                    continue
+                table[op, kernel.OP_D0] += alpha / math.factorial(k)
+                table[op, kernel.OP_D1] += alpha * sh / math.factorial(k + 1)
+                table[op, kernel.OP_DIR] += alpha * kernel.phi(k, -sh * w_ir)
+                table[op, kernel.OP_DCUR] += alpha * phi_cur[si, k]
+    table[kernel.ROW_PHI_CUR, 0:4] = phi_cur[0]
+    table[kernel.ROW_PHI_CUR, 4:8] = phi_cur[1]
+    table[kernel.ROW_CONST, 0:3] = (c_v, w_cur, h)
+    if lam != 0.0:
+        kernel._armature_operators(lam, table, np.empty((2, 8)))
+    return table
+
+
+def test_operator_tables_are_the_one_by_one_sums_bit_for_bit():
+    """The compiled exp_coefficients (two tables a cycle on the wall clock) gives the bits
+    of the Python sums, over step sizes and rates on both sides of phi's switch from the
+    series to the exponential (|z| = 2), without filters or armature."""
+    rng = np.random.default_rng(16)
+    cases = [(64.5, 452.4, 90.5, -6990.0, 0.0025), (0.0, 0.0, 0.0, 0.0, 0.0025),
+             (64.5, 800.0, 90.5, -6990.0, 0.0025)]  # |w_cur h| = 2 exactly
+    for _ in range(400):
+        w_cur = rng.choice([0.0, 10 ** rng.uniform(0, 4.5)])
+        cases.append((rng.choice([0.0, 10 ** rng.uniform(0, 4)]), w_cur, w_cur / 5.0,
+                      rng.choice([0.0, -10 ** rng.uniform(1, 5)]), 10 ** rng.uniform(-8, -1.5)))
+    switched = 0
+    for case in cases:
+        got = kernel.exp_coefficients(*case)
+        expected = _exp_coefficients_one_by_one(*case)
+        assert got.tobytes() == expected.tobytes(), (case, np.argwhere(got != expected))
+        switched += max(case[0], case[1]) * case[4] >= 2.0
+    assert 50 < switched < len(cases) - 50  # both of phi's branches taken, often
+
+
 def test_armature_rate_is_the_middle_of_the_rates_the_angle_gives():
     """lam = -R/L + d k_f / (a2 - a1/2); the state's own rate -R/L + d k_f / den(theta)
     stays within d k_f a1 / (2 den^2) of it: 0.0049 1/s on the thesis rig, 7e-7 of R/L

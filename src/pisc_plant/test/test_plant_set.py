@@ -213,7 +213,9 @@ def test_one_duration_a_rig_on_a_uniform_plant(integrator):
     (64.5, 452.4, 90.5, -6990.0, 0.0),        # a rig that does not move
     (640.0, 4520.0, 900.0, -25000.0, 0.003),  # |z| > 2 for the filters' phi
 ])
-def test_the_compiled_operator_tables_equal_the_python_ones_exactly(case):
+def test_a_plant_sets_operator_tables_equal_one_rigs_exactly(case):
+    """exp_tables (a table a rig) against exp_coefficients, which test_kernel.py pins
+    to the sums in Python."""
     w_ir, w_cur, c_v, lam, h = case
     out = np.empty((1, kernel.N_TABLE * kernel.BLOCK))
     kernel.exp_tables(w_ir, w_cur, c_v, np.array([lam]), np.array([h]), out)
@@ -222,7 +224,7 @@ def test_the_compiled_operator_tables_equal_the_python_ones_exactly(case):
                                   expected[:kernel.N_OPERATORS].ravel())
 
 
-def test_the_compiled_tables_of_many_rigs_equal_the_python_ones_exactly():
+def test_the_tables_of_many_rigs_equal_one_rigs_exactly():
     """Steps and rates of their own, repeated ones (which reuse the previous rig's work)
     and zeros, across blocks."""
     rigs = 3 * kernel.BLOCK + 3
