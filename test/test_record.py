@@ -510,7 +510,8 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
     the recorder's progress (/pisc/recorder/progress) when it is 20 samples ahead of it.
 
     Here the recorder is stopped (SIGSTOP) for 3 s once its bag holds about 600 cycles
-    (3 s of the 30 s run; the plant cannot be far ahead of it). Stopped once this test's
+    (3 s of the 15 s run; the plant cannot be far ahead of it: 12 s of the run are left,
+    2-3 s of wall time at the lockstep's pace with --processes). Stopped once this test's
     subscriber had seen 600 voltages, the run ended first when that subscriber was
     discovered late (1 of 4 runs on 2026-12-03); stopped at the recorder's ready file,
     before the run began, a controller's first messages were lost when its publisher had
@@ -519,7 +520,7 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
     of that sample or later reaches an outside subscriber before the recorder goes on; the
     bag has every cycle."""
     bag = tmp_path / "stalled"
-    duration_s = 30.0
+    duration_s = 15.0
     graph, watch = start_graph_with_watch(
         ["--duration", str(duration_s), *(["--processes"] if processes else [])], bag,
         env_for_domain, ros_context)
@@ -558,7 +559,7 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
     assert "(true state)" in out, out
     # every cycle's stamp on every sample topic (a sample left unanswered for
     # resend_after_s, as after the recorder's return, is sent again: 6,003 messages of
-    # the plant's topics in one run)
+    # each plant topic in a 30 s run of 6,001 cycles; stamps are counted, not messages)
     stamps: dict[str, set[int]] = {}
     for m in read_bag_raw(bag, [JOINT_STATES.name, MOTOR_CURRENT.name, SIM_STATE.name,
                                 VOLTAGE.name, CURRENT_SETPOINT.name]):
