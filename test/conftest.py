@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import os
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -12,11 +13,12 @@ from pathlib import Path
 import pytest
 import rclpy
 from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from pisc_msgs_py.processes import DomainClaim
 
-__all__ = ["DomainClaim", "recorder_pid", "spin_until"]
+__all__ = ["DomainClaim", "VoltageWatch", "recorder_pid", "spin_until", "start_graph_with_watch"]
 
 @pytest.fixture(autouse=True)
 def _no_virtual_rig_outlives_its_test() -> Iterator[None]:
@@ -111,3 +113,46 @@ def recorder_pid(bag: Path) -> int | None:
                                                 c == b"pisc_bringup.record" for c in cmdline):
             return int(proc.name)
     return None
+
+
+class VoltageWatch:
+    """An outside subscriber of the voltage: each one's DDS reception time (wall clock).
+
+    Subscribes once the graph has found its recorder (the bag's parameter file exists):
+    a subscriber there before would be taken for the recorder."""
+
+    def __init__(self, ros_context) -> None:
+        from pisc_bringup.bag import header_stamp_ns
+        from pisc_bringup.recorder_node import recording_qos
+        from pisc_msgs_py.base_node import message_class
+        from pisc_msgs_py.topics import VOLTAGE
+
+        self.node = Node("voltage_watch", context=ros_context)
+        self.executor = SingleThreadedExecutor(context=ros_context)
+        self.executor.add_node(self.node)
+        self.received: list[tuple[int, int]] = []  # (reception ns, stamp)
+        self.sub = self.node.create_subscription(
+            message_class(VOLTAGE.type), VOLTAGE.name,
+            lambda data, info: self.received.append(
+                (info["received_timestamp"], header_stamp_ns(data))),
+            recording_qos(VOLTAGE), raw=True)
+
+    def spin_until(self, predicate, timeout_s: float) -> bool:
+        return spin_until(self.executor, predicate, timeout_s)
+
+    def close(self) -> None:
+        if self.sub is not None:
+            self.sub = None
+            self.node.destroy_node()
+
+
+
+def start_graph_with_watch(args: list[str], bag: Path, env, ros_context):
+    graph = subprocess.Popen([sys.executable, "-m", "pisc_bringup.graph", "--bag", str(bag),
+                              *args], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60.0
+    while not (bag / "pisc_params.yaml").exists():
+        assert graph.poll() is None and time.monotonic() < deadline, graph.communicate()
+        time.sleep(0.002)
+    return graph, VoltageWatch(ros_context)

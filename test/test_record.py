@@ -19,14 +19,13 @@ from rclpy.node import Node
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from conftest import recorder_pid, spin_until
+from conftest import VoltageWatch, recorder_pid, spin_until, start_graph_with_watch
 from pisc_bringup.bag import (
     bag_files,
     bag_topics,
     header_stamp_ns,
     index_problems,
     read_bag,
-    read_bag_raw,
 )
 from pisc_bringup.bag_readers import READERS, read_every_way
 from pisc_bringup.graph import RunOptions, run_graph
@@ -42,11 +41,9 @@ from pisc_msgs_py.topics import (
     CART_FORCE,
     CLOCK,
     CURRENT_SETPOINT,
-    DIAGNOSTICS,
     GRAPH_TOPICS,
     JOINT_STATES,
     MOTOR_CURRENT,
-    SIM_STATE,
     STATE,
     VOLTAGE,
     VOLTAGE_SENT,
@@ -296,35 +293,6 @@ def test_a_run_records_what_it_is_asked_and_its_own_topics(tmp_path, domain_id):
     assert not (tmp_path / "none").exists()
 
 
-class VoltageWatch:
-    """An outside subscriber of the voltage: each one's DDS reception time (wall clock).
-
-    Subscribes once the graph has found its recorder (the bag's parameter file exists):
-    a subscriber there before would be taken for the recorder."""
-
-    def __init__(self, ros_context) -> None:
-        from pisc_bringup.recorder_node import recording_qos
-        from pisc_msgs_py.base_node import message_class
-
-        self.node = Node("voltage_watch", context=ros_context)
-        self.executor = SingleThreadedExecutor(context=ros_context)
-        self.executor.add_node(self.node)
-        self.received: list[tuple[int, int]] = []  # (reception ns, stamp)
-        self.sub = self.node.create_subscription(
-            message_class(VOLTAGE.type), VOLTAGE.name,
-            lambda data, info: self.received.append(
-                (info["received_timestamp"], header_stamp_ns(data))),
-            recording_qos(VOLTAGE), raw=True)
-
-    def spin_until(self, predicate, timeout_s: float) -> bool:
-        return spin_until(self.executor, predicate, timeout_s)
-
-    def close(self) -> None:
-        if self.sub is not None:
-            self.sub = None
-            self.node.destroy_node()
-
-
 def kill_the_recorder(graph: subprocess.Popen, bag: Path, watch: VoltageWatch,
                       cycles: int) -> tuple[int, int]:
     """SIGKILL pisc_record once ``watch`` has seen ``cycles`` voltages; returns the wall
@@ -340,17 +308,6 @@ def kill_the_recorder(graph: subprocess.Popen, bag: Path, watch: VoltageWatch,
     dead_ns = time.time_ns()
     os.close(pidfd)
     return killed_ns, dead_ns
-
-
-def start_graph_with_watch(args: list[str], bag: Path, env, ros_context):
-    graph = subprocess.Popen([sys.executable, "-m", "pisc_bringup.graph", "--bag", str(bag),
-                              *args], env=env, stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60.0
-    while not (bag / "pisc_params.yaml").exists():
-        assert graph.poll() is None and time.monotonic() < deadline, graph.communicate()
-        time.sleep(0.002)
-    return graph, VoltageWatch(ros_context)
 
 
 @pytest.mark.parametrize("clock", ["lockstep", pytest.param("wall", marks=pytest.mark.realtime)])
@@ -499,91 +456,3 @@ def test_the_recorders_progress_is_the_oldest_of_its_sample_topics_newest(tmp_pa
     node._say_progress()
     assert said == [3 * ms, 5 * ms]
     node.destroy_node()
-
-
-@pytest.mark.parametrize("processes", [False, True], ids=["one process", "processes"])
-def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
-        tmp_path, ros_context, env_for_domain, processes):
-    """CI (stop 20): a lockstep run's bag missed 338 of its 2001 cycles. A publisher keeps
-    100 messages until the recorder has them, and the lockstep graph makes ~1,800 samples
-    a second: a recorder without the CPU for 55 ms lost messages. Now the plant waits for
-    the recorder's progress (/pisc/recorder/progress) when it is 20 samples ahead of it.
-
-    Here the recorder is stopped (SIGSTOP) for 3 s once its bag holds about 600 cycles
-    (3 s of the 15 s run; the plant cannot be far ahead of it: 12 s of the run are left,
-    2-3 s of wall time at the lockstep's pace with --processes). Stopped once this test's
-    subscriber had seen 600 voltages, the run ended first when that subscriber was
-    discovered late (1 of 4 runs on 2026-12-03); stopped at the recorder's ready file,
-    before the run began, a controller's first messages were lost when its publisher had
-    not yet matched the stopped recorder (1 of 3), and the plant, whose publishers wait
-    for it, did not start. The plant holds a sample and says so after 0.5 s; no voltage
-    of that sample or later reaches an outside subscriber before the recorder goes on; the
-    bag has every cycle."""
-    bag = tmp_path / "stalled"
-    duration_s = 15.0
-    graph, watch = start_graph_with_watch(
-        ["--duration", str(duration_s), *(["--processes"] if processes else [])], bag,
-        env_for_domain, ros_context)
-    try:
-        pid = recorder_pid(bag)
-        assert pid is not None, graph.communicate()
-        # the recorder writes each message as it takes it: about 1 kB a cycle
-        assert watch.spin_until(lambda: graph.poll() is not None or sum(
-            f.stat().st_size for f in bag.glob("*.mcap")) > 600_000, 120.0)
-        assert graph.poll() is None, graph.communicate()
-        stopped_ns = time.time_ns()
-        os.kill(pid, signal.SIGSTOP)
-        try:
-            watch.spin_until(lambda: False, 3.0)
-            running = graph.poll() is None
-            resumed_ns = time.time_ns()
-        finally:
-            os.kill(pid, signal.SIGCONT)
-            # a subscriber that keeps all and takes nothing more would hold the graph's
-            # publishers waiting for its acknowledgement at the end of the run
-            watch.close()
-        out, err = graph.communicate(timeout=120)
-    finally:
-        watch.close()
-        if graph.poll() is None:
-            graph.kill()
-            graph.communicate()
-    before = [stamp for received, stamp in watch.received if received < resumed_ns]
-    newest = round(max(before, default=-1) * 1e-9 / PERIOD_S)
-    print(f"\n{len(before)} voltages reached an outside subscriber while the recorder was "
-          f"stopped for 3 s, the newest of sample {newest}\n{out}\n{err[-2000:]}")
-    assert running, (out, err)
-    assert graph.returncode == 0, (out, err)
-    cycles = round(duration_s / PERIOD_S) + 1
-    assert f"cycles                 {cycles} ({duration_s:.3f} s)" in out, out
-    assert "(true state)" in out, out
-    # every cycle's stamp on every sample topic (a sample left unanswered for
-    # resend_after_s, as after the recorder's return, is sent again: 6,003 messages of
-    # each plant topic in a 30 s run of 6,001 cycles; stamps are counted, not messages)
-    stamps: dict[str, set[int]] = {}
-    for m in read_bag_raw(bag, [JOINT_STATES.name, MOTOR_CURRENT.name, SIM_STATE.name,
-                                VOLTAGE.name, CURRENT_SETPOINT.name]):
-        stamps.setdefault(m.topic, set()).add(header_stamp_ns(m.data))
-    counts = {topic: len(s) for topic, s in stamps.items()}
-    assert len(counts) == 5 and set(counts.values()) == {cycles}, counts
-    assert "the bag misses" not in err, err
-    # the plant said on /diagnostics (so in the bag) which sample it held and that it went
-    # on with it; on a loaded machine a recorder short of the CPU for over 0.5 s later in
-    # the run says so too
-    plant = [s.message for m in read_bag(bag, [DIAGNOSTICS.name]) for s in m.message.status
-             if s.name == "pisc/plant" and "the recorder" in s.message]
-    waits = [w for w in plant if "waiting for the recorder" in w]
-    assert waits and all(w.startswith("lockstep: waiting for the recorder: sample ")
-                         for w in waits), plant
-    # the stop's: the first sample held after every one seen before the stop (a wait of a
-    # recorder short of the CPU earlier in the run holds an earlier sample)
-    period_ns = round(PERIOD_S * 1e9)
-    seen = max((stamp for received, stamp in watch.received if received < stopped_ns),
-               default=-1)
-    samples = [int(w.removeprefix("lockstep: waiting for the recorder: sample ").split()[0])
-               for w in waits]
-    held = min((n for n in samples if n * period_ns > seen), default=None)
-    assert held is not None, (seen, waits)
-    assert f"lockstep: the recorder caught up; sample {held} published" in plant, plant
-    # and held it: nothing of it or later reached the outside before the recorder went on
-    assert all(stamp < held * period_ns for stamp in before), (held, before[-5:])
