@@ -18,7 +18,8 @@ from rclpy.node import Node
 
 from pisc_msgs_py.processes import DomainClaim
 
-__all__ = ["DomainClaim", "VoltageWatch", "recorder_pid", "spin_until", "start_graph_with_watch"]
+__all__ = ["DomainClaim", "VoltageWatch", "recorder_pid", "spin_until",
+           "start_graph_with_watch"]
 
 @pytest.fixture(autouse=True)
 def _no_virtual_rig_outlives_its_test() -> Iterator[None]:
@@ -146,8 +147,9 @@ class VoltageWatch:
             self.node.destroy_node()
 
 
-
 def start_graph_with_watch(args: list[str], bag: Path, env, ros_context):
+    """``python -m pisc_bringup.graph --bag BAG ARGS`` and, once it has found its
+    recorder, a :class:`VoltageWatch` of it."""
     graph = subprocess.Popen([sys.executable, "-m", "pisc_bringup.graph", "--bag", str(bag),
                               *args], env=env, stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)

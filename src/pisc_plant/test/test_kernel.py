@@ -113,14 +113,15 @@ def _exp_coefficients_one_by_one(w_ir, w_cur, c_v, lam, h):
 def test_operator_tables_are_the_one_by_one_sums_bit_for_bit():
     """The compiled exp_coefficients (two tables a cycle on the wall clock) gives the bits
     of the Python sums, over step sizes and rates on both sides of phi's switch from the
-    series to the exponential (|z| = 2), without filters or armature."""
+    series to the exponential (|z| = 2), with and without filters and armature."""
     rng = np.random.default_rng(16)
     cases = [(64.5, 452.4, 90.5, -6990.0, 0.0025), (0.0, 0.0, 0.0, 0.0, 0.0025),
              (64.5, 800.0, 90.5, -6990.0, 0.0025)]  # |w_cur h| = 2 exactly
     for _ in range(400):
         w_cur = rng.choice([0.0, 10 ** rng.uniform(0, 4.5)])
-        cases.append((rng.choice([0.0, 10 ** rng.uniform(0, 4)]), w_cur, w_cur / 5.0,
-                      rng.choice([0.0, -10 ** rng.uniform(1, 5)]), 10 ** rng.uniform(-8, -1.5)))
+        w_ir = rng.choice([0.0, 10 ** rng.uniform(0, 4)])
+        lam = rng.choice([0.0, -10 ** rng.uniform(1, 5)])
+        cases.append((w_ir, w_cur, w_cur / 5.0, lam, 10 ** rng.uniform(-8, -1.5)))
     switched = 0
     for case in cases:
         got = kernel.exp_coefficients(*case)
