@@ -12,9 +12,9 @@ calls, and where ``math`` raises (an infinite angle, the floor of NaN) the helpe
 numpy's NaN instead (``pisc_sim/test/test_batch_controllers.py`` compares them with the
 cores over closed-loop runs, hostile inputs and parameter changes). They are also the
 source the batch compiles (:mod:`pisc_sim.batch_controllers`): plain functions of
-floats, ints and tuples, calling nothing but ``math`` and each other. :class:`OneRigEstimator`,
-:class:`OneRigSupervisor` and :class:`OneRigCurrentLoop` hold one rig's state for the
-nodes and :class:`pisc_sim.closed_loop.Controllers`.
+floats, ints and tuples, calling nothing but ``math`` and each other.
+:class:`OneRigEstimator`, :class:`OneRigSupervisor` and :class:`OneRigCurrentLoop` hold
+one rig's state for the nodes and :class:`pisc_sim.closed_loop.Controllers`.
 
 Implements the differences (4.7), (4.9) over N periods with the optional low-pass; the
 switching rule (4.1) with hysteresis and energy band, the swing-up laws (3.30) and
