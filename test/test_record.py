@@ -421,12 +421,12 @@ def test_a_killed_recorder_in_a_driver_run_leaves_the_rig_at_zero_volts(
     assert out.startswith(f"bag: {bag} (what was recorded before pisc_record died)\n"), out
 
 
-def test_the_recorders_progress_is_the_oldest_of_its_sample_topics_newest(tmp_path,
-                                                                          ros_context):
+def test_the_recorders_progress_is_the_oldest_of_its_sample_topics_newest(
+        tmp_path, ros_context, monkeypatch):
     """pisc_record --progress NAME ...: the stamp said on /pisc/recorder/progress is the
     oldest of the newest stamps written of each topic named (a topic whose message DDS
     sends again lags the others); nothing is said before each has been written, and a
-    stamp only once."""
+    stamp once, and again only when the recorder has been idle for resay_after_s."""
     from pisc_bringup.bag import BagWriter
     from pisc_bringup.recorder_node import RecorderNode
     from pisc_msgs_py.convert import clock_to_cdr, motor_sample_to_cdr
@@ -459,10 +459,27 @@ def test_the_recorders_progress_is_the_oldest_of_its_sample_topics_newest(tmp_pa
     assert said == [3 * ms]
     node._note_progress(batch(volts(4), volts(5), volts(6), volts(7)))
     assert said == [3 * ms]  # /clock holds it back: its sample 4 is not yet written
-    node._say_progress()  # woken to nothing: the same stamp is not said again
+    now = [100.0]
+    monkeypatch.setattr("pisc_bringup.recorder_node.time.monotonic", lambda: now[0])
+    node._say_progress(idle=True)  # woken to nothing: the same stamp is not said again
     assert said == [3 * ms]
     node._note_progress(batch(clock(4), clock(5)))
     assert said == [3 * ms]  # one sample's worth
-    node._say_progress()
+    node._say_progress(idle=True)
     assert said == [3 * ms, 5 * ms]
+    # woken to nothing resay_after_s (1 s) after it was last said: the same stamp again,
+    # so that a held plant that missed it is not held for good
+    now[0] += 0.99
+    node._say_progress(idle=True)
+    assert said == [3 * ms, 5 * ms]
+    now[0] += 0.01
+    node._say_progress()  # not idle (a batch with nothing new): not said again
+    assert said == [3 * ms, 5 * ms]
+    node._say_progress(idle=True)
+    assert said == [3 * ms, 5 * ms, 5 * ms]
+    node._say_progress(idle=True)
+    assert said == [3 * ms, 5 * ms, 5 * ms]
     node.destroy_node()
+    with pytest.raises(ValueError, match="resay_after_s = 0: must be > 0"):
+        RecorderNode(BagWriter(tmp_path / "refused2", topics), topics, resay_after_s=0,
+                     context=ros_context)

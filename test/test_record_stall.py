@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import time
 
 import pytest
 
 from conftest import recorder_pid, start_graph_with_watch
-from pisc_bringup.bag import header_stamp_ns, read_bag, read_bag_raw
+from pisc_bringup.bag import BagError, header_stamp_ns, read_bag, read_bag_raw
 from pisc_msgs_py.topics import (
     CURRENT_SETPOINT,
     DIAGNOSTICS,
@@ -23,6 +24,28 @@ from pisc_msgs_py.topics import (
 pytestmark = pytest.mark.integration
 
 PERIOD_S = 0.005
+
+
+def _stuck(graph: subprocess.Popen, bag) -> str:
+    """A run that did not end: stop it (SIGINT, as Ctrl-C) and say what it and its bag
+    show, which side of the recorder's progress stood still."""
+    graph.send_signal(signal.SIGINT)
+    try:
+        out, err = graph.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        graph.kill()
+        out, err = graph.communicate()
+    newest: dict[str, int] = {}
+    try:
+        for m in read_bag_raw(bag, [JOINT_STATES.name, MOTOR_CURRENT.name, SIM_STATE.name,
+                                    VOLTAGE.name, CURRENT_SETPOINT.name]):
+            stamp = header_stamp_ns(m.data)
+            if stamp is not None:
+                newest[m.topic] = max(newest.get(m.topic, -1), stamp)
+    except (BagError, OSError) as exc:
+        newest = {"unreadable": str(exc)}
+    return (f"the run did not end 120 s after the recorder went on; newest sample of each "
+            f"topic in its bag: {newest}\n{out}\n{err[-4000:]}")
 
 
 @pytest.mark.parametrize("processes", [False, True], ids=["one process", "processes"])
@@ -66,7 +89,10 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
             # a subscriber that keeps all and takes nothing more would hold the graph's
             # publishers waiting for its acknowledgement at the end of the run
             watch.close()
-        out, err = graph.communicate(timeout=120)
+        try:
+            out, err = graph.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            pytest.fail(_stuck(graph, bag))
     finally:
         watch.close()
         if graph.poll() is None:

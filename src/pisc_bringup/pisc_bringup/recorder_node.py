@@ -25,7 +25,13 @@ recorded topics the graph publishes every sample) the recorder publishes, on
 ``/pisc/recorder/progress`` (:data:`pisc_msgs_py.topics.RECORDER_PROGRESS`), the oldest
 of the newest stamps it has written of each of them, after every ``progress_every``
 samples' worth of their messages and when it wakes to nothing; the lockstep plant does
-not run more than ``simulation.recorder_lag_samples`` ahead of it. Each topic counts: a
+not run more than ``simulation.recorder_lag_samples`` ahead of it. Woken to nothing, it
+says the same stamp again every ``resay_after_s``: the stamp that releases a held plant
+is then not a single message (the plant's subscription keeps only the newest), so the
+run cannot stand still on one that did not reach the plant (in full-suite runs of
+2026-12-03 a plant stayed held after a 3 s stop of the recorder until the test's 120 s
+timeout, twice; not seen in 8 runs of that test alone beside a CPU hog on 2026-12-04, so
+which side lost what is not known). Each topic counts: a
 reliable reader delivers a publisher's messages in order, so a message lost on the way
 holds back the later ones of its topic until it is sent again, while the others go on
 (before 2026-12-03 the voltage alone was followed: a recorder stopped for 3 s then lost
@@ -35,6 +41,7 @@ turned off 1 of /pisc/cart_force in 1 of 6).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -71,6 +78,7 @@ class RecorderNode(Node):
         on_message: Callable[[str, bytes], None] | None = None,
         progress: Sequence[str] = (),
         progress_every: int = 5,
+        resay_after_s: float = 1.0,
         **kwargs: Any,
     ) -> None:
         kwargs.setdefault("start_parameter_services", False)
@@ -84,6 +92,8 @@ class RecorderNode(Node):
                 raise ValueError(f"progress: {name} is not a recorded topic")
         if progress_every < 1:
             raise ValueError(f"progress_every = {progress_every}: must be >= 1")
+        if not resay_after_s > 0:
+            raise ValueError(f"resay_after_s = {resay_after_s}: must be > 0")
         # newest stamp written of each ``progress`` topic
         self._newest_ns: dict[str, int] = dict.fromkeys(progress, -1)
         self._progress_every = progress_every * len(self._newest_ns)
@@ -91,6 +101,8 @@ class RecorderNode(Node):
             message_class(RECORDER_PROGRESS.type), RECORDER_PROGRESS.name,
             qos_profile(RECORDER_PROGRESS.qos)) if progress else None)
         self._said_ns = -1
+        self._said_at = 0.0  # time.monotonic() when it was last said
+        self._resay_after_s = resay_after_s
         self._unsaid = 0  # messages of ``progress`` written since it was last said
         self.received: dict[str, int] = {t.name: 0 for t in topics}
         self._subs = {
@@ -115,7 +127,7 @@ class RecorderNode(Node):
                 data, info = taken
                 batch.append((info["received_timestamp"], name, data, info["source_timestamp"]))
         if not batch:
-            self._say_progress()
+            self._say_progress(idle=True)
             return 0
         batch.sort(key=lambda item: item[0])
         for log_time, name, data, publish_time in batch:
@@ -142,16 +154,19 @@ class RecorderNode(Node):
         if self._unsaid >= self._progress_every:
             self._say_progress()
 
-    def _say_progress(self) -> None:
+    def _say_progress(self, idle: bool = False) -> None:
         """Publish the oldest of the newest stamps written of each progress topic, once
-        every one has been written and when it has moved."""
+        every one has been written and when it has moved; ``idle`` (woken to nothing):
+        also the same stamp again when it was last said ``resay_after_s`` ago."""
         if not self._newest_ns:
             return
         self._unsaid = 0
         oldest = min(self._newest_ns.values())
-        if oldest > self._said_ns:
+        now = time.monotonic()
+        if oldest > self._said_ns or (
+                idle and self._said_ns >= 0 and now - self._said_at >= self._resay_after_s):
             self._progress_pub.publish(clock_to_cdr(oldest))
-            self._said_ns = oldest
+            self._said_ns, self._said_at = oldest, now
 
     def publisher_count(self, topic: str) -> int:
         """Publishers this recorder's subscription of ``topic`` has matched."""
