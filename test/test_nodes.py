@@ -25,8 +25,16 @@ from pisc_msgs_py.convert import (
     joint_sample_to_msg,
     motor_sample_from_msg,
     motor_sample_to_msg,
+    stamp_from_msg,
 )
-from pisc_msgs_py.topics import CLOCK, DIAGNOSTICS, JOINT_STATES, MOTOR_CURRENT, STATE, VOLTAGE
+from pisc_msgs_py.topics import (
+    CLOCK,
+    DIAGNOSTICS,
+    JOINT_STATES,
+    MOTOR_CURRENT,
+    STATE,
+    VOLTAGE,
+)
 from pisc_msgs_py.types import JointSample, MotorSample
 from pisc_plant.plant_node import PlantNode
 
@@ -49,6 +57,8 @@ NODES = {"plant": PlantNode, "estimator": EstimatorNode, "supervisor": Superviso
      r"integrator.substeps = 2 is too few for rk4"),
     ("estimator", {"estimator.velocity_filter_hz": "fast"}, r"expected a number, got 'fast'"),
     ("supervisor", {"swing_up.k_vv": 0.1}, r"swing_up.k_vv: unknown parameter"),
+    ("plant", {"simulation.clock_every": 0},
+     r"simulation.clock_every = 0 must lie in \[1, 1000\]"),
 ])
 def test_node_refuses_to_start_on_an_invalid_parameter(ros_context, node, overrides, message):
     params = [Parameter(k, value=v) for k, v in overrides.items()]
@@ -96,6 +106,45 @@ def test_the_lockstep_plant_waits_for_every_clock_subscriber_it_was_told_of(ros_
     finally:
         plant.destroy_node()
         probe.destroy_node()
+
+
+def test_the_lockstep_plant_publishes_clock_with_every_clock_every_th_sample(ros_context):
+    """/clock carries the stamps of samples 0, N, 2N, ... (simulation.clock_every = N),
+    and the nodes on simulated time see it from the first sample on."""
+    plant = PlantNode(context=ros_context, parameter_overrides=[
+        Parameter("simulation.clock", value="lockstep"),
+        Parameter("simulation.clock_every", value=3),
+        Parameter("simulation.min_clock_subscribers", value=1),
+        Parameter("simulation.command_node", value="probe"),
+        Parameter("simulation.start_settle_s", value=0.05)])
+    probe = rclpy.node.Node("probe", context=ros_context)
+    samples: list[int] = []
+    clocks: list[int] = []
+    voltage = probe.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
+                                     qos_profile(VOLTAGE.qos))
+
+    def answer(msg) -> None:  # each sample answered with 0 V of its stamp: time goes on
+        samples.append(stamp_from_msg(msg.header.stamp))
+        voltage.publish(motor_sample_to_msg(MotorSample(samples[-1], 0.0)))
+
+    probe.create_subscription(message_class(JOINT_STATES.type), JOINT_STATES.name, answer,
+                              qos_profile(JOINT_STATES.qos))
+    probe.create_subscription(message_class(MOTOR_CURRENT.type), MOTOR_CURRENT.name,
+                              lambda msg: None, qos_profile(MOTOR_CURRENT.qos))
+    probe.create_subscription(message_class(CLOCK.type), CLOCK.name,
+                              lambda msg: clocks.append(stamp_from_msg(msg.clock)),
+                              qos_profile(CLOCK.qos))
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(plant)
+    executor.add_node(probe)
+    try:
+        assert spin_until(executor, lambda: len(samples) >= 10, 20.0)
+        spin_until(executor, lambda: len(clocks) >= 4, 2.0)
+    finally:
+        plant.destroy_node()
+        probe.destroy_node()
+    assert samples[:10] == [k * 5_000_000 for k in range(10)]
+    assert clocks[:4] == [0, 15_000_000, 30_000_000, 45_000_000]
 
 
 def test_a_running_node_refuses_a_bad_change_and_takes_a_good_one(ros_context):

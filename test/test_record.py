@@ -194,6 +194,9 @@ def test_the_recorder_says_it_is_ready_once_it_has_matched_every_publisher(
     (["--ready-file", "taken"],
      "--ready-file taken: exists already (a runner would take the recorder as ready at once)"),
     (["--ready-file", "missing/R"], "--ready-file missing/R: missing is not a directory"),
+    (["--gather", "-0.001"], "--gather -0.001: must be a number of seconds >= 0 and < 1"),
+    (["--gather", "nan"], "--gather nan: must be a number of seconds >= 0 and < 1"),
+    (["--gather", "1"], "--gather 1.0: must be a number of seconds >= 0 and < 1"),
     (["--topic", "/pisc/forces"], "/pisc/forces is not a topic of the graph (topics: "
      + ", ".join(t.name for t in GRAPH_TOPICS) + ")"),
 ])

@@ -572,16 +572,22 @@ LAUNCH_FILES = {False: "sim", True: "rig"}
 
 # Lockstep: how many samples the plant may run ahead of the newest sample the recorder
 # has written whole (simulation.recorder_lag_samples). With what the recorder reports
-# every 5 samples (pisc_record --progress), at most 25 samples' messages (8 a sample) are on
-# their way to it: well inside each publisher's history of 100 (CONTROL_QOS) and Fast
+# every 5 samples (pisc_record --progress), at most 25 samples' messages (7-8 a sample)
+# are on their way to it: well inside each publisher's history of 100 (CONTROL_QOS) and Fast
 # DDS's shared-memory port of 512 messages. With 50, a recorder stopped for 1 s froze
 # the whole --processes graph in 2 of 13 runs (the plant's timer did not run either):
 # most likely a writer waiting for a reader whose port was full (docs/recording.md).
 RECORDER_LAG_SAMPLES = 20
+# Lockstep: the recorder lets messages gather this long after writing a batch (pisc_record
+# --gather), so that it wakes about once a cycle, not for each of a cycle's 7-8 messages:
+# a 10 s --processes loop 1.81-2.01 s with it, 2.00-2.12 s without (interleaved, 2026-12-04,
+# docs/figures.md). Well inside what the plant lets it trail (RECORDER_LAG_SAMPLES).
+RECORDER_GATHER_S = 0.001
 # what a lockstep graph publishes once every sample: the recorder's progress is the
 # oldest of the newest it has written of each (a topic whose message DDS sends again
-# lags the others)
-SAMPLE_TOPICS = (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, CLOCK, STATE, CART_FORCE,
+# lags the others). Not /clock: it goes out with every simulation.clock_every-th sample
+# only, and as a progress topic it held the plant back once clock_every neared the lag.
+SAMPLE_TOPICS = (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, STATE, CART_FORCE,
                  CURRENT_SETPOINT, VOLTAGE)
 
 
@@ -728,6 +734,7 @@ def run_graph(options: RunOptions) -> RunResult:
         topic_args += [arg for t in recorded if t in SAMPLE_TOPICS
                        and expected_publishers(t, publishers, lockstep)
                        for arg in ("--progress", t.name)]
+        topic_args += ["--gather", str(RECORDER_GATHER_S)]
     topic_args += ["--ready-file", str(ready), *(
         arg for t in recorded
         for arg in ("--expect", f"{t.name}={expected_publishers(t, publishers, lockstep)}"))]

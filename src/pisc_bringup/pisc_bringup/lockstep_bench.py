@@ -47,8 +47,9 @@ from pisc_msgs_py.topics import (
 __all__ = ["main", "ping_pong"]
 
 PING, PONG = "/pisc_bench/ping", "/pisc_bench/pong"
-# the topics of every cycle (the mode is published on change, /diagnostics now and then)
-CYCLE_TOPICS = (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, CLOCK, STATE, CART_FORCE,
+# the topics of every cycle (the mode is published on change, /diagnostics now and then,
+# /clock with every simulation.clock_every-th sample)
+CYCLE_TOPICS = (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, STATE, CART_FORCE,
                 CURRENT_SETPOINT, VOLTAGE)
 
 
@@ -163,15 +164,18 @@ def ping_pong(hops: int, as_bytes: bool, reader: bool, domain_id: int) -> tuple[
 
 def _graph(duration_s: float, processes: bool, domain_id: int) -> dict[str, float | bool]:
     from pisc_bringup.graph import RunOptions, run_graph
+    from pisc_plant.plant_node import SimulationParams
 
     with tempfile.TemporaryDirectory(prefix="pisc_bench-") as scratch:
         result = run_graph(RunOptions(duration_s=duration_s, processes=processes,
                                       bag_dir=Path(scratch) / "bag", domain_id=domain_id))
     if result.published:  # one process: what its nodes published, topic by topic
         complete = all(result.recorded.get(t, 0) == n for t, n in result.published.items())
-    else:  # processes: a message of each cycle topic per cycle
-        complete = all(result.recorded.get(t.name, 0) >= result.summary.cycles
-                       for t in CYCLE_TOPICS)
+    else:  # processes: a message of each cycle topic per cycle, /clock every clock_every
+        cycles = result.summary.cycles
+        complete = (all(result.recorded.get(t.name, 0) >= cycles for t in CYCLE_TOPICS)
+                    and result.recorded.get(CLOCK.name, 0)
+                    >= -(-cycles // SimulationParams().clock_every))
     return {"loop": result.loop_s or float("nan"),
             "cpu": result.loop_cpu_s if not processes else float("nan"),
             "wall": result.wall_s, "messages": float(sum(result.recorded.values())),

@@ -1,7 +1,7 @@
 """pisc_record: record graph topics to a rosbag2 MCAP bag until SIGINT or SIGTERM.
 
     pisc_record --bag DIR [--topic NAME ...] [--ready-file PATH [--expect NAME=N ...]]
-                [--progress NAME]
+                [--progress NAME] [--gather S]
 
 A process of its own, so recording competes with the control loop for nothing but a
 CPU core. Every message is written as soon as it is taken (:mod:`pisc_bringup.
@@ -24,6 +24,13 @@ on ``/pisc/recorder/progress`` the oldest of the newest stamps written to the ba
 of them, after every 5 samples' worth: a lockstep plant with
 ``simulation.recorder_lag_samples`` waits on it (pisc_graph passes each sample topic of
 the run; :mod:`pisc_bringup.recorder_node`).
+
+``--gather S``: after writing what it took, the recorder lets messages gather for S
+seconds before it waits for more, so it wakes once for several of them, not for each
+(default 0: it takes each as it comes). Killed, it then also loses what arrived in those
+S seconds. pisc_graph passes 1 ms in lockstep, where the plant waits for the recorder's
+progress and a recorder woken for every message took 40 % of a core of the two a
+``--processes`` run shares (docs/figures.md); on the wall clock it passes nothing.
 """
 
 from __future__ import annotations
@@ -63,8 +70,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="a recorded topic published every sample (repeatable): publish "
                              "the oldest of the newest stamps written of each on "
                              "/pisc/recorder/progress (a lockstep plant waits on it)")
+    parser.add_argument("--gather", type=float, default=0.0, metavar="S",
+                        help="after writing what it took, let messages gather for S seconds "
+                             "before taking more (fewer wake-ups; a kill also loses what "
+                             "arrived in them); default 0")
     args, ros_args = parser.parse_known_args(argv)
     try:
+        if not 0.0 <= args.gather < 1.0:  # also refuses nan
+            raise ValueError(f"--gather {args.gather}: must be a number of seconds >= 0 "
+                             "and < 1")
         topics = list(graph_topics_named(args.topic) if args.topic else GRAPH_TOPICS)
         expected = _expected_publishers(args.expect, [t.name for t in topics], args.ready_file)
         for name in args.progress:
@@ -87,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     node = RecorderNode(writer, topics, progress=args.progress)
     try:
         while not stop:
-            node.take(0.1 if expected is None else 0.01)
+            if node.take(0.1 if expected is None else 0.01) and args.gather:
+                time.sleep(args.gather)
             if expected is not None and all(
                     node.publisher_count(name) >= n for name, n in expected.items()):
                 args.ready_file.touch()

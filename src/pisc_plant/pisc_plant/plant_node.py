@@ -5,7 +5,11 @@ time it is published; a voltage takes effect when it arrives, as on the rig.
 ``simulation.clock = lockstep``: the node owns simulated time and publishes ``/clock``;
 it publishes sample k, waits for the voltage stamped with sample k, integrates one
 period and publishes sample k+1, so a run goes as fast as the graph answers. The other
-nodes run with ``use_sim_time``; nothing in the loop depends on timers.
+nodes run with ``use_sim_time``; nothing in the loop depends on timers. ``/clock`` goes
+out with every ``simulation.clock_every``-th sample (10: every 50 ms of simulated time,
+as Gazebo publishes it at a rate of its own): in ``pisc_graph --processes`` it reached
+five processes a cycle (three controllers, the recorder, the runner); every tenth
+sample took a 10 s run's loop from 2.35-2.88 s to 1.75-2.16 s (docs/figures.md).
 
 **Command watchdog.** A command is fresh when its stamp is that of one of the last
 ``simulation.watchdog_periods`` samples (lockstep: of the awaited sample, the only one
@@ -103,6 +107,12 @@ class SimulationParams:
                                        "node with use_sim_time, a recorder, a runner that "
                                        "starts the plant by subscribing)", "",
                                        in_range(0, 64))
+    clock_every: int = param(10, "lockstep: publish /clock with every clock_every-th sample "
+                             "(10: every 50 ms of simulated time at the 5 ms period, 1: every "
+                             "sample); the graph's messages carry their sample's stamp and "
+                             "its nodes use no timers, so only a node's now() between two "
+                             "/clock messages sees time in those steps", "",
+                             in_range(1, 1000))
     publish_true_state: bool = param(True, "publish the true state on /pisc/sim/true_state", "")
     resend_after_s: float = param(0.5, "lockstep: send the current sample again when no voltage "
                                   "answered it for this long (the controllers answer a repeated "
@@ -226,7 +236,8 @@ class PlantNode(PiscNode):
         sample = self._sim.sample()
         if self._lockstep:
             self._stamp_ns = self._sim.time_ns
-            self._clock_pub.publish(clock_to_cdr(self._stamp_ns))
+            if self._sim.index % self._sim_params.clock_every == 0:
+                self._clock_pub.publish(clock_to_cdr(self._stamp_ns))
         else:
             self._stamp_ns = self._wall_ns()
         self._watchdog.sample(sample.index, self._stamp_ns)
