@@ -21,13 +21,16 @@ from pisc_control.supervisor_node import SupervisorNode
 from pisc_msgs_py.base_node import PISC_SECTIONS, message_class, parse_ros_arguments, qos_profile
 from pisc_msgs_py.config import ConfigError
 from pisc_msgs_py.convert import (
+    cart_force_to_cdr,
     joint_sample_to_cdr,
     joint_sample_to_msg,
     motor_sample_from_msg,
     motor_sample_to_msg,
     stamp_from_msg,
+    state_to_cdr,
 )
 from pisc_msgs_py.topics import (
+    CART_FORCE,
     CLOCK,
     DIAGNOSTICS,
     JOINT_STATES,
@@ -35,7 +38,7 @@ from pisc_msgs_py.topics import (
     STATE,
     VOLTAGE,
 )
-from pisc_msgs_py.types import JointSample, MotorSample
+from pisc_msgs_py.types import CartForce, JointSample, MotorSample, StateEstimate
 from pisc_plant.plant_node import PlantNode
 
 pytestmark = pytest.mark.integration
@@ -145,6 +148,37 @@ def test_the_lockstep_plant_publishes_clock_with_every_clock_every_th_sample(ros
         probe.destroy_node()
     assert samples[:10] == [k * 5_000_000 for k in range(10)]
     assert clocks[:4] == [0, 15_000_000, 30_000_000, 45_000_000]
+
+
+def test_newest_stamps_are_taken_when_read_and_wake_no_executor(ros_context):
+    """The plant's and the driver's view of the chain (which stage stopped): the stamp
+    of the newest message on each topic when read, a malformed one ignored, and no
+    subscription an executor would call back for each message."""
+    node = EstimatorNode(context=ros_context)  # any PiscNode
+    callbacks = len(list(node.subscriptions))
+    stamps = node.newest_stamps([("estimator", STATE), ("supervisor", CART_FORCE)])
+    probe = rclpy.node.Node("probe", context=ros_context)
+    state = probe.create_publisher(message_class(STATE.type), STATE.name, qos_profile(STATE.qos))
+    force = probe.create_publisher(message_class(CART_FORCE.type), CART_FORCE.name,
+                                   qos_profile(CART_FORCE.qos))
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(probe)
+    try:
+        assert len(list(node.subscriptions)) == callbacks
+        assert spin_until(executor, lambda: state.get_subscription_count() >= 1
+                          and force.get_subscription_count() >= 1, 10.0)
+        assert stamps.read() == {}
+        for k in (1, 2, 3):
+            state.publish(state_to_cdr(StateEstimate(k * 5_000_000, 0.0, 0.0, 0.0, 0.0)))
+        force.publish(cart_force_to_cdr(CartForce(5_000_000, 1.0)))
+        assert spin_until(executor, lambda: stamps.read() == {
+            "estimator": 15_000_000, "supervisor": 5_000_000}, 10.0), stamps.read()
+        force.publish(b"\x00\x01\x00\x00\x07")  # CDR, then no header
+        executor.spin_once(timeout_sec=0.2)
+        assert stamps.read() == {"estimator": 15_000_000, "supervisor": 5_000_000}
+    finally:
+        probe.destroy_node()
+        node.destroy_node()
 
 
 def test_a_running_node_refuses_a_bad_change_and_takes_a_good_one(ros_context):

@@ -38,7 +38,6 @@ from pisc_msgs_py.convert import (
     joint_sample_to_msg,
     motor_sample_from_msg,
     motor_sample_to_msg,
-    stamp_from_msg,
 )
 from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE, VOLTAGE_SENT
 from pisc_msgs_py.types import JointSample, MotorSample
@@ -64,11 +63,7 @@ class DriverNode(PiscNode):
         self._sent_pub = self.publisher(VOLTAGE_SENT)  # each byte as it is written
         self._sub = self.subscription(VOLTAGE, self._on_voltage)
         # newest stamp out of each stage of the chain, to say which one stopped
-        self._upstream: dict[str, int] = {}
-        self._upstream_subs = [
-            self.subscription(topic, lambda msg, name=name: self._upstream.__setitem__(
-                name, stamp_from_msg(msg.header.stamp)))
-            for name, topic in CHAIN]
+        self._upstream = self.newest_stamps(CHAIN)
         self._pin = PublisherPin(self.config.params.command_node)
         self._pin_timer = self.create_timer(self.config.period_ns * 1e-9,
                                             self._check_publishers)
@@ -209,8 +204,10 @@ class DriverNode(PiscNode):
         stopped, on /diagnostics with the trip's stamp and values."""
         core = self._core
         with self._lock:
+            if core.witness.pending is None:  # no trip to name a stage for
+                return
             answered = -1 if core.answered_stamp_ns is None else core.answered_stamp_ns
-            verdict = core.witness.verdict(self._upstream, answered, force=force)
+            verdict = core.witness.verdict(self._upstream.read(), answered, force=force)
         if verdict is None:
             return
         who = who_publishes(self, verdict.topic or VOLTAGE)

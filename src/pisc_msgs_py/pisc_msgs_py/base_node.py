@@ -48,16 +48,18 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.type_support import check_is_valid_msg_type
 
 from pisc_msgs_py import cdr
 from pisc_msgs_py import config as cfg
-from pisc_msgs_py.convert import MessageError, stamp_to_msg
+from pisc_msgs_py.convert import MessageError, stamp_from_msg, stamp_to_msg
 from pisc_msgs_py.topics import DIAGNOSTICS, QosSpec, Topic
 
-__all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "LogLimit", "Override", "PiscNode", "ResendCache",
-           "freeze_startup_objects", "message_class", "parse_ros_arguments", "qos_profile",
-           "run_node"]
+__all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "LogLimit", "NewestStamps", "Override",
+           "PiscNode", "ResendCache", "freeze_startup_objects", "message_class",
+           "parse_ros_arguments", "qos_profile", "run_node"]
 
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
@@ -227,6 +229,53 @@ class ResendCache:
             publisher.publish(message)
 
 
+class NewestStamps:
+    """The header stamp of the newest message on each of some topics, taken when asked.
+
+    The plant and the driver name the stage of the chain that stopped from the newest
+    stamp out of each stage (after a watchdog trip, or a lockstep sample nobody
+    answered). A subscription with a callback woke the node for every one of those
+    messages, two a cycle, to keep a number read only then; in ``pisc_graph
+    --processes`` each is a wake-up of the plant's process on a machine whose two cores
+    the whole graph shares. These subscriptions are the node's (in the ROS graph and
+    matched like any other) but no executor's: DDS keeps the newest message of each
+    (KEEP_LAST 1) and :meth:`read` takes it. A message without a readable header leaves
+    its topic's stamp as it was (the stage's own subscribers refuse it).
+    """
+
+    def __init__(self, node: Node, named: Sequence[tuple[str, Topic]]) -> None:
+        self._node = node
+        self._readers = []
+        for name, topic in named:
+            msg_type = message_class(topic.type)
+            check_is_valid_msg_type(msg_type)  # loads the type support
+            qos = qos_profile(topic.qos)
+            qos.history, qos.depth = HistoryPolicy.KEEP_LAST, 1
+            with node.handle:
+                handle = _rclpy.Subscription(node.handle, msg_type, topic.name,
+                                             qos.get_c_qos_profile())
+            self._readers.append((name, handle, msg_type, cdr.DECODERS[topic.type]))
+        self._newest: dict[str, int] = {}
+
+    def read(self) -> dict[str, int]:
+        """Stage name -> stamp [ns] of the newest message taken so far (a stage that has
+        published nothing is missing)."""
+        for name, handle, msg_type, decode in self._readers:
+            taken = handle.take_message(msg_type, True)
+            if taken is None:
+                continue
+            try:
+                self._newest[name] = stamp_from_msg(decode(taken[0]).header.stamp)
+            except MessageError:
+                continue
+        return self._newest
+
+    def destroy(self) -> None:
+        for _, handle, _, _ in self._readers:
+            handle.destroy_when_not_in_use()
+        self._readers = []
+
+
 class LogLimit:
     """At most ``burst`` log lines of one kind (an error's text before its first colon)
     per ``window_s``; the lines held back are counted and said in one line with the next
@@ -273,6 +322,7 @@ class PiscNode(Node):
         arguments (:func:`run_node` passes it); its names aimed at this node must be
         declared by it."""
         super().__init__(node_name, parameter_overrides=parameter_overrides, **kwargs)
+        self._newest_stamps: list[NewestStamps] = []
         self._sections = dict(sections)
         for section, cls in self._sections.items():
             for name, default, unit, description in cfg.describe(cls, section):
@@ -373,6 +423,19 @@ class PiscNode(Node):
 
         return self.create_subscription(message_class(topic.type), topic.name, on_bytes,
                                         qos_profile(topic.qos), raw=True)
+
+    def newest_stamps(self, named: Sequence[tuple[str, Topic]]) -> NewestStamps:
+        """The newest stamp of each ``(name, topic)``, read when asked
+        (:class:`NewestStamps`); destroyed with the node."""
+        stamps = NewestStamps(self, named)
+        self._newest_stamps.append(stamps)
+        return stamps
+
+    def destroy_node(self) -> None:
+        for stamps in self._newest_stamps:
+            stamps.destroy()
+        self._newest_stamps.clear()
+        super().destroy_node()
 
     @staticmethod
     def routine_diagnostics(count: int) -> bool:

@@ -188,8 +188,6 @@ class PlantNode(PiscNode):
             self._setpoint_sub = self.subscription(CURRENT_SETPOINT, self._on_setpoint)
             self._command_topic, self._command_sub = CURRENT_SETPOINT, self._setpoint_sub
         self._watchdog = CommandWatchdog(self._sim_params.watchdog_periods)
-        # newest stamp out of each stage of the chain, to say which one stopped
-        self._upstream: dict[str, int] = {}
         self._answered_ns = -1  # stamp of the newest sample an admitted command answered
         self._witness = StopWitness()  # after a trip: which stage stopped
         # lockstep with a recorder to wait for: the newest sample it has written whole
@@ -201,10 +199,8 @@ class PlantNode(PiscNode):
         self._recorder_waits = 0  # samples that waited for the recorder
         self._progress_sub = (self.subscription(RECORDER_PROGRESS, self._on_progress)
                               if self._lockstep and self._lag_ns else None)
-        self._upstream_subs = [
-            self.subscription(topic, lambda msg, name=name: self._upstream.__setitem__(
-                name, stamp_from_msg(msg.header.stamp)))
-            for name, topic in CHAIN]
+        # newest stamp out of each stage of the chain, to say which one stopped
+        self._upstream = self.newest_stamps(CHAIN)
         self._pin = PublisherPin(self._sim_params.command_node)
         self._first_voltage_ns: int | None = None  # stamp of the first voltage seen
         self._finished = False  # the voltage ending the run (duration_s) has come
@@ -338,7 +334,9 @@ class PlantNode(PiscNode):
     def _name_the_stopped_stage(self, force: bool = False) -> None:
         """After a trip, once the evidence is in (or ``force``: now), the stage that
         stopped, on /diagnostics with the trip's stamp and values."""
-        verdict = self._witness.verdict(self._upstream, self._answered_ns, force=force)
+        if self._witness.pending is None:  # no trip to name a stage for
+            return
+        verdict = self._witness.verdict(self._upstream.read(), self._answered_ns, force=force)
         if verdict is None:
             return
         who = who_publishes(self, verdict.topic or self._command_topic)
@@ -490,7 +488,7 @@ class PlantNode(PiscNode):
     def _silent_stage(self, node_only: bool = False) -> str:
         """Lockstep: the first stage of the chain with no output for the current sample,
         and who publishes it (:func:`pisc_msgs_py.watchdog.silent_stage_report`)."""
-        sentence, who = silent_stage_report(self, self._stamp_ns, self._upstream,
+        sentence, who = silent_stage_report(self, self._stamp_ns, self._upstream.read(),
                                             self._sim.index, self._command_topic)
         return who if node_only else sentence
 
