@@ -82,6 +82,7 @@ from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy
 from rclpy.task import Future
 
 import yaml
@@ -94,7 +95,12 @@ from pisc_bringup.recorder_node import header_stamp_ns
 from pisc_bringup.summary import RunSummary, summarise_bag
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.processes import console_command
-from pisc_msgs_py.base_node import freeze_startup_objects, message_class, qos_profile
+from pisc_msgs_py.base_node import (
+    freeze_startup_objects,
+    message_class,
+    qos_profile,
+    raw_subscription,
+)
 from pisc_msgs_py.config import ConfigError, load_params_file, parse_overrides
 from pisc_msgs_py.topics import (
     CART_FORCE,
@@ -448,22 +454,53 @@ class _Progress:
         self.done = threading.Event()
         self.future = Future()  # for an executor spinning until the end
 
-    def __call__(self, topic: str, data: bytes) -> None:
+    def __call__(self, topic: str, data: bytes, wall_s: float | None = None) -> None:
+        """A message of ``topic`` (the voltage counts) seen at ``wall_s`` (default: now,
+        ``time.monotonic()``; the same clock for every call of a run)."""
         if topic != VOLTAGE.name:
             return
         stamp = header_stamp_ns(data)
         if stamp is None:
             return
+        if wall_s is None:
+            wall_s = time.monotonic()
         if self.first_ns is None:
             self.first_ns = stamp
-            self.first_wall = time.monotonic()
+            self.first_wall = wall_s
             self.first_cpu = time.process_time()
         self.last_ns = stamp
         if stamp - self.first_ns >= self.duration_ns and not self.done.is_set():
-            self.loop_s = time.monotonic() - self.first_wall
+            self.loop_s = wall_s - self.first_wall
             self.loop_cpu_s = time.process_time() - self.first_cpu
             self.done.set()
             self.future.set_result(stamp)
+
+
+class _VoltageTap:
+    """With separate processes: the voltages the runner follows (:class:`_Progress`),
+    taken on its timer, a period of wall time apart, instead of a callback for each.
+    Each voltage woke the runner's process, about 10 % of a core of the two the graph's
+    six processes share in a lockstep run (docs/figures.md); now DDS keeps them (the
+    newest 1,000: no writer ever waits for this reader) until :meth:`drain`. The first
+    and the last voltage's times are their publishers' (``source_timestamp``), so the
+    loop's wall time does not depend on when the timer ran."""
+
+    DEPTH = 1000
+
+    def __init__(self, node: Node, progress: _Progress) -> None:
+        qos = qos_profile(VOLTAGE.qos)
+        qos.history, qos.depth = HistoryPolicy.KEEP_LAST, self.DEPTH
+        self._handle = raw_subscription(node, VOLTAGE, qos)
+        self._type = message_class(VOLTAGE.type)
+        self._progress = progress
+
+    def drain(self) -> None:
+        while (taken := self._handle.take_message(self._type, True)) is not None:
+            data, info = taken
+            self._progress(VOLTAGE.name, data, info["source_timestamp"] * 1e-9)
+
+    def destroy(self) -> None:
+        self._handle.destroy_when_not_in_use()
 
 
 class _RecorderWatch:
@@ -752,13 +789,21 @@ def run_graph(options: RunOptions) -> RunResult:
     watch = _RecorderWatch(recorder, progress)
     watcher = Node("pisc_graph", context=context)
 
-    def on_voltage(data: bytes) -> None:
-        progress(VOLTAGE.name, data)
-        watch.check()  # each cycle
+    tap = _VoltageTap(watcher, progress) if options.processes else None
+    if tap is None:
+        def on_voltage(data: bytes) -> None:
+            progress(VOLTAGE.name, data)
+            watch.check()  # each cycle
 
-    watcher.create_subscription(message_class(VOLTAGE.type), VOLTAGE.name, on_voltage,
-                                qos_profile(VOLTAGE.qos), raw=True)
-    watcher.create_timer(config.loop.period_s, watch.check)  # wall clock: also when stalled
+        watcher.create_subscription(message_class(VOLTAGE.type), VOLTAGE.name, on_voltage,
+                                    qos_profile(VOLTAGE.qos), raw=True)
+        watcher.create_timer(config.loop.period_s, watch.check)  # wall clock: also when stalled
+    else:
+        def on_period() -> None:
+            tap.drain()
+            watch.check()
+
+        watcher.create_timer(config.loop.period_s, on_period)
     nodes: list[Node] = []
     published: dict[str, int] = {}
     finished = False
@@ -826,6 +871,8 @@ def run_graph(options: RunOptions) -> RunResult:
         gc.unfreeze()
         # the plant first, so the controllers see no sample after their peers stopped
         failures = _stop_all(children)
+        if tap is not None:
+            tap.destroy()
         for node in [*reversed(nodes), watcher]:  # the plant or driver first: 0 V
             node.destroy_node()
         context.try_shutdown()

@@ -59,7 +59,7 @@ from pisc_msgs_py.topics import DIAGNOSTICS, QosSpec, Topic
 
 __all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "LogLimit", "NewestStamps", "Override",
            "PiscNode", "ResendCache", "freeze_startup_objects", "message_class",
-           "parse_ros_arguments", "qos_profile", "run_node"]
+           "parse_ros_arguments", "qos_profile", "raw_subscription", "run_node"]
 
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
@@ -229,6 +229,17 @@ class ResendCache:
             publisher.publish(message)
 
 
+def raw_subscription(node: Node, topic: Topic, qos: QoSProfile) -> Any:
+    """A subscription of ``node`` to ``topic`` that no executor sees: in the ROS graph and
+    matched like any other, its messages taken only when asked for
+    (``handle.take_message(message_class(topic.type), True)``: ``(CDR bytes, message
+    info)`` or None). Destroy it with ``destroy_when_not_in_use()``."""
+    msg_type = message_class(topic.type)
+    check_is_valid_msg_type(msg_type)  # loads the type support
+    with node.handle:
+        return _rclpy.Subscription(node.handle, msg_type, topic.name, qos.get_c_qos_profile())
+
+
 class NewestStamps:
     """The header stamp of the newest message on each of some topics, taken when asked.
 
@@ -244,17 +255,12 @@ class NewestStamps:
     """
 
     def __init__(self, node: Node, named: Sequence[tuple[str, Topic]]) -> None:
-        self._node = node
         self._readers = []
         for name, topic in named:
-            msg_type = message_class(topic.type)
-            check_is_valid_msg_type(msg_type)  # loads the type support
             qos = qos_profile(topic.qos)
             qos.history, qos.depth = HistoryPolicy.KEEP_LAST, 1
-            with node.handle:
-                handle = _rclpy.Subscription(node.handle, msg_type, topic.name,
-                                             qos.get_c_qos_profile())
-            self._readers.append((name, handle, msg_type, cdr.DECODERS[topic.type]))
+            self._readers.append((name, raw_subscription(node, topic, qos),
+                                  message_class(topic.type), cdr.DECODERS[topic.type]))
         self._newest: dict[str, int] = {}
 
     def read(self) -> dict[str, int]:
