@@ -158,9 +158,13 @@ def test_newest_stamps_are_taken_when_read_and_wake_no_executor(ros_context):
     callbacks = len(list(node.subscriptions))
     stamps = node.newest_stamps([("estimator", STATE), ("supervisor", CART_FORCE)])
     probe = rclpy.node.Node("probe", context=ros_context)
-    state = probe.create_publisher(message_class(STATE.type), STATE.name, qos_profile(STATE.qos))
+    state = probe.create_publisher(message_class(STATE.type), STATE.name,
+                                   qos_profile(STATE.qos))
     force = probe.create_publisher(message_class(CART_FORCE.type), CART_FORCE.name,
                                    qos_profile(CART_FORCE.qos))
+    seen: list[bytes] = []  # what the probe's own reader of the force got, raw
+    probe.create_subscription(message_class(CART_FORCE.type), CART_FORCE.name, seen.append,
+                              qos_profile(CART_FORCE.qos), raw=True)
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(probe)
     try:
@@ -173,8 +177,10 @@ def test_newest_stamps_are_taken_when_read_and_wake_no_executor(ros_context):
         force.publish(cart_force_to_cdr(CartForce(5_000_000, 1.0)))
         assert spin_until(executor, lambda: stamps.read() == {
             "estimator": 15_000_000, "supervisor": 5_000_000}, 10.0), stamps.read()
-        force.publish(b"\x00\x01\x00\x00\x07")  # CDR, then no header
-        executor.spin_once(timeout_sec=0.2)
+        malformed = b"\x00\x01\x00\x00\x07"  # CDR, then no header
+        force.publish(malformed)
+        # delivered in this process (the probe's reader has it): the node's reader too
+        assert spin_until(executor, lambda: seen[-1:] == [malformed], 10.0)
         assert stamps.read() == {"estimator": 15_000_000, "supervisor": 5_000_000}
     finally:
         probe.destroy_node()

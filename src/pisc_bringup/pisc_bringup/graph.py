@@ -505,8 +505,9 @@ class _VoltageTap:
 
 class _RecorderWatch:
     """Notices that pisc_record died, at the next cycle's voltage or within a period of
-    wall time (a timer), in lockstep and on the wall clock alike, says so at once and
-    ends the spin (the run stops; a driver is stopped, which commands 0 V)."""
+    wall time (a timer; with separate processes only the timer, :class:`_VoltageTap`),
+    in lockstep and on the wall clock alike, says so at once and ends the spin (the run
+    stops; a driver is stopped, which commands 0 V)."""
 
     def __init__(self, recorder: subprocess.Popen, progress: _Progress) -> None:
         self.recorder = recorder
