@@ -617,9 +617,9 @@ LAUNCH_FILES = {False: "sim", True: "rig"}
 # most likely a writer waiting for a reader whose port was full (docs/recording.md).
 RECORDER_LAG_SAMPLES = 20
 # Lockstep: the recorder lets messages gather this long after writing a batch (pisc_record
-# --gather), so that it wakes about once a cycle, not for each of a cycle's 7-8 messages:
-# a 10 s --processes loop 1.81-2.01 s with it, 2.00-2.12 s without (interleaved, 2026-12-04,
-# docs/figures.md). Well inside what the plant lets it trail (RECORDER_LAG_SAMPLES).
+# --gather), so that it wakes about once a cycle, not for each of a cycle's 7-8 messages
+# (docs/figures.md, "Fewer wake-ups a cycle"). Well inside what the plant lets it trail
+# (RECORDER_LAG_SAMPLES).
 RECORDER_GATHER_S = 0.001
 # what a lockstep graph publishes once every sample: the recorder's progress is the
 # oldest of the newest it has written of each (a topic whose message DDS sends again

@@ -7,9 +7,9 @@ it publishes sample k, waits for the voltage stamped with sample k, integrates o
 period and publishes sample k+1, so a run goes as fast as the graph answers. The other
 nodes run with ``use_sim_time``; nothing in the loop depends on timers. ``/clock`` goes
 out with every ``simulation.clock_every``-th sample (10: every 50 ms of simulated time,
-as Gazebo publishes it at a rate of its own): in ``pisc_graph --processes`` it reached
-five processes a cycle (three controllers, the recorder, the runner); every tenth
-sample took a 10 s run's loop from 2.35-2.88 s to 1.75-2.16 s (docs/figures.md).
+as Gazebo publishes it at a rate of its own): in ``pisc_graph --processes`` it woke
+five processes a cycle (three controllers, the recorder, the runner); what every tenth
+sample saves is measured in docs/figures.md ("Fewer wake-ups a cycle").
 
 **Command watchdog.** A command is fresh when its stamp is that of one of the last
 ``simulation.watchdog_periods`` samples (lockstep: of the awaited sample, the only one
