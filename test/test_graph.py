@@ -16,7 +16,7 @@ from pisc_bringup.graph import RunOptions, main, run_graph
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import ConfigError, load_params_file
 from pisc_msgs_py.convert import mode_from_msg, motor_sample_from_msg
-from pisc_msgs_py.topics import DIAGNOSTICS, GRAPH_TOPICS, MODE, VOLTAGE
+from pisc_msgs_py.topics import DIAGNOSTICS, GRAPH_TOPICS, JOINT_STATES, MODE, STATE, VOLTAGE
 from pisc_msgs_py.types import Mode
 
 pytestmark = pytest.mark.integration
@@ -180,6 +180,38 @@ def test_nodes_as_separate_processes_through_their_entry_points(tmp_path, env_fo
     assert "entry points: estimator_node, supervisor_node, current_loop_node, plant_node" in (
         completed.stdout)
     assert "result                 CAUGHT" in completed.stdout
+    # with --processes the runner counts nothing the nodes publish: a message of each
+    # sample topic per sample is expected (graph.expected_messages)
+    assert "the bag misses" not in completed.stderr, completed.stderr
+
+
+def test_a_lockstep_run_expects_a_message_of_each_sample_topic_per_sample():
+    """What --processes is checked against: samples 0 .. duration / period, each with a
+    message on each recorded sample topic; a bag with fewer says what it misses."""
+    from pisc_bringup.graph import SAMPLE_TOPICS, RunResult, expected_messages
+    from pisc_msgs_py.topics import SIM_STATE
+
+    expected = expected_messages(1.0, 0.005, GRAPH_TOPICS)
+    assert expected == {t.name: 201 for t in SAMPLE_TOPICS}
+    assert SIM_STATE.name not in expected_messages(
+        1.0, 0.005, [t for t in GRAPH_TOPICS if t is not SIM_STATE])
+    assert expected_messages(10.0, 0.005, GRAPH_TOPICS)[VOLTAGE.name] == 2001
+    recorded = {**expected, STATE.name: 180, VOLTAGE.name: 202}  # 202: one sent again
+    result = RunResult(None, None, recorded, 0.0, [], expected)
+    assert result.missing == {STATE.name: 21}
+
+
+def test_a_run_that_does_not_finish_says_what_the_recorder_wrote():
+    """A run stopped by its wall-time limit (one that stood still) names what the bag
+    holds of each topic, so that it says which topic the recorder lacked."""
+    from pisc_bringup.graph import not_finished
+
+    said = not_finished(1.0, 60.0, 100_000_000, {JOINT_STATES.name: 21, STATE.name: 0})
+    assert said == ("the run did not reach 1.0 s within 60 s of wall time (last voltage "
+                    "stamp: 100000000); the recorder wrote /pisc/joint_states 21, "
+                    "/pisc/state 0")
+    assert not_finished(1.0, 60.0, None, {}).endswith(
+        "(last voltage stamp: None); the recorder said nothing of what it wrote")
 
 
 def test_leaving_the_safe_range_goes_to_zero_volts_and_says_why(tmp_path, domain_id):

@@ -376,7 +376,8 @@ class RunResult:
     recorded: dict[str, int]  # messages per topic, as pisc_record reported on closing
     wall_s: float
     processes: list[str]  # executables started with --processes
-    # messages per topic the nodes of this process published (empty with --processes)
+    # messages per topic the nodes of this process published (empty with --processes);
+    # with --processes in lockstep, what the samples of the run make (expected_messages)
     published: dict[str, int] = field(default_factory=dict)
     experiment: str = "none"  # experiment.kind: an identification run, not a swing-up
     # wall time from the first voltage this runner received to the one ending the run:
@@ -387,9 +388,10 @@ class RunResult:
 
     @property
     def missing(self) -> dict[str, int]:
-        """Messages per recorded topic that this process's nodes published and the bag
-        does not hold (the publishers' own count against the recorder's; empty with
-        --processes, where nothing here counts what the nodes publish)."""
+        """Messages per recorded topic that were published and the bag does not hold:
+        this process's nodes' own count against the recorder's, or with --processes in
+        lockstep a message of each sample topic per sample (:func:`expected_messages`);
+        empty for a --processes run on the wall clock, which nothing here counts."""
         return {topic: sent - self.recorded[topic] for topic, sent in self.published.items()
                 if topic in self.recorded and self.recorded[topic] < sent}
 
@@ -629,6 +631,16 @@ SAMPLE_TOPICS = (JOINT_STATES, MOTOR_CURRENT, SIM_STATE, STATE, CART_FORCE,
                  CURRENT_SETPOINT, VOLTAGE)
 
 
+def expected_messages(duration_s: float, period_s: float,
+                      recorded: Sequence[Topic]) -> dict[str, int]:
+    """What a lockstep run of ``duration_s`` publishes on the recorded topics that go
+    out with every sample (:data:`SAMPLE_TOPICS`): a message for each of the samples
+    0 .. duration_s / period_s (a sample sent again is recorded twice, so a bag may hold
+    more)."""
+    samples = round(duration_s / period_s) + 1
+    return {t.name: samples for t in SAMPLE_TOPICS if t in recorded}
+
+
 def _write_params(directory: Path, flat: dict[str, Any],
                   plant_flat: dict[str, Any] | None) -> dict[str, Path]:
     """The run's parameter files in ``directory``: the controllers' and, for the simulated
@@ -853,7 +865,12 @@ def run_graph(options: RunOptions) -> RunResult:
             # The executor spins in the main thread: an EventsExecutor spun from another
             # thread holds the interpreter lock and starves the rest of the process.
             executor = EXECUTORS[options.executor](context=context)
-        published = _count_publications(nodes)
+        if not options.processes:
+            published = _count_publications(nodes)
+        elif lockstep and not driver:
+            published = expected_messages(options.duration_s, config.loop.period_s, recorded)
+        else:
+            published = {}
         for node in [*nodes, watcher]:
             executor.add_node(node)
         freeze_startup_objects()
@@ -895,12 +912,10 @@ def run_graph(options: RunOptions) -> RunResult:
         raise GraphError("; ".join(failed))
     if recorder_problem:
         raise GraphError(f"pisc_record failed: {recorder_problem}")
-    if not finished:
-        raise GraphError(
-            f"the run did not reach {options.duration_s} s within {timeout:.0f} s of wall "
-            f"time (last voltage stamp: {progress.last_ns})")
-    wall = time.monotonic() - started
     recorded = recorded_counts(recorder_output)
+    if not finished:
+        raise GraphError(not_finished(options.duration_s, timeout, progress.last_ns, recorded))
+    wall = time.monotonic() - started
     summary = summarise_bag(bag_dir, config.loop.period_s)
     started_as = [Path(c.args[0]).name for c in children]
     result = RunResult(bag_dir, summary, recorded, wall, started_as, dict(published),
@@ -909,6 +924,17 @@ def run_graph(options: RunOptions) -> RunResult:
         print(f"pisc_graph: the bag misses {lost} of the {published[topic]} messages "
               f"published on {topic}", file=sys.stderr)
     return result
+
+
+def not_finished(duration_s: float, timeout_s: float, last_ns: int | None,
+                 recorded: dict[str, int]) -> str:
+    """Why a run ended without its last voltage: the newest voltage it saw and what the
+    recorder wrote of each topic (a run that stood still waiting for the recorder shows
+    the topic it lacked)."""
+    wrote = (f"the recorder wrote {', '.join(f'{t} {n}' for t, n in recorded.items())}"
+             if recorded else "the recorder said nothing of what it wrote")
+    return (f"the run did not reach {duration_s} s within {timeout_s:.0f} s of wall time "
+            f"(last voltage stamp: {last_ns}); {wrote}")
 
 
 def recorded_counts(output: str) -> dict[str, int]:
