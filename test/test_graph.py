@@ -214,6 +214,23 @@ def test_a_run_that_does_not_finish_says_what_the_recorder_wrote():
         "(last voltage stamp: None); the recorder said nothing of what it wrote")
 
 
+def test_a_run_is_stopped_at_its_wall_time_limit_even_while_busy(tmp_path, domain_id):
+    """RunOptions.timeout_s holds for a lockstep run that keeps its executor busy (the
+    EventsExecutor's own timeout did not: a 10 s run given 0.2 s ran to its end, about
+    1 s of wall time at best here); the error says what the recorder wrote."""
+    from pisc_bringup.graph import GraphError
+
+    with pytest.raises(GraphError) as info:
+        run_graph(RunOptions(duration_s=10.0, timeout_s=0.2, bag_dir=tmp_path / "limit",
+                             domain_id=domain_id))
+    said = str(info.value)
+    assert said.startswith("the run did not reach 10.0 s within 0 s of wall time"), said
+    wrote = dict(part.rsplit(" ", 1) for part in said.split("; the recorder wrote ")[1]
+                 .split(", "))
+    assert set(wrote) == {t.name for t in GRAPH_TOPICS}, said
+    assert int(wrote[VOLTAGE.name]) < 2001, said
+
+
 def test_leaving_the_safe_range_goes_to_zero_volts_and_says_why(tmp_path, domain_id):
     """A fault mid-run: no force, 0 V from the current loop, /diagnostics says why."""
     # the previous default: the default's track guard keeps the cart inside this range
