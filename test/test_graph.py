@@ -224,11 +224,16 @@ def test_a_run_is_stopped_at_its_wall_time_limit_even_while_busy(tmp_path, domai
         run_graph(RunOptions(duration_s=10.0, timeout_s=0.2, bag_dir=tmp_path / "limit",
                              domain_id=domain_id))
     said = str(info.value)
-    assert said.startswith("the run did not reach 10.0 s within 0 s of wall time"), said
+    assert said.startswith("the run did not reach 10.0 s within 0.2 s of wall time"), said
     wrote = dict(part.rsplit(" ", 1) for part in said.split("; the recorder wrote ")[1]
                  .split(", "))
     assert set(wrote) == {t.name for t in GRAPH_TOPICS}, said
     assert int(wrote[VOLTAGE.name]) < 2001, said
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ConfigError, match=f"timeout_s = {bad}: must be a finite number "
+                           r"of seconds > 0 \(None: by the duration\)"):
+            run_graph(RunOptions(duration_s=10.0, timeout_s=bad, bag_dir=tmp_path / "bad",
+                                 domain_id=domain_id))
 
 
 def test_leaving_the_safe_range_goes_to_zero_volts_and_says_why(tmp_path, domain_id):

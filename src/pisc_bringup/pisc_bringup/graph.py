@@ -725,6 +725,10 @@ def run_graph(options: RunOptions) -> RunResult:
     if not math.isfinite(options.duration_s) or options.duration_s <= 0.0:
         raise ConfigError(f"--duration {options.duration_s}: must be a finite number of "
                           "seconds > 0")
+    if options.timeout_s is not None and not (math.isfinite(options.timeout_s)
+                                              and options.timeout_s > 0.0):
+        raise ConfigError(f"timeout_s = {options.timeout_s}: must be a finite number of "
+                          "seconds > 0 (None: by the duration)")
     config, flat, plant_params = load_run_config(
         options.config, options.overrides, options.plant_config, options.plant_overrides)
     supervisor = Supervisor(config.supervisor)  # refuses (3.29), an uncontrollable model
@@ -765,7 +769,8 @@ def run_graph(options: RunOptions) -> RunResult:
     source = graph.source
     recorded = recorded_topics(options.record) + tuple(
         t for n in graph.observers for t in n.publishes if t is not DIAGNOSTICS)
-    timeout = options.timeout_s or (60.0 + 20.0 * options.duration_s)
+    timeout = options.timeout_s if options.timeout_s is not None else (
+        60.0 + 20.0 * options.duration_s)
     # discovery stays on this machine unless the user asked for more (docs/safety.md);
     # PISC's Fast DDS profile unless the user gives one
     env = dds_environment(dict(os.environ))
@@ -942,7 +947,7 @@ def not_finished(duration_s: float, timeout_s: float, last_ns: int | None,
     the topic it lacked)."""
     wrote = (f"the recorder wrote {', '.join(f'{t} {n}' for t, n in recorded.items())}"
              if recorded else "the recorder said nothing of what it wrote")
-    return (f"the run did not reach {duration_s} s within {timeout_s:.0f} s of wall time "
+    return (f"the run did not reach {duration_s} s within {timeout_s:g} s of wall time "
             f"(last voltage stamp: {last_ns}); {wrote}")
 
 
