@@ -20,6 +20,7 @@ batch then runs the numpy cores.
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -31,6 +32,8 @@ from pisc_control import scalar
 from pisc_control.estimator import EstimatorState
 from pisc_control.scalar import SWING_UP
 from pisc_control.supervisor import FAULT_NONE, Supervisor
+from pisc_model import sensors
+from pisc_plant.plant import Plant
 from pisc_sim.configuration import GraphConfig
 
 __all__ = ["BatchControllers", "supported", "warm_up"]
@@ -41,7 +44,7 @@ def _drop_stale_cache() -> None:
     source = Path(scalar.__file__)
     cache = Path(__file__).parent / "__pycache__"
     try:
-        for index in cache.glob(f"{Path(__file__).stem}._cycle-*.nbi"):
+        for index in cache.glob(f"{Path(__file__).stem}._pass-*.nbi"):
             if index.stat().st_mtime < source.stat().st_mtime:
                 index.unlink(missing_ok=True)
     except OSError:  # a read-only install: numba then keeps its cache elsewhere
@@ -54,17 +57,77 @@ _drop_stale_cache()
 for _function in (scalar._clip, scalar._floor, scalar._sin, scalar._cos, scalar._wrap,
                   scalar._lyapunov_force, scalar._energy_pump_force):
     register_jitable(error_model="numpy")(_function)
-_estimator_step = numba.njit(scalar.estimator_step, error_model="numpy")
-_supervisor_step = numba.njit(scalar.supervisor_step, error_model="numpy")
-_current_loop_step = numba.njit(scalar.current_loop_step, error_model="numpy")
+# inlined into the pass (numba's own inlining: a call per rig and function cost a fifth
+# of the pass, 2026-12-04)
+_estimator_step = numba.njit(scalar.estimator_step, error_model="numpy", inline="always")
+_supervisor_step = numba.njit(scalar.supervisor_step, error_model="numpy", inline="always")
+_current_loop_step = numba.njit(scalar.current_loop_step, error_model="numpy",
+                                inline="always")
+_wrap = numba.njit(scalar._wrap, error_model="numpy", inline="always")
+
+
+@numba.njit(error_model="numpy", inline="always")
+def _maximum(a, b):
+    """np.maximum of two floats (a NaN in either gives NaN)."""
+    return a if (a >= b or a != a) else b
+
+
+@numba.njit(error_model="numpy", inline="always")
+def _minimum(a, b):
+    """np.minimum of two floats (a NaN in either gives NaN)."""
+    return a if (a <= b or a != a) else b
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
-def _cycle(s, c, est_a, est_b, first, est_first, span, oldest, write, x, theta, current,
-           x_hist, theta_hist, v_x, v_theta, mode, fault, caught, startup_target, reference,
-           integral, force_out, setpoint_out, voltage_out):
-    """One cycle of every rig: estimator, supervisor, current loop; state in place."""
-    for r in numba.prange(x.shape[0]):
+def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, theta_hist,
+          v_x, v_theta, mode, fault, caught, startup_target, reference, integral, measure, y,
+          ir_index, cur_index, draws, m, ir_table, x, theta, current, book, t, hold,
+          track_range, force_per_amp, faulted, previous_mode, caught_at, first_catch,
+          hold_theta, hold_x, hold_i2, x_min, x_max, force_out, setpoint_out, voltage_out,
+          command_out):
+    """One cycle of every rig; state in place. Returns the number of rigs whose
+    measurement the pass does not take (then nothing else has been done).
+
+    ``measure``: take the measurements from the plant's state ``y`` (rigs, size) first,
+    into x, theta, current, as :meth:`pisc_plant.plant.Plant.measurement` does with
+    quantised sensors behind their filters: ``draws`` (rigs, 3) of noise when it has
+    rows, the constants ``m`` (:func:`_measurement_constants`), the IR curve of every
+    ADC code from numpy (``ir_table``); a reading that is not finite, or an angle too
+    large for the count's integer, is not taken here (the caller measures with numpy
+    and calls again with ``measure`` false). Otherwise x, theta, current are given.
+
+    ``book``: keep simulate_batch's outcomes (at time t; ``hold``: inside the hold
+    window; ``track_range``: y is a state after an advance, whose x the range takes)
+    and write the plant's command (the voltage, or ``force_per_amp`` i_d when that is
+    positive: an ideal force source).
+    """
+    rigs = x.shape[0]
+    if measure:
+        lsb, low, top = m[M_LSB], m[M_LOW], m[M_TOP]
+        noisy = draws.shape[0] > 0
+        bad = 0
+        for r in numba.prange(rigs):
+            v_ir = y[r, ir_index]
+            v_cur = y[r, cur_index]
+            th = y[r, 2]
+            if noisy:  # Plant._sensor_voltages and _noisy
+                th = th + m[M_THETA_STD] * draws[r, 1]
+                distance = _maximum(m[M_IR_ORIGIN] - y[r, 0], 1e-3)
+                v_ir = v_ir + v_ir / (m[M_IR_EXPONENT] * distance) * m[M_X_STD] * draws[r, 0]
+                v_cur = v_cur + m[M_CURRENT_STD] * draws[r, 2] / m[M_CURRENT_SCALE]
+            turns = (th - m[M_ENCODER_ZERO]) / m[M_RAD_PER_COUNT] + 0.5
+            if not (math.isfinite(v_ir) and math.isfinite(v_cur) and abs(turns) < 2.0 ** 62):
+                bad += 1
+                continue
+            # sensors.adc_code (truncated, saturated), encoder_count, decode
+            ir_code = min(max(np.floor((v_ir - low) / lsb), 0.0), top)
+            cur_code = min(max(np.floor((v_cur - low) / lsb), 0.0), top)
+            x[r] = ir_table[int(ir_code)]
+            theta[r] = np.floor(turns) * m[M_RAD_PER_COUNT] + m[M_ENCODER_ZERO]
+            current[r] = (m[M_CURRENT_SCALE] * (cur_code * lsb + low)) - m[M_CURRENT_OFFSET]
+        if bad:
+            return bad
+    for r in numba.prange(rigs):
         xr, thr = x[r], theta[r]
         if est_first:
             x_dot = 0.0
@@ -76,15 +139,58 @@ def _cycle(s, c, est_a, est_b, first, est_first, span, oldest, write, x, theta, 
         theta_hist[r, write] = thr
         v_x[r] = x_dot
         v_theta[r] = theta_dot
-        force, m, f, k, t, ref = _supervisor_step(
+        force, md, f, k, tg, ref = _supervisor_step(
             s, first, xr, x_dot, thr, theta_dot, mode[r], fault[r], caught[r],
             startup_target[r], reference[r])
-        mode[r], fault[r], caught[r], startup_target[r], reference[r] = m, f, k, t, ref
-        i_d, voltage, integral[r] = _current_loop_step(c, m == scalar.FAULT, force,
+        mode[r], fault[r], caught[r], startup_target[r], reference[r] = md, f, k, tg, ref
+        i_d, voltage, integral[r] = _current_loop_step(c, md == scalar.FAULT, force,
                                                        current[r], integral[r])
         force_out[r] = force
         setpoint_out[r] = i_d
         voltage_out[r] = voltage
+        if book:  # simulate_batch's bookkeeping, element by element
+            if track_range:
+                x_min[r] = _minimum(x_min[r], y[r, 0])
+                x_max[r] = _maximum(x_max[r], y[r, 0])
+            faulted[r] = faulted[r] or md == scalar.FAULT
+            catching = md == scalar.CATCH
+            if catching and previous_mode[r] != scalar.CATCH:
+                caught_at[r] = t
+            elif not catching:
+                caught_at[r] = np.inf
+            if catching and not math.isfinite(first_catch[r]):
+                first_catch[r] = t
+            previous_mode[r] = md
+            if hold:
+                hold_theta[r] = _maximum(hold_theta[r], abs(_wrap(y[r, 2])))
+                hold_x[r] = _maximum(hold_x[r], abs(y[r, 0]))
+                hold_i2[r] += i_d * i_d
+            command_out[r] = force_per_amp * i_d if force_per_amp > 0.0 else voltage
+    return 0
+
+
+# places in the measurement's constants
+(M_LSB, M_LOW, M_TOP, M_IR_ORIGIN, M_IR_EXPONENT, M_CURRENT_SCALE, M_CURRENT_OFFSET,
+ M_ENCODER_ZERO, M_RAD_PER_COUNT, M_X_STD, M_THETA_STD, M_CURRENT_STD, N_M) = range(13)
+
+
+def _measurement_constants(plant: Plant) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pass's measurement constants and IR table for ``plant``; None when the pass
+    does not measure it (ideal sensors, no sensor filters, a plant set: numpy does)."""
+    config = plant.config
+    if (config.models.sensors == "ideal" or not config.models.sensor_filters
+            or plant.rigs is not None):
+        return None
+    s, n = config.sensors, config.noise
+    m = np.zeros(N_M)
+    m[M_LSB], m[M_LOW], m[M_TOP] = s.adc_lsb_v, s.adc_ref_low_v, s.adc_levels - 1
+    m[M_IR_ORIGIN], m[M_IR_EXPONENT] = s.ir_origin_m, s.ir_exponent
+    m[M_CURRENT_SCALE], m[M_CURRENT_OFFSET] = s.current_scale_a_per_v, s.current_offset_a
+    m[M_ENCODER_ZERO], m[M_RAD_PER_COUNT] = s.encoder_zero_rad, s.encoder_rad_per_count
+    m[M_X_STD], m[M_THETA_STD], m[M_CURRENT_STD] = n.x_std_m, n.theta_std_rad, n.current_std_a
+    # the host's IR curve (4.8) of every code, by numpy's power as sensors.decode takes it
+    table = sensors.ir_position(s, sensors.adc_voltage(s, np.arange(s.adc_levels)))
+    return m, np.ascontiguousarray(table, dtype=float)
 
 
 def supported(config: GraphConfig) -> bool:
@@ -132,6 +238,43 @@ class BatchControllers:
         self._startup_target = np.zeros(rigs)
         self._reference = np.zeros(rigs)
         self._integral = np.zeros(rigs)
+        self._force, self._setpoint = np.empty(rigs), np.empty(rigs)
+        self._voltage, self._command = np.empty(rigs), np.empty(rigs)
+        self._x, self._theta, self._current = np.empty(rigs), np.empty(rigs), np.empty(rigs)
+        # the outcomes (track); unused arrays until then
+        self._measuring: tuple[np.ndarray, np.ndarray] | None = None
+        self._ir_index = self._cur_index = 0
+        self._force_per_amp = 0.0
+        self._book = {name: np.zeros(rigs, dtype=dtype) for name, dtype in (
+            ("faulted", np.bool_), ("previous_mode", np.int64), ("caught_at", float),
+            ("first_catch", float), ("hold_theta", float), ("hold_x", float),
+            ("hold_i2", float), ("x_min", float), ("x_max", float))}
+
+    def _window(self) -> tuple[float, int, int]:
+        """(span, oldest, write) of the estimator's window at this cycle."""
+        n = min(self._seen, self._n)  # samples in the difference's window
+        span = self._period if n <= 1 else n * self._period
+        return span, (self._seen - n) % self._n, self._seen % self._n
+
+    def _run(self, measure: bool, y: np.ndarray, draws: np.ndarray,
+             measured: tuple[np.ndarray, np.ndarray, np.ndarray], book: bool, t: float,
+             hold: bool, track_range: bool) -> int:
+        span, oldest, write = self._window()
+        m, table = self._measuring if self._measuring is not None else _NO_MEASUREMENT
+        k = self._book
+        bad = _pass(self._s, self._c, self._est_a, self._est_b, self._cycles == 0,
+                    self._seen == 0, span, oldest, write, self._x_hist, self._theta_hist,
+                    self._v_x, self._v_theta, self._mode, self._fault, self._caught,
+                    self._startup_target, self._reference, self._integral, measure, y,
+                    self._ir_index, self._cur_index, draws, m, table, *measured, book, t,
+                    hold, track_range, self._force_per_amp, k["faulted"], k["previous_mode"],
+                    k["caught_at"], k["first_catch"], k["hold_theta"], k["hold_x"],
+                    k["hold_i2"], k["x_min"], k["x_max"], self._force, self._setpoint,
+                    self._voltage, self._command)
+        if not bad:
+            self._seen += 1
+            self._cycles += 1
+        return bad
 
     def step(self, x: np.ndarray, theta: np.ndarray, current: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -142,17 +285,58 @@ class BatchControllers:
         if not x.shape == theta.shape == current.shape == (rigs,):
             raise ValueError(f"measurements of shape {x.shape}, {theta.shape}, "
                              f"{current.shape}: want ({rigs},) each")
-        n = min(self._seen, self._n)  # samples in the difference's window
-        span = self._period if n <= 1 else n * self._period
-        force, setpoint, voltage = np.empty(rigs), np.empty(rigs), np.empty(rigs)
-        _cycle(self._s, self._c, self._est_a, self._est_b, self._cycles == 0, self._seen == 0,
-               span, (self._seen - n) % self._n, self._seen % self._n, x, theta, current,
-               self._x_hist, self._theta_hist, self._v_x, self._v_theta, self._mode,
-               self._fault, self._caught, self._startup_target, self._reference,
-               self._integral, force, setpoint, voltage)
-        self._seen += 1
-        self._cycles += 1
-        return force, self._mode.copy(), setpoint, voltage
+        self._run(False, _NO_STATE, _NO_DRAWS, (x, theta, current), False, 0.0, False, False)
+        return (self._force.copy(), self._mode.copy(), self._setpoint.copy(),
+                self._voltage.copy())
+
+    def track(self, plant: Plant, x0: np.ndarray) -> None:
+        """Keep simulate_batch's outcomes from here on (:meth:`cycle`), for rigs that start
+        at the flat positions ``x0`` on ``plant``."""
+        rigs = self._v_x.shape[0]
+        self._measuring = _measurement_constants(plant)
+        self._plant = plant
+        self._ir_index = plant.layout.ir_index
+        self._cur_index = plant.layout.current_sensor_index
+        config = plant.config
+        self._force_per_amp = config.motor.force_per_amp if config.models.force_input else 0.0
+        self._book = {"faulted": np.zeros(rigs, dtype=np.bool_),
+                      "previous_mode": np.full(rigs, SWING_UP, dtype=np.int64),
+                      "caught_at": np.full(rigs, np.inf), "first_catch": np.full(rigs, np.inf),
+                      "hold_theta": np.zeros(rigs), "hold_x": np.zeros(rigs),
+                      "hold_i2": np.zeros(rigs), "x_min": np.array(x0, dtype=float),
+                      "x_max": np.array(x0, dtype=float)}
+
+    def cycle(self, y: np.ndarray, applied: np.ndarray, draws: np.ndarray | None, t: float,
+              hold: bool) -> np.ndarray:
+        """One cycle of simulate_batch from the plant's state ``y`` (rigs, size) at time
+        ``t``: the measurement, the controllers, the outcomes (``hold``: inside the hold
+        window; the range takes y's x from the second cycle on, the states after an
+        advance); returns the plant's command (flat; overwritten by the next cycle).
+        ``applied`` is the command held at the sample, ``draws`` the noise (rigs, 3)."""
+        y = np.require(y, float, ("C", "W"))
+        draws = _NO_DRAWS if draws is None else np.require(draws, float, ("C", "W"))
+        track_range = self._cycles > 0
+        if self._measuring is None or self._run(True, y, draws, (self._x, self._theta,
+                                                                  self._current),
+                                                 True, t, hold, track_range):
+            measured = self._plant.measurement(y, applied, None if not draws.size else draws)
+            measured = tuple(np.require(np.broadcast_to(v, (y.shape[0],)), float, ("C", "W"))
+                             for v in measured)
+            self._run(False, y, draws, measured, True, t, hold, track_range)
+        return self._command
+
+    def outcomes(self, y: np.ndarray) -> dict[str, np.ndarray]:
+        """The outcomes kept so far, the range including the state ``y`` (rigs, size)
+        after the last advance."""
+        k = self._book
+        k["x_min"] = np.minimum(k["x_min"], y[:, 0])
+        k["x_max"] = np.maximum(k["x_max"], y[:, 0])
+        return k
+
+
+_NO_STATE = np.zeros((0, 1))
+_NO_DRAWS = np.zeros((0, 3))
+_NO_MEASUREMENT = (np.zeros(N_M), np.zeros(1))
 
 
 def warm_up() -> float:

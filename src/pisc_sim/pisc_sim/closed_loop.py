@@ -223,15 +223,39 @@ def simulate_batch(
     seed = noise.seed if noise_seed is None else noise_seed
     rng = np.random.default_rng(seed) if noise.any else None
     cycles = int(round(duration_s / period)) + 1
-    for k in range(cycles):
-        t = k * period
-        draws = None if rng is None else rng.standard_normal(x0.shape + (3,))
-        x, theta, current = sim.measurement(y, applied, draws)
-        if compiled is not None:
-            _, mode, i_d, voltage = (v.reshape(shape) for v in compiled.step(
-                *(np.broadcast_to(v, shape).reshape(-1) for v in (x, theta, current))))
-            fault = mode == Mode.FAULT.code
-        else:
+    if compiled is not None:
+        # the measurement, the controllers and the outcomes in the compiled pass; the
+        # plant's advance as below
+        compiled.track(sim, x0.reshape(-1))
+        flat = y.reshape(-1, y.shape[-1])
+        applied = applied.reshape(-1)
+        for k in range(cycles):
+            t = k * period
+            draws = None if rng is None else rng.standard_normal(x0.shape + (3,))
+            hold = t >= hold_start_s
+            hold_cycles += hold
+            command = compiled.cycle(flat, applied, None if draws is None else
+                                     draws.reshape(-1, 3), t, hold).copy()
+            if delay.ndim:
+                flat = sim.advance(flat, applied, delay)
+                flat = sim.advance(flat, command, period - delay)
+            elif delay > 0.0:
+                flat = sim.advance(flat, applied, float(delay))
+                flat = sim.advance(flat, command, period - float(delay))
+            else:
+                flat = sim.advance(flat, command, period)
+            applied = command
+            if progress is not None:
+                progress(k + 1, cycles)
+        book = {name: v.reshape(shape) for name, v in compiled.outcomes(flat).items()}
+        caught_at, first_catch, faulted = book["caught_at"], book["first_catch"], book["faulted"]
+        x_min, x_max, hold_theta = book["x_min"], book["x_max"], book["hold_theta"]
+        hold_x, hold_i2 = book["hold_x"], book["hold_i2"]
+    else:  # the numpy cores over arrays
+        for k in range(cycles):
+            t = k * period
+            draws = None if rng is None else rng.standard_normal(x0.shape + (3,))
+            x, theta, current = sim.measurement(y, applied, draws)
             est_state, x_dot, theta_dot = estimator_update(
                 config.estimator, period, est_state, x, theta)
             sup_state, force, mode = supervisor.update(sup_state, x, x_dot, theta, theta_dot)
@@ -239,31 +263,31 @@ def simulate_batch(
             cl_state, i_d, voltage = current_loop_cycle(
                 config.plant.motor, config.current_loop, period, cl_state, force, current,
                 fault)
-        faulted |= fault
-        command = plant_command(plant_config, setpoint_a=i_d, voltage_v=voltage)
-        catching = mode == Mode.CATCH.code
-        entered = catching & (previous_mode != Mode.CATCH.code)
-        caught_at = np.where(entered, t, np.where(catching, caught_at, np.inf))
-        first_catch = np.where(catching & ~np.isfinite(first_catch), t, first_catch)
-        previous_mode = mode
-        if t >= hold_start_s:
-            hold_theta = np.maximum(hold_theta, np.abs(wrap_to_upright(y[..., THETA])))
-            hold_x = np.maximum(hold_x, np.abs(y[..., X]))
-            hold_i2 += i_d ** 2
-            hold_cycles += 1
-        if delay.ndim:
-            flat = y.reshape(-1, y.shape[-1])
-            flat = sim.advance(flat, applied.reshape(-1), delay)
-            y = sim.advance(flat, command.reshape(-1), period - delay).reshape(y.shape)
-        elif delay > 0.0:
-            y = sim.advance(y, applied, float(delay))
-            y = sim.advance(y, command, period - float(delay))
-        else:
-            y = sim.advance(y, command, period)
-        applied = command
-        x_min = np.minimum(x_min, y[..., X])
-        x_max = np.maximum(x_max, y[..., X])
-        if progress is not None:
-            progress(k + 1, cycles)
+            faulted |= fault
+            command = plant_command(plant_config, setpoint_a=i_d, voltage_v=voltage)
+            catching = mode == Mode.CATCH.code
+            entered = catching & (previous_mode != Mode.CATCH.code)
+            caught_at = np.where(entered, t, np.where(catching, caught_at, np.inf))
+            first_catch = np.where(catching & ~np.isfinite(first_catch), t, first_catch)
+            previous_mode = mode
+            if t >= hold_start_s:
+                hold_theta = np.maximum(hold_theta, np.abs(wrap_to_upright(y[..., THETA])))
+                hold_x = np.maximum(hold_x, np.abs(y[..., X]))
+                hold_i2 += i_d ** 2
+                hold_cycles += 1
+            if delay.ndim:
+                flat = y.reshape(-1, y.shape[-1])
+                flat = sim.advance(flat, applied.reshape(-1), delay)
+                y = sim.advance(flat, command.reshape(-1), period - delay).reshape(y.shape)
+            elif delay > 0.0:
+                y = sim.advance(y, applied, float(delay))
+                y = sim.advance(y, command, period - float(delay))
+            else:
+                y = sim.advance(y, command, period)
+            applied = command
+            x_min = np.minimum(x_min, y[..., X])
+            x_max = np.maximum(x_max, y[..., X])
+            if progress is not None:
+                progress(k + 1, cycles)
     rms = np.sqrt(hold_i2 / hold_cycles) if hold_cycles else np.full(x0.shape, np.nan)
     return BatchOutcome(caught_at, x_min, x_max, hold_theta, hold_x, faulted, first_catch, rms)

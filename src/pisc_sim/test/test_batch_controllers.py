@@ -14,7 +14,7 @@ from pisc_control.scalar import OneRigCurrentLoop, OneRigEstimator, OneRigSuperv
 from pisc_control.supervisor import Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_plant.command import plant_command
-from pisc_plant.plant import Plant
+from pisc_plant.plant import Plant, plant_set
 from pisc_sim.batch_controllers import BatchControllers, supported
 from pisc_sim.closed_loop import simulate_batch
 from pisc_sim.scene import load_scene
@@ -192,6 +192,72 @@ def test_primed_estimator_and_shapes_match_the_cores():
         assert got.shape == (6, 5)
         assert np.array_equal(got, want), field.name
     assert np.isfinite(a.caught_at_s).sum() > 0
+
+
+@pytest.mark.parametrize("case", ["pass measures", "noise", "ideal force and sensors",
+                                  "plant set"])
+def test_the_compiled_cycle_gives_the_numpy_outcomes(case):
+    """simulate_batch's compiled cycle (the measurement, the controllers and the outcomes
+    in one pass) against the numpy path, where the pass measures (quantised sensors
+    behind their filters, with and without noise) and where numpy measures for it (ideal
+    sensors, with the ideal force source's command; a plant set): every outcome equal."""
+    scene = {"ideal force and sensors": "ideal-cart-pole"}.get(case, "thesis-rig")
+    overrides = {"noise.x_std_m": 2e-4, "noise.theta_std_rad": 2e-3,
+                 "noise.current_std_a": 0.05} if case == "noise" else {}
+    config = load_scene(scene, overrides).config
+    x0 = np.linspace(-0.12, 0.08, 40)
+    kwargs = dict(theta0_rad=np.linspace(np.pi - 0.4, 0.2, 40), hold_start_s=0.5)
+    if case == "plant set":
+        kwargs["plant"] = plant_set(config.simulated_plant,
+                                    {"motor.resistance_ohm": np.linspace(11.0, 17.0, 40)})
+    a = simulate_batch(config, x0, 2.0, controllers="compiled", **kwargs)
+    b = simulate_batch(config, x0, 2.0, controllers="numpy", **kwargs)
+    for field in dataclasses.fields(a):
+        got, want = getattr(a, field.name), getattr(b, field.name)
+        assert np.array_equal(got, want, equal_nan=True), field.name
+    assert np.isfinite(a.caught_at_s).sum() > 0
+
+
+def test_the_pass_measures_hostile_states_as_the_plant_does():
+    """States built to break the pass's measurement: filter voltages below the ADC's low
+    reference and above its top (saturated codes), angles many turns away and at half
+    a count, noise; then a cycle with a NaN voltage, an infinite angle and an angle too
+    large for the count's integer, which the pass hands back to numpy's measurement.
+    Each cycle's outputs and command equal the numpy measurement's through the pass."""
+    config = load_scene("thesis-rig", {"noise.x_std_m": 1e-4, "noise.theta_std_rad": 1e-3,
+                                       "noise.current_std_a": 0.02}).config
+    plant = Plant(config.simulated_plant)
+    s, rigs = config.simulated_plant.sensors, 64
+    rng = np.random.default_rng(3)
+    supervisor = Supervisor(config.supervisor)
+    compiled = BatchControllers(config, supervisor, rigs)
+    compiled.track(plant, np.zeros(rigs))
+    reference = BatchControllers(config, supervisor, rigs)
+    y = np.array(plant.initial_state(rng.uniform(-0.15, 0.15, rigs)))
+    ir, cur = plant.layout.ir_index, plant.layout.current_sensor_index
+    top = s.adc_ref_low_v + s.adc_span_v
+    for k in range(6):
+        y[:, 0] = rng.uniform(-0.2, 0.19, rigs)
+        y[:, 2] = rng.uniform(-60.0, 60.0, rigs)
+        y[:4, 2] = s.encoder_zero_rad + (np.arange(4) + 0.5) * s.encoder_rad_per_count
+        y[:, ir] = rng.uniform(s.adc_ref_low_v - 0.3, top + 0.3, rigs)
+        y[:, cur] = rng.uniform(s.adc_ref_low_v - 0.3, top + 0.3, rigs)
+        if k == 4:
+            y[10, ir], y[11, 2], y[12, 2] = np.nan, np.inf, 1e300
+        draws = rng.standard_normal((rigs, 3))
+        applied = rng.uniform(-10.0, 10.0, rigs)
+        with np.errstate(invalid="ignore", over="ignore"):  # numpy's, on the bad cycle
+            command = compiled.cycle(y, applied, draws, 0.005 * k, True).copy()
+            measured = plant.measurement(y, applied, draws)
+            want = reference.step(*measured)
+        got = compiled._force, compiled._mode, compiled._setpoint, compiled._voltage
+        _assert_same(k, want, got)
+        assert np.array_equal(_bits(command), _bits(want[3]))
+        if k != 4:  # the pass's own measurement, not numpy's
+            for mine, theirs in zip((compiled._x, compiled._theta, compiled._current),
+                                    measured):
+                assert np.array_equal(_bits(mine), _bits(theirs)), k
+    assert want[1][10] == Mode.FAULT.code  # the NaN reading's fault, latched
 
 
 def test_experiments_run_on_the_numpy_cores():
