@@ -524,12 +524,43 @@ class Plant:
                                   self._method, n, h, coef)
             return out
         ys, us = self._rows(y, command)
+        self._step_rows(ys, us, n, h, coef)
+        return ys.reshape(np.shape(y))
+
+    def _step_rows(self, ys: np.ndarray, us: np.ndarray, n: int, h: float,
+                   coef: np.ndarray) -> None:
+        stops = self.layout.end_stops
         if ys.shape[0] <= kernel.CHUNK:
             self._kernels.advance(ys, us, 0, ys.shape[0], self._p, stops, self._method, n, h,
                                   coef)
         else:
             self._kernels.advance_many(ys, us, self._p, stops, self._method, n, h, coef)
-        return ys.reshape(np.shape(y))
+
+    def advance_in_place(self, ys: np.ndarray, applied: np.ndarray, duration_s: float) -> None:
+        """:meth:`advance` for a batch's loop: the rows of ``ys`` (n, size), a C-contiguous
+        float array, advanced in place, with ``applied`` (n,) already through the actuator
+        (:meth:`applied`), one duration for all. The same bits as :meth:`advance`
+        without its copy of the state and its pass through the actuator (a sixth of the
+        plant's time in a batch of 10,000, 2026-12-04). Not for a plant set."""
+        if self.rigs is not None:
+            raise ValueError("advance_in_place is for one rig's constants; a plant set "
+                             "takes advance")
+        if not (type(ys) is np.ndarray and ys.dtype == np.float64 and ys.ndim == 2
+                and ys.shape[1] == self.size and ys.flags.c_contiguous and ys.flags.writeable):
+            raise ValueError(f"advance_in_place takes a writable C-contiguous float64 state "
+                             f"of shape (n, {self.size}), not {getattr(ys, 'shape', ys)!r}")
+        if not (type(applied) is np.ndarray and applied.dtype == np.float64
+                and applied.shape == ys.shape[:1] and applied.flags.c_contiguous):
+            raise ValueError(f"advance_in_place takes a C-contiguous float64 input of shape "
+                             f"({ys.shape[0]},), not {getattr(applied, 'shape', applied)!r}")
+        duration_s = float(duration_s)
+        if not (math.isfinite(duration_s) and duration_s >= 0.0):
+            raise ValueError(f"duration_s = {duration_s} must be finite and not negative")
+        if duration_s == 0.0:
+            return
+        n = max(1, math.ceil(duration_s / self.nominal_substep_s - 1e-9))
+        h = duration_s / n
+        self._step_rows(ys, applied, n, h, self.coefficients(h))
 
     def _advance_rigs(self, y: np.ndarray, command: ArrayLike,
                       duration_s: float | np.ndarray) -> np.ndarray:

@@ -134,6 +134,35 @@ def test_batch_advance_matches_single_rigs():
     np.testing.assert_allclose(out[2], single, rtol=1e-13, atol=1e-15)
 
 
+@pytest.mark.parametrize("rigs", [3, 1000])  # one chunk; the parallel entry point
+def test_advance_in_place_is_advance(rigs):
+    """The batch's in-place step gives advance's bits, and refuses what it cannot take."""
+    plant = Plant(DEFAULT)
+    rng = np.random.default_rng(5)
+    y = plant.initial_state(rng.uniform(-0.1, 0.1, rigs), 0.2, rng.uniform(0, 6, rigs), 1.0)
+    command = rng.uniform(-14.0, 14.0, rigs)
+    want = plant.advance(y, command, 0.005)
+    want = plant.advance(want, command, 0.0031)
+    ys = y.copy()
+    for duration in (0.005, 0.0031, 0.0):
+        plant.advance_in_place(ys, plant.applied(command), duration)
+    np.testing.assert_array_equal(ys.view(np.int64), want.view(np.int64))
+    for bad, message in ((y[:, :4].copy(), "float64 state of shape"),
+                         (y[::2], "float64 state of shape"),
+                         (y.astype(np.float32), "float64 state of shape")):
+        with pytest.raises(ValueError, match=message):
+            plant.advance_in_place(bad, np.zeros(len(bad)), 0.005)
+    with pytest.raises(ValueError, match=r"input of shape \(%d,\)" % rigs):
+        plant.advance_in_place(ys, np.zeros(rigs + 1), 0.005)
+    for duration in (-0.001, math.nan, math.inf):
+        with pytest.raises(ValueError, match="must be finite and not negative"):
+            plant.advance_in_place(ys, np.zeros(rigs), duration)
+    from pisc_plant.plant import plant_set
+    rigs_set = Plant(plant_set(DEFAULT, {"motor.resistance_ohm": np.full(rigs, 14.0)}))
+    with pytest.raises(ValueError, match="a plant set takes advance"):
+        rigs_set.advance_in_place(ys, np.zeros(rigs), 0.005)
+
+
 def test_scalar_actuator_matches_the_array_one_at_every_boundary():
     act = DEFAULT.actuator
     step = act.step_v

@@ -78,13 +78,24 @@ def _minimum(a, b):
     return a if (a <= b or a != a) else b
 
 
+@numba.njit(error_model="numpy", inline="always")
+def _actuator(full_scale, levels, step, v):
+    """ActuatorParams.apply of one voltage: saturated, then quantised (NaN stays)."""
+    v = _minimum(_maximum(v, -full_scale), full_scale)  # np.clip
+    if levels == 0.0 or v != v:
+        return v
+    magnitude = min(np.floor(abs(v) / step + 0.5), levels)
+    sign = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)  # np.sign
+    return sign * magnitude * step
+
+
 @numba.njit(cache=True, error_model="numpy", parallel=True)
 def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, theta_hist,
           v_x, v_theta, mode, fault, caught, startup_target, reference, integral, measure, y,
           ir_index, cur_index, draws, m, ir_table, x, theta, current, book, t, hold,
           track_range, force_per_amp, faulted, previous_mode, caught_at, first_catch,
           hold_theta, hold_x, hold_i2, x_min, x_max, force_out, setpoint_out, voltage_out,
-          command_out):
+          command_out, applied_out):
     """One cycle of every rig; state in place. Returns the number of rigs whose
     measurement the pass does not take (then nothing else has been done).
 
@@ -99,7 +110,8 @@ def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, the
     ``book``: keep simulate_batch's outcomes (at time t; ``hold``: inside the hold
     window; ``track_range``: y is a state after an advance, whose x the range takes)
     and write the plant's command (the voltage, or ``force_per_amp`` i_d when that is
-    positive: an ideal force source).
+    positive: an ideal force source) and what acts on the plant (the voltage through
+    the actuator, :meth:`pisc_model.params.ActuatorParams.apply`, or the force).
     """
     rigs = x.shape[0]
     if measure:
@@ -165,24 +177,31 @@ def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, the
                 hold_theta[r] = _maximum(hold_theta[r], abs(_wrap(y[r, 2])))
                 hold_x[r] = _maximum(hold_x[r], abs(y[r, 0]))
                 hold_i2[r] += i_d * i_d
-            command_out[r] = force_per_amp * i_d if force_per_amp > 0.0 else voltage
+            if force_per_amp > 0.0:
+                command_out[r] = applied_out[r] = force_per_amp * i_d
+            else:
+                command_out[r] = voltage
+                applied_out[r] = _actuator(m[M_FULL_SCALE], m[M_LEVELS], m[M_STEP], voltage)
     return 0
 
 
 # places in the measurement's constants
 (M_LSB, M_LOW, M_TOP, M_IR_ORIGIN, M_IR_EXPONENT, M_CURRENT_SCALE, M_CURRENT_OFFSET,
- M_ENCODER_ZERO, M_RAD_PER_COUNT, M_X_STD, M_THETA_STD, M_CURRENT_STD, N_M) = range(13)
+ M_ENCODER_ZERO, M_RAD_PER_COUNT, M_X_STD, M_THETA_STD, M_CURRENT_STD, M_FULL_SCALE,
+ M_LEVELS, M_STEP, N_M) = range(16)
 
 
-def _measurement_constants(plant: Plant) -> tuple[np.ndarray, np.ndarray] | None:
-    """The pass's measurement constants and IR table for ``plant``; None when the pass
-    does not measure it (ideal sensors, no sensor filters, a plant set: numpy does)."""
+def _plant_constants(plant: Plant) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The pass's constants of ``plant`` (its actuator, its sensors) with the IR table,
+    and whether the pass measures it (not with ideal sensors, without sensor filters or
+    for a plant set: numpy does)."""
     config = plant.config
+    a, s, n = config.actuator, config.sensors, config.noise
+    m = np.zeros(N_M)
+    m[M_FULL_SCALE], m[M_LEVELS], m[M_STEP] = a.full_scale_v, a.command_levels, a.step_v
     if (config.models.sensors == "ideal" or not config.models.sensor_filters
             or plant.rigs is not None):
-        return None
-    s, n = config.sensors, config.noise
-    m = np.zeros(N_M)
+        return m, np.zeros(1), False
     m[M_LSB], m[M_LOW], m[M_TOP] = s.adc_lsb_v, s.adc_ref_low_v, s.adc_levels - 1
     m[M_IR_ORIGIN], m[M_IR_EXPONENT] = s.ir_origin_m, s.ir_exponent
     m[M_CURRENT_SCALE], m[M_CURRENT_OFFSET] = s.current_scale_a_per_v, s.current_offset_a
@@ -190,7 +209,7 @@ def _measurement_constants(plant: Plant) -> tuple[np.ndarray, np.ndarray] | None
     m[M_X_STD], m[M_THETA_STD], m[M_CURRENT_STD] = n.x_std_m, n.theta_std_rad, n.current_std_a
     # the host's IR curve (4.8) of every code, by numpy's power as sensors.decode takes it
     table = sensors.ir_position(s, sensors.adc_voltage(s, np.arange(s.adc_levels)))
-    return m, np.ascontiguousarray(table, dtype=float)
+    return m, np.ascontiguousarray(table, dtype=float), True
 
 
 def supported(config: GraphConfig) -> bool:
@@ -240,9 +259,10 @@ class BatchControllers:
         self._integral = np.zeros(rigs)
         self._force, self._setpoint = np.empty(rigs), np.empty(rigs)
         self._voltage, self._command = np.empty(rigs), np.empty(rigs)
+        self._applied = np.empty(rigs)
         self._x, self._theta, self._current = np.empty(rigs), np.empty(rigs), np.empty(rigs)
         # the outcomes (track); unused arrays until then
-        self._measuring: tuple[np.ndarray, np.ndarray] | None = None
+        self._constants, self._measures = _NO_CONSTANTS, False
         self._ir_index = self._cur_index = 0
         self._force_per_amp = 0.0
         self._book = {name: np.zeros(rigs, dtype=dtype) for name, dtype in (
@@ -260,7 +280,7 @@ class BatchControllers:
              measured: tuple[np.ndarray, np.ndarray, np.ndarray], book: bool, t: float,
              hold: bool, track_range: bool) -> int:
         span, oldest, write = self._window()
-        m, table = self._measuring if self._measuring is not None else _NO_MEASUREMENT
+        m, table = self._constants
         k = self._book
         bad = _pass(self._s, self._c, self._est_a, self._est_b, self._cycles == 0,
                     self._seen == 0, span, oldest, write, self._x_hist, self._theta_hist,
@@ -270,7 +290,7 @@ class BatchControllers:
                     hold, track_range, self._force_per_amp, k["faulted"], k["previous_mode"],
                     k["caught_at"], k["first_catch"], k["hold_theta"], k["hold_x"],
                     k["hold_i2"], k["x_min"], k["x_max"], self._force, self._setpoint,
-                    self._voltage, self._command)
+                    self._voltage, self._command, self._applied)
         if not bad:
             self._seen += 1
             self._cycles += 1
@@ -293,7 +313,8 @@ class BatchControllers:
         """Keep simulate_batch's outcomes from here on (:meth:`cycle`), for rigs that start
         at the flat positions ``x0`` on ``plant``."""
         rigs = self._v_x.shape[0]
-        self._measuring = _measurement_constants(plant)
+        m, table, self._measures = _plant_constants(plant)
+        self._constants = m, table
         self._plant = plant
         self._ir_index = plant.layout.ir_index
         self._cur_index = plant.layout.current_sensor_index
@@ -307,23 +328,24 @@ class BatchControllers:
                       "x_max": np.array(x0, dtype=float)}
 
     def cycle(self, y: np.ndarray, applied: np.ndarray, draws: np.ndarray | None, t: float,
-              hold: bool) -> np.ndarray:
+              hold: bool) -> tuple[np.ndarray, np.ndarray]:
         """One cycle of simulate_batch from the plant's state ``y`` (rigs, size) at time
         ``t``: the measurement, the controllers, the outcomes (``hold``: inside the hold
         window; the range takes y's x from the second cycle on, the states after an
-        advance); returns the plant's command (flat; overwritten by the next cycle).
+        advance). Returns the plant's command (:func:`pisc_plant.command.plant_command`)
+        and what acts on the plant for it (:meth:`pisc_plant.plant.Plant.applied`), flat.
         ``applied`` is the command held at the sample, ``draws`` the noise (rigs, 3)."""
         y = np.require(y, float, ("C", "W"))
         draws = _NO_DRAWS if draws is None else np.require(draws, float, ("C", "W"))
         track_range = self._cycles > 0
-        if self._measuring is None or self._run(True, y, draws, (self._x, self._theta,
+        if not self._measures or self._run(True, y, draws, (self._x, self._theta,
                                                                   self._current),
                                                  True, t, hold, track_range):
             measured = self._plant.measurement(y, applied, None if not draws.size else draws)
             measured = tuple(np.require(np.broadcast_to(v, (y.shape[0],)), float, ("C", "W"))
                              for v in measured)
             self._run(False, y, draws, measured, True, t, hold, track_range)
-        return self._command
+        return self._command.copy(), self._applied.copy()
 
     def outcomes(self, y: np.ndarray) -> dict[str, np.ndarray]:
         """The outcomes kept so far, the range including the state ``y`` (rigs, size)
@@ -336,7 +358,7 @@ class BatchControllers:
 
 _NO_STATE = np.zeros((0, 1))
 _NO_DRAWS = np.zeros((0, 3))
-_NO_MEASUREMENT = (np.zeros(N_M), np.zeros(1))
+_NO_CONSTANTS = (np.zeros(N_M), np.zeros(1))
 
 
 def warm_up() -> float:

@@ -227,16 +227,22 @@ def simulate_batch(
         # the measurement, the controllers and the outcomes in the compiled pass; the
         # plant's advance as below
         compiled.track(sim, x0.reshape(-1))
-        flat = y.reshape(-1, y.shape[-1])
+        flat = np.array(y.reshape(-1, y.shape[-1]), dtype=float, order="C")
         applied = applied.reshape(-1)
+        in_place = sim.rigs is None and not delay.ndim  # one duration, one rig's constants
+        acting = applied  # through the actuator (zero volts act as zero)
         for k in range(cycles):
             t = k * period
             draws = None if rng is None else rng.standard_normal(x0.shape + (3,))
             hold = t >= hold_start_s
             hold_cycles += hold
-            command = compiled.cycle(flat, applied, None if draws is None else
-                                     draws.reshape(-1, 3), t, hold).copy()
-            if delay.ndim:
+            command, acts = compiled.cycle(flat, applied, None if draws is None else
+                                           draws.reshape(-1, 3), t, hold)
+            if in_place:
+                if delay > 0.0:
+                    sim.advance_in_place(flat, acting, float(delay))
+                sim.advance_in_place(flat, acts, period - float(delay))
+            elif delay.ndim:
                 flat = sim.advance(flat, applied, delay)
                 flat = sim.advance(flat, command, period - delay)
             elif delay > 0.0:
@@ -244,7 +250,7 @@ def simulate_batch(
                 flat = sim.advance(flat, command, period - float(delay))
             else:
                 flat = sim.advance(flat, command, period)
-            applied = command
+            applied, acting = command, acts
             if progress is not None:
                 progress(k + 1, cycles)
         book = {name: v.reshape(shape) for name, v in compiled.outcomes(flat).items()}

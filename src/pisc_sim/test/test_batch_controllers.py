@@ -247,17 +247,38 @@ def test_the_pass_measures_hostile_states_as_the_plant_does():
         draws = rng.standard_normal((rigs, 3))
         applied = rng.uniform(-10.0, 10.0, rigs)
         with np.errstate(invalid="ignore", over="ignore"):  # numpy's, on the bad cycle
-            command = compiled.cycle(y, applied, draws, 0.005 * k, True).copy()
+            command, acts = compiled.cycle(y, applied, draws, 0.005 * k, True)
             measured = plant.measurement(y, applied, draws)
             want = reference.step(*measured)
         got = compiled._force, compiled._mode, compiled._setpoint, compiled._voltage
         _assert_same(k, want, got)
         assert np.array_equal(_bits(command), _bits(want[3]))
+        assert np.array_equal(_bits(acts), _bits(plant.applied(want[3])))
         if k != 4:  # the pass's own measurement, not numpy's
             for mine, theirs in zip((compiled._x, compiled._theta, compiled._current),
                                     measured):
                 assert np.array_equal(_bits(mine), _bits(theirs)), k
     assert want[1][10] == Mode.FAULT.code  # the NaN reading's fault, latched
+
+
+def test_the_pass_applies_the_actuator_as_its_parameters_do():
+    """The pass's actuator (saturated, quantised to the command byte) against
+    ActuatorParams.apply, bit for bit, at every step boundary, beyond the supply, at
+    the signed zeros and NaN; and the unquantised actuator (command_levels = 0)."""
+    from pisc_sim.batch_controllers import _actuator
+
+    for act in (load_scene("thesis-rig").config.plant.actuator,
+                load_scene("thesis-rig", {"actuator.command_levels": 0}).config.plant.actuator):
+        step = act.step_v or 0.1
+        values = np.concatenate([np.linspace(-13, 13, 20001), (np.arange(128) + 0.5) * step,
+                                 -(np.arange(128) + 0.5) * step,
+                                 np.nextafter((np.arange(128) + 0.5) * step, 0.0),
+                                 [0.0, -0.0, 11.47, -11.47, np.inf, -np.inf, np.nan]])
+        with np.errstate(invalid="ignore"):  # numpy's cast of NaN
+            want = act.apply(values)
+        got = np.array([_actuator(act.full_scale_v, float(act.command_levels), act.step_v, v)
+                        for v in values])
+        assert np.array_equal(_bits(got), _bits(want)), act.command_levels
 
 
 def test_experiments_run_on_the_numpy_cores():
