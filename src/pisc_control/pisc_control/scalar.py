@@ -162,11 +162,10 @@ def _wrap(theta: float) -> float:
     return theta - TWO_PI * _floor(theta / TWO_PI + 0.5)
 
 
-def _lyapunov_force(s: tuple[float, ...], x: float, x_dot: float, theta: float,
+def _lyapunov_force(s: tuple[float, ...], x: float, x_dot: float, sn: float, c: float,
                     theta_dot: float, target: float) -> float:
-    """:func:`pisc_control.swing_up.swing_up_force` (3.30), with the energy (2.54)."""
-    sn = _sin(theta)
-    c = _cos(theta)
+    """:func:`pisc_control.swing_up.swing_up_force` (3.30), with the energy (2.54); ``sn``,
+    ``c``: the sine and cosine of the angle."""
     den_mass = s[S_A2] - s[S_A1] * c * c
     kinetic = (s[S_HALF_A2] * x_dot * x_dot + s[S_M_L] * x_dot * theta_dot * c
                + s[S_HALF_J] * theta_dot * theta_dot)
@@ -176,11 +175,10 @@ def _lyapunov_force(s: tuple[float, ...], x: float, x_dot: float, theta: float,
     return numerator / (s[S_KV] + den_mass * s[S_KE] * e)
 
 
-def _energy_pump_force(s: tuple[float, ...], x: float, x_dot: float, theta: float,
+def _energy_pump_force(s: tuple[float, ...], x: float, x_dot: float, sn: float, c: float,
                        theta_dot: float, target: float) -> float:
-    """:func:`pisc_control.swing_up.energy_pump_force`."""
-    sn = _sin(theta)
-    c = _cos(theta)
+    """:func:`pisc_control.swing_up.energy_pump_force`; ``sn``, ``c``: the sine and cosine
+    of the angle."""
     e_p = s[S_INERTIA_HALF] * theta_dot * theta_dot + s[S_MGL] * (c - 1.0)
     error = (s[S_E_REF] - e_p) / s[S_TWO_MGL]
     pump = s[S_PUMP_ACCEL_NEG] * _clip(s[S_PUMP_GAIN] * error * theta_dot * c / s[S_OMEGA0],
@@ -226,11 +224,13 @@ def supervisor_step(s: tuple[float, ...], first: bool, x: float, x_dot: float, t
     else:
         new_fault = FAULT_NONE
     th = _wrap(theta)
+    sn = _sin(theta)  # taken once: the band and the swing-up law use them
+    c = _cos(theta)
     criterion = th * th + s[S_K_VA] * theta_dot * theta_dot
     catching = mode == CATCH
     inside = criterion < (s[S_DELTA_EXIT] if catching else s[S_DELTA_S])
     if s[S_BAND] > 0.0:
-        e_p = s[S_INERTIA_HALF] * theta_dot * theta_dot + s[S_MGL] * (_cos(theta) - 1.0)
+        e_p = s[S_INERTIA_HALF] * theta_dot * theta_dot + s[S_MGL] * (c - 1.0)
         inside = inside and (catching or abs(e_p) < s[S_BAND])
     new_mode = CATCH if inside else SWING_UP
     if new_fault != FAULT_NONE:
@@ -238,9 +238,9 @@ def supervisor_step(s: tuple[float, ...], first: bool, x: float, x_dot: float, t
     now_caught = caught or new_mode == CATCH
     target = s[S_SWING_TARGET] if now_caught else startup_target
     if s[S_LAW] == LAW_ENERGY_PUMP:
-        f_swing = _energy_pump_force(s, x, x_dot, theta, theta_dot, target)
+        f_swing = _energy_pump_force(s, x, x_dot, sn, c, theta_dot, target)
     else:
-        f_swing = _lyapunov_force(s, x, x_dot, theta, theta_dot, target)
+        f_swing = _lyapunov_force(s, x, x_dot, sn, c, theta_dot, target)
     if s[S_SETTLE] > 0.0:
         ref = x if first or (new_mode == CATCH and mode != CATCH) else reference
         if new_mode == CATCH:

@@ -349,23 +349,26 @@ def _current(y, u, p, arm):
 
 
 @_inline
-def _accelerations(y, u, p, arm, current):
+def _accelerations(y, u, p, arm, current, fric):
     """x_ddot, theta_ddot: (3.3), (3.5) with cart and pivot friction."""
-    return _accelerations_at(y[1], y[3], u, p, arm, current, vsin(y[2]), vcos(y[2]))
+    return _accelerations_at(y[1], y[3], u, p, arm, current, vsin(y[2]), vcos(y[2]), fric)
 
 
 @_inline
-def _accelerations_at(x_dot, theta_dot, u, p, arm, current, s, c):
-    """:func:`_accelerations` with sin and cos of the angle given."""
+def _accelerations_at(x_dot, theta_dot, u, p, arm, current, s, c, fric):
+    """:func:`_accelerations` with sin and cos of the angle given; ``fric`` (a constant of
+    the compilation): the layout models Coulomb friction on the cart."""
     if arm == ARM_FORCE:
         force = u
     else:
         # (4.2) and the rotor's viscous friction reflected to the cart
         force = p[P_KF] * current - p[P_BM] * x_dot
     force -= p[P_BC] * x_dot
-    # Coulomb friction, regularised; without it F_c = 0 and (v_c > 0) the term is an
-    # exact 0, computed all the same: a branch would keep the loop from vectorising
-    force -= p[P_FC] * vtanh(x_dot / p[P_VC])
+    # Coulomb friction, regularised. In a layout without it (fric, a constant of the
+    # compilation, so no branch in the vectorised loop) F_c = 0 and the term is an exact
+    # 0: its tanh, an eighth of the step's time, is not taken
+    if fric:
+        force -= p[P_FC] * vtanh(x_dot / p[P_VC])
     torque = -p[P_BP] * theta_dot
     a1 = p[P_A1]
     a2 = p[P_A2]
@@ -393,10 +396,10 @@ def _current_sensor_voltage(p, current):
 
 
 @_inline
-def _rhs(y, u, p, arm, filt):
+def _rhs(y, u, p, arm, filt, fric):
     """The full right-hand side y' (state order of the tuple, see above)."""
     current = _current(y, u, p, arm)
-    x_ddot, theta_ddot = _accelerations(y, u, p, arm, current)
+    x_ddot, theta_ddot = _accelerations(y, u, p, arm, current, fric)
     di = 0.0
     if arm == ARM_FULL:
         # (2.81): L di/dt = u - R i - k_e phi_dot
@@ -410,7 +413,7 @@ def _rhs(y, u, p, arm, filt):
 
 
 @_inline
-def _couplings(z, y, u, p, arm):
+def _couplings(z, y, u, p, arm, fric):
     """L's couplings at the step's start: c_x, c_theta (0, 1), c_x1, c_theta1 (2, 3), the
     rate of q (4), the current sensor's share of q (5), the accelerations (6, 7), c_x2,
     c_theta2 (8, 9), delta (10).
@@ -449,13 +452,14 @@ def _couplings(z, y, u, p, arm):
     j12 = (2.0 * ml * theta_dot * si + a1 * co * p[P_BP] / ml) / den
     j21 = a1 * co * damp_x / (ml * den)
     j22 = (-2.0 * a1 * theta_dot * si * co - a1 * a2 * p[P_BP] / (ml * ml)) / den
-    x_ddot, theta_ddot = _accelerations_at(y[1], y[3], u, p, arm, y[4], si, co)
+    x_ddot, theta_ddot = _accelerations_at(y[1], y[3], u, p, arm, y[4], si, co, fric)
     # the slow motion: without q's own share (q0 = q at the start, mostly the transient)
     q0 = z[4]
     x_ddot_slow = x_ddot - cx * q0
     theta_ddot_slow = theta_ddot - cth * q0
     force = kf * (y[4] - q0) - (p[P_BM] + p[P_BC]) * y[1]
-    force -= p[P_FC] * vtanh(y[1] / p[P_VC])
+    if fric:
+        force -= p[P_FC] * vtanh(y[1] / p[P_VC])
     torque = -p[P_BP] * theta_dot
     # angle derivatives K of the slow accelerations (3.3), (3.5): numerators over den
     dden = 2.0 * a1 * co * si
@@ -580,7 +584,7 @@ def _apply_add_n(op, v, c, out, full, filt):
 
 
 @_inline
-def _nonlinear(z, u, p, c, arm, filt, at_start):
+def _nonlinear(z, u, p, c, arm, filt, at_start, fric):
     """N(z) = f(z) - L z in the exponential scheme's variables (q for i, plus r, s).
 
     ``at_start``: z is the step's start, whose accelerations :func:`_couplings` left in
@@ -601,7 +605,7 @@ def _nonlinear(z, u, p, c, arm, filt, at_start):
         x_ddot = c[6]
         theta_ddot = c[7]
     else:
-        x_ddot, theta_ddot = _accelerations(y, u, p, arm, current)
+        x_ddot, theta_ddot = _accelerations(y, u, p, arm, current, fric)
     n4 = 0.0
     if arm == ARM_FULL:
         # with Q = q + delta r the current's departure, Q' = -(R/L) Q + d x_ddot; L gives
@@ -636,16 +640,16 @@ def _end_stops(y, p):
 
 
 @_inline
-def _rk4(y, u, p, h, arm, filt):
+def _rk4(y, u, p, h, arm, filt, fric):
     """One classical Runge-Kutta step."""
-    k1 = _rhs(y, u, p, arm, filt)
+    k1 = _rhs(y, u, p, arm, filt, fric)
     t = 0.5 * h
     k2 = _rhs((y[0] + t * k1[0], y[1] + t * k1[1], y[2] + t * k1[2], y[3] + t * k1[3],
-               y[4] + t * k1[4], y[5] + t * k1[5], y[6] + t * k1[6]), u, p, arm, filt)
+               y[4] + t * k1[4], y[5] + t * k1[5], y[6] + t * k1[6]), u, p, arm, filt, fric)
     k3 = _rhs((y[0] + t * k2[0], y[1] + t * k2[1], y[2] + t * k2[2], y[3] + t * k2[3],
-               y[4] + t * k2[4], y[5] + t * k2[5], y[6] + t * k2[6]), u, p, arm, filt)
+               y[4] + t * k2[4], y[5] + t * k2[5], y[6] + t * k2[6]), u, p, arm, filt, fric)
     k4 = _rhs((y[0] + h * k3[0], y[1] + h * k3[1], y[2] + h * k3[2], y[3] + h * k3[3],
-               y[4] + h * k3[4], y[5] + h * k3[5], y[6] + h * k3[6]), u, p, arm, filt)
+               y[4] + h * k3[4], y[5] + h * k3[5], y[6] + h * k3[6]), u, p, arm, filt, fric)
     w = h / 6.0
     return (y[0] + w * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0]),
             y[1] + w * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1]),
@@ -668,15 +672,15 @@ def _sum9(a, b):
 
 
 @_inline
-def _exprk4(y, u, p, ops, arm, filt):
+def _exprk4(y, u, p, ops, arm, filt, fric):
     """One step of the exponential scheme (5.19) (see the module's docstring)."""
     full = arm == ARM_FULL
     slow = 0.0
     if full:
         slow = (u - p[P_KER] * y[1]) / p[P_R]
     z = (y[0], y[1], y[2], y[3], y[4] - slow, y[5], y[6], 0.0, 0.0)
-    c = _couplings(z, y, u, p, arm)
-    n1 = _nonlinear(z, u, p, c, arm, filt, True)
+    c = _couplings(z, y, u, p, arm, fric)
+    n1 = _nonlinear(z, u, p, c, arm, filt, True, fric)
     if full:
         # r starts at its slow value N_q / lam^2, so that r carries t q only for the
         # transient: from r = 0 the slow part of q would start a fast transient in r
@@ -695,18 +699,18 @@ def _exprk4(y, u, p, ops, arm, filt):
     ez2 = _apply_add(ops[T_E2], z, c, _ZERO9, full, filt)
     ez = _apply_add(ops[T_E], z, c, _ZERO9, full, filt)
     n2 = _nonlinear(_apply_add_n(ops[T_A21], n1, c, ez2, full, filt), u, p, c, arm, filt,
-                    False)
+                    False, fric)
     u3 = _apply_add_n(ops[T_A31], n1, c, ez2, full, filt)
     n3 = _nonlinear(_apply_add_n(ops[T_A32], n2, c, u3, full, filt), u, p, c, arm, filt,
-                    False)
+                    False, fric)
     sum23 = _sum9(n2, n3)
     u4 = _apply_add_n(ops[T_A41], n1, c, ez, full, filt)
     n4 = _nonlinear(_apply_add_n(ops[T_A42], sum23, c, u4, full, filt), u, p, c, arm, filt,
-                    False)
+                    False, fric)
     u5 = _apply_add_n(ops[T_A51], n1, c, ez2, full, filt)
     u5 = _apply_add_n(ops[T_A52], sum23, c, u5, full, filt)
     n5 = _nonlinear(_apply_add_n(ops[T_A54], n4, c, u5, full, filt), u, p, c, arm, filt,
-                    False)
+                    False, fric)
     new = _apply_add_n(ops[T_B1], n1, c, ez, full, filt)
     new = _apply_add_n(ops[T_B4], n4, c, new, full, filt)
     new = _apply_add_n(ops[T_B5], n5, c, new, full, filt)
@@ -728,7 +732,7 @@ def _put(y, k, b0, b1, b2, b3, b4, b5, b6):
 
 
 @_jit
-def _lanes(b0, b1, b2, b3, b4, b5, b6, us, p, ops, method, substeps, h, arm, filt):
+def _lanes(b0, b1, b2, b3, b4, b5, b6, us, p, ops, method, substeps, h, arm, filt, fric):
     """Advance the rigs whose states are the columns of the rows b0..b6 (one row per
     state component, one column per rig): the loop over rigs is the vectorised one.
 
@@ -739,26 +743,27 @@ def _lanes(b0, b1, b2, b3, b4, b5, b6, us, p, ops, method, substeps, h, arm, fil
     """
     numba.literally(arm)
     numba.literally(filt)
+    numba.literally(fric)
     rigs = us.shape[0]
     if method == RK4:
         for _ in range(substeps):
             for k in range(rigs):
                 y = _rk4((b0[k], b1[k], b2[k], b3[k], b4[k], b5[k], b6[k]), us[k], p, h,
-                         arm, filt)
+                         arm, filt, fric)
                 y = _end_stops(y, p)
                 _put(y, k, b0, b1, b2, b3, b4, b5, b6)
     else:
         for _ in range(substeps):
             for k in range(rigs):
                 y = _exprk4((b0[k], b1[k], b2[k], b3[k], b4[k], b5[k], b6[k]), us[k], p,
-                            ops, arm, filt)
+                            ops, arm, filt, fric)
                 y = _end_stops(y, p)
                 _put(y, k, b0, b1, b2, b3, b4, b5, b6)
 
 
 @_inline
 def _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, arm, filt, ii, vir,
-                  vcur):
+                  vcur, fric):
     """Advance rows lo..hi of ys (one rig per row, the layout's order) in place."""
     rigs = hi - lo
     cols = np.zeros((7, rigs))
@@ -773,7 +778,7 @@ def _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, arm, filt
             cols[5, k] = ys[lo + k, vir]
             cols[6, k] = ys[lo + k, vcur]
     _lanes(cols[0], cols[1], cols[2], cols[3], cols[4], cols[5], cols[6], us[lo:hi],
-           _constants(p, stops), _operators(coef), method, substeps, h, arm, filt)
+           _constants(p, stops), _operators(coef), method, substeps, h, arm, filt, fric)
     for k in range(rigs):
         ys[lo + k, 0] = cols[0, k]
         ys[lo + k, 1] = cols[1, k]
@@ -802,38 +807,74 @@ class Kernels(NamedTuple):
 # and two of them loaded into one process corrupted each other: a segfault.)
 @_jit
 def _advance_full_filters(ys, us, lo, hi, p, stops, method, substeps, h, coef):
-    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_FULL, True,
-                  4, 5, 6)
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_FULL, True, 4, 5, 6, False)
+
+
+@_jit
+def _advance_full_filters_coulomb(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_FULL, True, 4, 5, 6, True)
 
 
 @_jit
 def _advance_full(ys, us, lo, hi, p, stops, method, substeps, h, coef):
-    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_FULL, False,
-                  4, -1, -1)
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_FULL, False, 4, -1, -1, False)
+
+
+@_jit
+def _advance_full_coulomb(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_FULL, False, 4, -1, -1, True)
 
 
 @_jit
 def _advance_quasi_static_filters(ys, us, lo, hi, p, stops, method, substeps, h, coef):
-    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_QUASI_STATIC,
-                  True, -1, 4, 5)
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_QUASI_STATIC, True, -1, 4, 5, False)
+
+
+@_jit
+def _advance_quasi_static_filters_coulomb(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_QUASI_STATIC, True, -1, 4, 5, True)
 
 
 @_jit
 def _advance_quasi_static(ys, us, lo, hi, p, stops, method, substeps, h, coef):
-    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_QUASI_STATIC,
-                  False, -1, -1, -1)
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_QUASI_STATIC, False, -1, -1, -1, False)
+
+
+@_jit
+def _advance_quasi_static_coulomb(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_QUASI_STATIC, False, -1, -1, -1, True)
 
 
 @_jit
 def _advance_force_filters(ys, us, lo, hi, p, stops, method, substeps, h, coef):
-    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_FORCE, True,
-                  -1, 4, 5)
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_FORCE, True, -1, 4, 5, False)
+
+
+@_jit
+def _advance_force_filters_coulomb(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_FORCE, True, -1, 4, 5, True)
 
 
 @_jit
 def _advance_force(ys, us, lo, hi, p, stops, method, substeps, h, coef):
-    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef, ARM_FORCE, False,
-                  -1, -1, -1)
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_FORCE, False, -1, -1, -1, False)
+
+
+@_jit
+def _advance_force_coulomb(ys, us, lo, hi, p, stops, method, substeps, h, coef):
+    _advance_rows(ys, us, lo, hi, p, stops, method, substeps, h, coef,
+                  ARM_FORCE, False, -1, -1, -1, True)
 
 
 # Rigs per task of the parallel loop: the columns of a task (7 x 256 doubles, 14 KiB)
@@ -858,8 +899,18 @@ def _many_full_filters(ys, us, p, stops, method, substeps, h, coef):
 
 
 @_parallel
+def _many_full_filters_coulomb(ys, us, p, stops, method, substeps, h, coef):
+    _chunks(_advance_full_filters_coulomb, ys, us, p, stops, method, substeps, h, coef)
+
+
+@_parallel
 def _many_full(ys, us, p, stops, method, substeps, h, coef):
     _chunks(_advance_full, ys, us, p, stops, method, substeps, h, coef)
+
+
+@_parallel
+def _many_full_coulomb(ys, us, p, stops, method, substeps, h, coef):
+    _chunks(_advance_full_coulomb, ys, us, p, stops, method, substeps, h, coef)
 
 
 @_parallel
@@ -868,8 +919,18 @@ def _many_quasi_static_filters(ys, us, p, stops, method, substeps, h, coef):
 
 
 @_parallel
+def _many_quasi_static_filters_coulomb(ys, us, p, stops, method, substeps, h, coef):
+    _chunks(_advance_quasi_static_filters_coulomb, ys, us, p, stops, method, substeps, h, coef)
+
+
+@_parallel
 def _many_quasi_static(ys, us, p, stops, method, substeps, h, coef):
     _chunks(_advance_quasi_static, ys, us, p, stops, method, substeps, h, coef)
+
+
+@_parallel
+def _many_quasi_static_coulomb(ys, us, p, stops, method, substeps, h, coef):
+    _chunks(_advance_quasi_static_coulomb, ys, us, p, stops, method, substeps, h, coef)
 
 
 @_parallel
@@ -878,15 +939,25 @@ def _many_force_filters(ys, us, p, stops, method, substeps, h, coef):
 
 
 @_parallel
+def _many_force_filters_coulomb(ys, us, p, stops, method, substeps, h, coef):
+    _chunks(_advance_force_filters_coulomb, ys, us, p, stops, method, substeps, h, coef)
+
+
+@_parallel
 def _many_force(ys, us, p, stops, method, substeps, h, coef):
     _chunks(_advance_force, ys, us, p, stops, method, substeps, h, coef)
+
+
+@_parallel
+def _many_force_coulomb(ys, us, p, stops, method, substeps, h, coef):
+    _chunks(_advance_force_coulomb, ys, us, p, stops, method, substeps, h, coef)
 
 
 @_inline
 def _rhs_into(y, u, p, out, arm, filt, ii, vir, vcur):
     s = (y[0], y[1], y[2], y[3], y[ii] if ii >= 0 else 0.0, y[vir] if vir >= 0 else 0.0,
          y[vcur] if vir >= 0 else 0.0)
-    f = _rhs(s, u, _constants(p, True), arm, filt)
+    f = _rhs(s, u, _constants(p, True), arm, filt, True)
     out[0] = f[0]
     out[1] = f[1]
     out[2] = f[2]
@@ -1126,7 +1197,7 @@ def _put_at(y, old, moved, b, k):
 
 
 @_jit
-def _lanes_set(b, us, hs, p, stops, ops, method, substeps, arm, filt):
+def _lanes_set(b, us, hs, p, stops, ops, method, substeps, arm, filt, fric):
     """:func:`_lanes` for one block of a plant set: the rigs' states are the columns of
     ``b`` (component j of rig k at ``b[j * BLOCK + k]``), their constants ``p`` and
     operators ``ops`` blocks of :func:`lanes`, their steps ``hs`` (rk4 steps by them;
@@ -1138,6 +1209,7 @@ def _lanes_set(b, us, hs, p, stops, ops, method, substeps, arm, filt):
     """
     numba.literally(arm)
     numba.literally(filt)
+    numba.literally(fric)
     rigs = us.shape[0]
     if method == RK4:
         for _ in range(substeps):
@@ -1145,14 +1217,15 @@ def _lanes_set(b, us, hs, p, stops, ops, method, substeps, arm, filt):
                 h = hs[k]
                 y0 = _state_at(b, k)
                 pk = _constants_at(p, k, stops)
-                y = _end_stops(_rk4(y0, us[k], pk, h, arm, filt), pk)
+                y = _end_stops(_rk4(y0, us[k], pk, h, arm, filt, fric), pk)
                 _put_at(y, y0, h > 0.0, b, k)
     else:
         for _ in range(substeps):
             for k in range(rigs):
                 y0 = _state_at(b, k)
                 pk = _constants_at(p, k, stops)
-                y = _end_stops(_exprk4(y0, us[k], pk, _operators_at(ops, k), arm, filt), pk)
+                y = _end_stops(_exprk4(y0, us[k], pk, _operators_at(ops, k), arm, filt,
+                                       fric), pk)
                 _put_at(y, y0, hs[k] > 0.0, b, k)
 
 
@@ -1177,7 +1250,7 @@ def _advance_set_rows(ys, us, lo, hi, p, stops, method, substeps, hs, tables, ar
                 cols[5 * BLOCK + k] = ys[start + k, vir]
                 cols[6 * BLOCK + k] = ys[start + k, vcur]
         _lanes_set(cols, us[start:start + rigs], hs[start:start + rigs], p[block], stops,
-                   tables[block], method, substeps, arm, filt)
+                   tables[block], method, substeps, arm, filt, True)
         for k in range(rigs):
             ys[start + k, 0] = cols[k]
             ys[start + k, 1] = cols[BLOCK + k]
@@ -1265,21 +1338,37 @@ def _many_set_force(ys, us, p, stops, method, substeps, hs, tables):
     _set_chunks(_set_force, ys, us, p, stops, method, substeps, hs, tables)
 
 
+_SET_POINTS = {
+    (ARM_FULL, True): (_set_full_filters, _many_set_full_filters),
+    (ARM_FULL, False): (_set_full, _many_set_full),
+    (ARM_QUASI_STATIC, True): (_set_quasi_static_filters, _many_set_quasi_static_filters),
+    (ARM_QUASI_STATIC, False): (_set_quasi_static, _many_set_quasi_static),
+    (ARM_FORCE, True): (_set_force_filters, _many_set_force_filters),
+    (ARM_FORCE, False): (_set_force, _many_set_force),
+}
+# (armature, filters, Coulomb friction): the uniform entry points; a plant set's above
+# take the Coulomb term always (each rig has its own F_c)
 _ENTRY_POINTS = {
-    (ARM_FULL, True): (_advance_full_filters, _many_full_filters, _set_full_filters,
-                       _many_set_full_filters),
-    (ARM_FULL, False): (_advance_full, _many_full, _set_full, _many_set_full),
-    (ARM_QUASI_STATIC, True): (_advance_quasi_static_filters, _many_quasi_static_filters,
-                               _set_quasi_static_filters, _many_set_quasi_static_filters),
-    (ARM_QUASI_STATIC, False): (_advance_quasi_static, _many_quasi_static,
-                                _set_quasi_static, _many_set_quasi_static),
-    (ARM_FORCE, True): (_advance_force_filters, _many_force_filters, _set_force_filters,
-                        _many_set_force_filters),
-    (ARM_FORCE, False): (_advance_force, _many_force, _set_force, _many_set_force),
+    (ARM_FULL, True, False): (_advance_full_filters, _many_full_filters),
+    (ARM_FULL, True, True): (_advance_full_filters_coulomb, _many_full_filters_coulomb),
+    (ARM_FULL, False, False): (_advance_full, _many_full),
+    (ARM_FULL, False, True): (_advance_full_coulomb, _many_full_coulomb),
+    (ARM_QUASI_STATIC, True, False): (_advance_quasi_static_filters,
+                                      _many_quasi_static_filters),
+    (ARM_QUASI_STATIC, True, True): (_advance_quasi_static_filters_coulomb,
+                                     _many_quasi_static_filters_coulomb),
+    (ARM_QUASI_STATIC, False, False): (_advance_quasi_static, _many_quasi_static),
+    (ARM_QUASI_STATIC, False, True): (_advance_quasi_static_coulomb,
+                                      _many_quasi_static_coulomb),
+    (ARM_FORCE, True, False): (_advance_force_filters, _many_force_filters),
+    (ARM_FORCE, True, True): (_advance_force_filters_coulomb, _many_force_filters_coulomb),
+    (ARM_FORCE, False, False): (_advance_force, _many_force),
+    (ARM_FORCE, False, True): (_advance_force_coulomb, _many_force_coulomb),
 }
 
 
 def for_layout(layout: Layout) -> Kernels:
     """The kernels of a layout (each compiled on its first use, or loaded from cache;
     :func:`pisc_plant.warm.warm_up` compiles the uniform ones, not those of plant sets)."""
-    return Kernels(*_ENTRY_POINTS[(layout.armature, layout.filters)])
+    return Kernels(*_ENTRY_POINTS[(layout.armature, layout.filters, layout.coulomb)],
+                   *_SET_POINTS[(layout.armature, layout.filters)])

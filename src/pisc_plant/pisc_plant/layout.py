@@ -29,11 +29,15 @@ N_CONSTANTS = 23
 
 @dataclass(frozen=True)
 class Layout:
-    """Which components a scene's state has, and where."""
+    """Which components a scene's state has, and where, and which terms the kernel
+    computes."""
 
     armature: int  # ARM_FULL, ARM_QUASI_STATIC or ARM_FORCE
     filters: bool
     end_stops: bool
+    # Coulomb friction on the cart (models.friction = coulomb): not a state component,
+    # but the kernel compiles its term only into the layouts that have it
+    coulomb: bool = False
 
     @property
     def current_index(self) -> int:

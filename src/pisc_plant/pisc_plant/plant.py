@@ -297,7 +297,7 @@ class Plant:
         c = config
         models = c.models
         self.layout = layout.Layout(ARMATURE_CODES[models.armature], models.sensor_filters,
-                                    models.end_stops)
+                                    models.end_stops, models.friction == "coulomb")
         self._kernels = kernel.for_layout(self.layout)
         self.size = self.layout.size
         self.index = {"x": X, "x_dot": X_DOT, "theta": THETA, "theta_dot": THETA_DOT}

@@ -31,16 +31,20 @@ from pisc_model.params import ModelParams
 __all__ = ["LAYOUTS", "SCOPES", "layout_models", "steps", "warm_up"]
 
 SCOPES = ("run", "all")
-LAYOUTS = (("full", True), ("full", False), ("quasi_static", True), ("quasi_static", False),
-           ("ideal_force", True), ("ideal_force", False))
+# (armature, filters, Coulomb friction); the last, the default scene's with Coulomb
+# friction, is what identification and the robustness reruns use
+LAYOUTS = (("full", True, False), ("full", False, False), ("quasi_static", True, False),
+           ("quasi_static", False, False), ("ideal_force", True, False),
+           ("ideal_force", False, False), ("full", True, True))
 
 
-def layout_models(armature: str, filters: bool) -> ModelParams:
+def layout_models(armature: str, filters: bool, coulomb: bool = False) -> ModelParams:
     """The plant models of one kernel layout (the first of :data:`LAYOUTS` is the default
     scene's)."""
     return ModelParams(armature=armature,
                        current_loop="ideal" if armature == "ideal_force" else "sampled_pi",
-                       sensors="quantised" if filters else "ideal", sensor_filters=filters)
+                       sensors="quantised" if filters else "ideal", sensor_filters=filters,
+                       friction="coulomb" if coulomb else "none")
 
 
 def steps(scope: str) -> Iterator[tuple[str, Callable[[], None]]]:
@@ -51,9 +55,10 @@ def steps(scope: str) -> Iterator[tuple[str, Callable[[], None]]]:
     from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
 
     layouts = LAYOUTS[:1] if scope == "run" else LAYOUTS
-    for armature, filters in layouts:
-        models = layout_models(armature, filters)
-        name = f"{armature}{' + RC filters' if filters else ''}"
+    for armature, filters, coulomb in layouts:
+        models = layout_models(armature, filters, coulomb)
+        name = (f"{armature}{' + RC filters' if filters else ''}"
+                f"{' + Coulomb friction' if coulomb else ''}")
 
         def plant(models: ModelParams = models) -> Plant:
             return Plant(PlantConfig(models=models, integrator=IntegratorParams("exprk4", 2)))

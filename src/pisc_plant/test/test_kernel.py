@@ -151,7 +151,8 @@ def test_armature_rate_is_the_middle_of_the_rates_the_angle_gives():
 def test_each_layout_has_its_own_kernels():
     """A layout's indices are constants of its compiled kernels: each of the six layouts
     (armature x filters) has its own entry points, and each steps its own state size
-    (the end stops are a run-time flag)."""
+    (the end stops are a run-time flag); each has a second set with the Coulomb term
+    (those of plant sets have it always)."""
     seen = set()
     for arm in (kernel.ARM_FULL, kernel.ARM_QUASI_STATIC, kernel.ARM_FORCE):
         for filters in (True, False):
@@ -159,6 +160,11 @@ def test_each_layout_has_its_own_kernels():
             k = kernel.for_layout(layout)
             assert kernel.for_layout(kernel.Layout(arm, filters, False)).advance is k.advance
             seen.add(k.advance)
+            coulomb = kernel.for_layout(kernel.Layout(arm, filters, True, True))
+            assert coulomb.advance is not k.advance
+            assert coulomb.advance_many is not k.advance_many
+            assert coulomb.advance_set is k.advance_set
+            seen.add(coulomb.advance)
             models = ModelParams(
                 armature={kernel.ARM_FULL: "full", kernel.ARM_QUASI_STATIC: "quasi_static",
                           kernel.ARM_FORCE: "ideal_force"}[arm],
@@ -180,7 +186,31 @@ def test_each_layout_has_its_own_kernels():
                                   (0.0, 0.005), y0, method="DOP853", rtol=1e-12, atol=1e-14)
             np.testing.assert_allclose(fine.advance(y0, u, 0.005), reference.y[:, -1],
                                        rtol=1e-9, atol=1e-11)
-    assert len(seen) == 6
+    assert len(seen) == 12
+
+
+@pytest.mark.parametrize("rigs", [1, 600])  # one chunk; the parallel entry point
+def test_the_layout_without_coulomb_friction_gives_its_bits_at_zero_coulomb_force(rigs):
+    """The default layout leaves the Coulomb term out; with Coulomb friction modelled at
+    F_c = 0 the term is an exact zero: both give the same bits, over states that reach
+    the end stops, both signs of the cart's velocity, and 0 m/s exactly."""
+    rng = np.random.default_rng(11)
+    viscous = FrictionParams(cart_viscous_ns_per_m=0.3, pivot_viscous_nms=2e-5,
+                             cart_coulomb_n=0.0)
+    plants = [Plant(PlantConfig(models=ModelParams(friction=model), friction=viscous))
+              for model in ("viscous", "coulomb")]
+    assert [p.layout.coulomb for p in plants] == [False, True]
+    y = plants[0].initial_state(rng.uniform(-0.25, 0.15, rigs), rng.uniform(-1, 1, rigs),
+                                rng.uniform(-7, 7, rigs), rng.uniform(-20, 20, rigs),
+                                rng.uniform(-1, 1, rigs))
+    y[: max(1, rigs // 10), 1] = 0.0
+    u = rng.uniform(-12, 12, rigs)
+    a, b = (p.advance(y, u, 0.005) for p in plants)
+    np.testing.assert_array_equal(a.view(np.int64), b.view(np.int64))
+    # and the term acts where it is modelled
+    coulomb = Plant(PlantConfig(models=ModelParams(friction="coulomb"),
+                                friction=dataclasses.replace(viscous, cart_coulomb_n=0.05)))
+    assert not np.array_equal(coulomb.advance(y, u, 0.005), a)
 
 
 def test_right_hand_side_agrees_with_the_reference_dynamics():
