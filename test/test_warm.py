@@ -1,5 +1,5 @@
 """What set-up compiles: ``./pisc run`` needs the default configuration's kernel layout
-for one rig and nothing else; ``./pisc test`` every layout."""
+for one rig and nothing else; ``./pisc test`` every layout, and the default's with Coulomb friction."""
 
 import pytest
 
@@ -15,11 +15,16 @@ def test_run_scope_compiles_the_default_configurations_layout_for_one_rig():
     assert [what for what, _ in steps("run")] == ["full + RC filters: one rig"]
 
 
-def test_all_scope_covers_six_distinct_layouts_with_every_entry_point():
+def test_all_scope_covers_seven_distinct_layouts_with_every_entry_point():
+    """The six layouts (armature x filters) and the default's with Coulomb friction, the
+    one identification and the robustness reruns use."""
     layouts = {Plant(PlantConfig(models=layout_models(*spec))).layout for spec in LAYOUTS}
-    assert len(layouts) == 6
+    assert len(layouts) == 7
+    assert sum(layout.coulomb for layout in layouts) == 1
+    coulomb = Plant(PlantConfig(models=layout_models("full", True, True)))
+    assert coulomb.layout.coulomb and coulomb.config.models.friction == "coulomb"
     names = [what for what, _ in steps("all")]
-    assert len(names) == 18 and sum(n.endswith("parallel batch") for n in names) == 6
+    assert len(names) == 21 and sum(n.endswith("parallel batch") for n in names) == 7
 
 
 def test_unknown_scope_is_refused():
