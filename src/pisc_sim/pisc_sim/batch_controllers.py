@@ -1,4 +1,5 @@
-"""The controllers of a batch, compiled: one pass over the rigs per cycle (numba).
+"""The controllers of a batch, compiled: one pass over the rigs per cycle (numba), with
+the measurement before them and the bookkeeping after them.
 
 :func:`pisc_sim.closed_loop.simulate_batch` runs the estimator, the supervisor and the
 current loop of every rig each cycle. Their numpy cores (:mod:`pisc_control`) do that with
@@ -10,6 +11,16 @@ Those give the numpy cores' bits, and so does their compiled form: numba compile
 ``fastmath``, so no multiply-add is fused and nothing is reassociated, and ``math.sin``
 and ``math.cos`` are the C library's in both (``test_batch_controllers`` compares the
 compiled pass with the numpy cores over closed-loop runs and hostile inputs).
+
+For :func:`~pisc_sim.closed_loop.simulate_batch` (:meth:`BatchControllers.track`,
+:meth:`BatchControllers.cycle`) the same pass also does what surrounds the controllers
+in a cycle, which numpy did in a few dozen more passes over the rigs: the sensors'
+measurement from the plant's state (:meth:`pisc_plant.plant.Plant.measurement` with
+quantised sensors behind their filters, noise included; numpy measures for it otherwise
+and where a reading is not finite), the outcomes' bookkeeping, and the actuator's
+saturation and quantisation of the voltage, so that the plant steps the rows in place
+(:meth:`pisc_plant.plant.Plant.advance_in_place`). The outcomes equal the numpy path's
+(``test_batch_controllers``).
 
 numba's cache keys an entry on its own file's time stamp only; the compiled pass holds
 the code of :mod:`pisc_control.scalar`, so when that file is newer than the cache's
@@ -102,7 +113,7 @@ def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, the
     ``measure``: take the measurements from the plant's state ``y`` (rigs, size) first,
     into x, theta, current, as :meth:`pisc_plant.plant.Plant.measurement` does with
     quantised sensors behind their filters: ``draws`` (rigs, 3) of noise when it has
-    rows, the constants ``m`` (:func:`_measurement_constants`), the IR curve of every
+    rows, the constants ``m`` (:func:`_plant_constants`), the IR curve of every
     ADC code from numpy (``ir_table``); a reading that is not finite, or an angle too
     large for the count's integer, is not taken here (the caller measures with numpy
     and calls again with ``measure`` false). Otherwise x, theta, current are given.
@@ -185,7 +196,7 @@ def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, the
     return 0
 
 
-# places in the measurement's constants
+# places in the pass's constants of the plant (its sensors, its noise, its actuator)
 (M_LSB, M_LOW, M_TOP, M_IR_ORIGIN, M_IR_EXPONENT, M_CURRENT_SCALE, M_CURRENT_OFFSET,
  M_ENCODER_ZERO, M_RAD_PER_COUNT, M_X_STD, M_THETA_STD, M_CURRENT_STD, M_FULL_SCALE,
  M_LEVELS, M_STEP, N_M) = range(16)
@@ -338,9 +349,8 @@ class BatchControllers:
         y = np.require(y, float, ("C", "W"))
         draws = _NO_DRAWS if draws is None else np.require(draws, float, ("C", "W"))
         track_range = self._cycles > 0
-        if not self._measures or self._run(True, y, draws, (self._x, self._theta,
-                                                                  self._current),
-                                                 True, t, hold, track_range):
+        mine = (self._x, self._theta, self._current)
+        if not self._measures or self._run(True, y, draws, mine, True, t, hold, track_range):
             measured = self._plant.measurement(y, applied, None if not draws.size else draws)
             measured = tuple(np.require(np.broadcast_to(v, (y.shape[0],)), float, ("C", "W"))
                              for v in measured)

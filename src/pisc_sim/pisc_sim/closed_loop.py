@@ -164,9 +164,11 @@ def simulate_batch(
     the first difference (4.7), (4.9) sees the initial rates instead of zero: a rig
     that was already moving. ``progress(k, n)`` is called after each of the n cycles.
 
-    ``controllers``: ``"compiled"`` runs the controllers of every rig in one compiled
-    pass a cycle (:mod:`pisc_sim.batch_controllers`, the same bits as the numpy cores;
-    experiments fall back to the cores), ``"numpy"`` runs the numpy cores over arrays.
+    ``controllers``: ``"compiled"`` runs the measurement, the controllers and the
+    outcomes' bookkeeping of every rig in one compiled pass a cycle
+    (:mod:`pisc_sim.batch_controllers`, the same outcomes as the numpy path;
+    experiments fall back to it), ``"numpy"`` runs the sensors' model and the numpy
+    cores over arrays.
     """
     if controllers not in ("compiled", "numpy"):
         raise ValueError(f"controllers = {controllers!r}: 'compiled' or 'numpy'")
@@ -225,7 +227,8 @@ def simulate_batch(
     cycles = int(round(duration_s / period)) + 1
     if compiled is not None:
         # the measurement, the controllers and the outcomes in the compiled pass; the
-        # plant's advance as below
+        # plant steps the rows in place with the input the pass put through the actuator
+        # (a plant set or one delay a rig: Plant.advance with the commands)
         compiled.track(sim, x0.reshape(-1))
         flat = np.array(y.reshape(-1, y.shape[-1]), dtype=float, order="C")
         applied = applied.reshape(-1)
