@@ -15,6 +15,7 @@ de/dq_j' q_j''``, which is what Maple's substitution of ``q_j = u_j(t)`` amounts
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -112,13 +113,7 @@ class MechanicalSystem:
         ``q'' = M^-1 (M q'' - r)``, which no longer contains q''. Seed 001's ``dyn4``
         prints ``M^-1 (r - M q'')``, the opposite sign; it is corrected here.
         """
-        r = sp.Matrix(self.residuals())
-        mass = r.jacobian(self.ddq)  # unsimplified, so that M q'' cancels term by term
-        h = sp.expand(r - mass * sp.Matrix(self.ddq))
-        if any(h_i.has(*self.ddq) for h_i in h):
-            raise ValueError("the equations of motion are not affine in the accelerations")
-        solved = sp.simplify(mass).LUsolve(-h)
-        return [sp.simplify(e) for e in solved]
+        return list(_solved_accelerations(self))
 
     def state(self) -> tuple[sp.Symbol, ...]:
         """State vector ``z = [q1, q1', q2, q2', ...]``."""
@@ -128,6 +123,21 @@ class MechanicalSystem:
         """``f(z, u)`` of ``z' = f(z, u)``, z as in :meth:`state`."""
         acc = self.accelerations()
         return [e for dqk, ak in zip(self.dq, acc, strict=True) for e in (dqk, ak)]
+
+
+@functools.lru_cache(maxsize=32)
+def _solved_accelerations(system: MechanicalSystem) -> tuple[sp.Expr, ...]:
+    """:meth:`MechanicalSystem.accelerations`, kept for each system (equal systems, such as
+    two calls of :func:`cart_pole`, share one entry): sympy's ``simplify`` of the solved
+    accelerations takes seconds, and the report asks for them ten times (the symbols and
+    expressions are immutable, so a kept result is the same as a new one)."""
+    r = sp.Matrix(system.residuals())
+    mass = r.jacobian(system.ddq)  # unsimplified, so that M q'' cancels term by term
+    h = sp.expand(r - mass * sp.Matrix(system.ddq))
+    if any(h_i.has(*system.ddq) for h_i in h):
+        raise ValueError("the equations of motion are not affine in the accelerations")
+    solved = sp.simplify(mass).LUsolve(-h)
+    return tuple(sp.simplify(e) for e in solved)
 
 
 @dataclass(frozen=True)

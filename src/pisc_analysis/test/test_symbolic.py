@@ -88,3 +88,17 @@ def test_refusals_name_what_is_wrong():
     system, s = cart_pole()
     with pytest.raises(ValueError, match="no value given for I, M"):
         numeric_state_space(system, {s.m: 1.0, s.l: 1.0, s.g: 9.81})
+
+
+def test_equal_systems_share_their_solved_accelerations():
+    """The solved accelerations are kept per system: a second cart-pole built anew gets the
+    same expressions without solving again; a different system is solved for itself."""
+    from pisc_analysis import symbolic
+
+    first = cart_pole()[0].accelerations()
+    before = symbolic._solved_accelerations.cache_info()
+    again = cart_pole()[0].accelerations()
+    after = symbolic._solved_accelerations.cache_info()
+    assert again == first and after.hits == before.hits + 1 and after.misses == before.misses
+    point_mass = cart_pole(with_inertia=False)[0].accelerations()
+    assert point_mass != first
