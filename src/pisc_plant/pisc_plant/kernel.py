@@ -1,7 +1,8 @@
 """Compiled right-hand side and integrators of the plant (numba).
 
 One kernel serves every scene: the state carries only the components a scene's
-sub-models need (:class:`Layout`), the constants travel in one float array
+sub-models need (:class:`Layout`; the regularised Coulomb friction on the cart is
+computed only in the layouts that model it), the constants travel in one float array
 (:func:`pisc_plant.plant.pack_constants`), and the same compiled step advances one rig
 in a node or ten thousand in a batch (:func:`for_layout` gives a layout's entry points:
 one steps rows of a state array, the batch one hands chunks of rows to it in parallel).
@@ -736,8 +737,8 @@ def _lanes(b0, b1, b2, b3, b4, b5, b6, us, p, ops, method, substeps, h, arm, fil
     """Advance the rigs whose states are the columns of the rows b0..b6 (one row per
     state component, one column per rig): the loop over rigs is the vectorised one.
 
-    Compiled once per layout: ``literally`` makes ``arm`` and ``filt`` constants of each
-    compilation. (Inlined into the entry points instead, as the helpers below it are,
+    Compiled once per layout: ``literally`` makes ``arm``, ``filt`` and ``fric`` (the
+    Coulomb term) constants of each compilation. (Inlined into the entry points instead, as the helpers below it are,
     numba copied the whole step's intermediate code at every level of inlining: the
     kernel took 14 minutes to compile.)
     """
@@ -801,7 +802,8 @@ class Kernels(NamedTuple):
     advance_set_many: Callable  # (ys, us, p, stops, method, substeps, hs, tables)
 
 
-# One set of entry points per layout, written out: the layout's numbers must be
+# One set of entry points per layout, and one more with the Coulomb term
+# (models.friction = coulomb), written out: the layout's numbers must be
 # constants where _advance_rows is inlined. (Closures over the numbers would say this in
 # fewer lines, but numba's cache gives closures of one function the same symbol names,
 # and two of them loaded into one process corrupted each other: a segfault.)
