@@ -1,5 +1,6 @@
 """What set-up compiles: ``./pisc run`` needs the default configuration's kernel layout
-for one rig and nothing else; ``./pisc test`` every layout, and the default's with Coulomb friction."""
+for one rig and nothing else; ``./pisc test`` every layout, and the default's with Coulomb
+friction."""
 
 import pytest
 

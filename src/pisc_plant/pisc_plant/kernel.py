@@ -367,7 +367,7 @@ def _accelerations_at(x_dot, theta_dot, u, p, arm, current, s, c, fric):
     force -= p[P_BC] * x_dot
     # Coulomb friction, regularised. In a layout without it (fric, a constant of the
     # compilation, so no branch in the vectorised loop) F_c = 0 and the term is an exact
-    # 0: its tanh, an eighth of the step's time, is not taken
+    # 0, and its tanh is not taken (docs/scenes-and-numerics.md: what that saves)
     if fric:
         force -= p[P_FC] * vtanh(x_dot / p[P_VC])
     torque = -p[P_BP] * theta_dot
@@ -738,9 +738,9 @@ def _lanes(b0, b1, b2, b3, b4, b5, b6, us, p, ops, method, substeps, h, arm, fil
     state component, one column per rig): the loop over rigs is the vectorised one.
 
     Compiled once per layout: ``literally`` makes ``arm``, ``filt`` and ``fric`` (the
-    Coulomb term) constants of each compilation. (Inlined into the entry points instead, as the helpers below it are,
-    numba copied the whole step's intermediate code at every level of inlining: the
-    kernel took 14 minutes to compile.)
+    Coulomb term) constants of each compilation. (Inlined into the entry points instead,
+    as the helpers below it are, numba copied the whole step's intermediate code at every
+    level of inlining: the kernel took 14 minutes to compile.)
     """
     numba.literally(arm)
     numba.literally(filt)

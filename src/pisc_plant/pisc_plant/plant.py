@@ -537,11 +537,11 @@ class Plant:
             self._kernels.advance_many(ys, us, self._p, stops, self._method, n, h, coef)
 
     def advance_in_place(self, ys: np.ndarray, applied: np.ndarray, duration_s: float) -> None:
-        """:meth:`advance` for a batch's loop: the rows of ``ys`` (n, size), a C-contiguous
-        float array, advanced in place, with ``applied`` (n,) already through the actuator
-        (:meth:`applied`), one duration for all. The same bits as :meth:`advance`
-        without its copy of the state and its pass through the actuator (a sixth of the
-        plant's time in a batch of 10,000, 2026-12-04). Not for a plant set."""
+        """:meth:`advance` for a batch's loop (:func:`pisc_sim.closed_loop.simulate_batch`):
+        the rows of ``ys`` (n, size), a C-contiguous float array, advanced in place, with
+        ``applied`` (n,) already through the actuator (:meth:`applied`), one duration for
+        all. The same bits as :meth:`advance` without its copy of the state and its pass
+        through the actuator. Not for a plant set."""
         if self.rigs is not None:
             raise ValueError("advance_in_place is for one rig's constants; a plant set "
                              "takes advance")

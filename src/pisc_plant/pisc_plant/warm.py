@@ -6,8 +6,8 @@
 uses (full armature, sampled PI loop, quantised sensors with their RC filters, exprk4)
 for one rig, the way the plant node and the virtual rig call them. ``all`` (before the
 test suite): every layout, and the default's with Coulomb friction (its own entry
-points, :mod:`pisc_plant.kernel`), for one rig, for rows and for the parallel batch. The entry
-points of plant sets (a model per rig: the robustness and identification work) are not
+points, :mod:`pisc_plant.kernel`), for one rig, for rows and for the parallel batch.
+The entry points of plant sets (a model per rig: the robustness and identification work) are not
 among them and compile on first use (``test_plant_set.py`` took 59 s in the first suite
 run of 2026-12-04, ``all`` already warm).
 

@@ -68,8 +68,7 @@ _drop_stale_cache()
 for _function in (scalar._clip, scalar._floor, scalar._sin, scalar._cos, scalar._wrap,
                   scalar._lyapunov_force, scalar._energy_pump_force):
     register_jitable(error_model="numpy")(_function)
-# inlined into the pass (numba's own inlining: a call per rig and function cost a fifth
-# of the pass, 2026-12-04)
+# inlined into the pass (numba's own inlining), which calls them for every rig
 _estimator_step = numba.njit(scalar.estimator_step, error_model="numpy", inline="always")
 _supervisor_step = numba.njit(scalar.supervisor_step, error_model="numpy", inline="always")
 _current_loop_step = numba.njit(scalar.current_loop_step, error_model="numpy",

@@ -257,7 +257,8 @@ def simulate_batch(
             if progress is not None:
                 progress(k + 1, cycles)
         book = {name: v.reshape(shape) for name, v in compiled.outcomes(flat).items()}
-        caught_at, first_catch, faulted = book["caught_at"], book["first_catch"], book["faulted"]
+        caught_at, first_catch = book["caught_at"], book["first_catch"]
+        faulted = book["faulted"]
         x_min, x_max, hold_theta = book["x_min"], book["x_max"], book["hold_theta"]
         hold_x, hold_i2 = book["hold_x"], book["hold_i2"]
     else:  # the numpy cores over arrays
