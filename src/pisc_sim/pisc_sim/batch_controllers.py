@@ -275,6 +275,7 @@ class BatchControllers:
         self._constants, self._measures = _NO_CONSTANTS, False
         self._ir_index = self._cur_index = 0
         self._force_per_amp = 0.0
+        self._plant: Plant | None = None
         self._book = {name: np.zeros(rigs, dtype=dtype) for name, dtype in (
             ("faulted", np.bool_), ("previous_mode", np.int64), ("caught_at", float),
             ("first_catch", float), ("hold_theta", float), ("hold_x", float),
@@ -345,6 +346,15 @@ class BatchControllers:
         advance). Returns the plant's command (:func:`pisc_plant.command.plant_command`)
         and what acts on the plant for it (:meth:`pisc_plant.plant.Plant.applied`), flat.
         ``applied`` is the command held at the sample, ``draws`` the noise (rigs, 3)."""
+        if self._plant is None:
+            raise ValueError("cycle needs the plant: call track(plant, x0) first")
+        rigs, size = self._v_x.shape[0], self._plant.size
+        # the pass reads by index without bounds checks: the shapes are checked here
+        if np.shape(y) != (rigs, size) or np.shape(applied) != (rigs,) or (
+                draws is not None and np.shape(draws) != (rigs, 3)):
+            raise ValueError(f"state {np.shape(y)}, applied {np.shape(applied)}, draws "
+                             f"{None if draws is None else np.shape(draws)}: want "
+                             f"({rigs}, {size}), ({rigs},) and None or ({rigs}, 3)")
         y = np.require(y, float, ("C", "W"))
         draws = _NO_DRAWS if draws is None else np.require(draws, float, ("C", "W"))
         track_range = self._cycles > 0

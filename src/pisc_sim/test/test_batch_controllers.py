@@ -281,6 +281,25 @@ def test_the_pass_applies_the_actuator_as_its_parameters_do():
         assert np.array_equal(_bits(got), _bits(want)), act.command_levels
 
 
+def test_the_compiled_cycle_refuses_what_it_cannot_index():
+    """The pass reads the state by index without bounds checks: a cycle before track, or
+    with a state, input or draws of another shape, is refused by name."""
+    config = load_scene("thesis-rig").config
+    plant = Plant(config.simulated_plant)
+    compiled = BatchControllers(config, Supervisor(config.supervisor), 4)
+    y = plant.initial_state(np.zeros(4))
+    with pytest.raises(ValueError, match=r"call track\(plant, x0\) first"):
+        compiled.cycle(y, np.zeros(4), None, 0.0, False)
+    compiled.track(plant, np.zeros(4))
+    for bad in ((y[:3], np.zeros(4), None), (y[:, :5], np.zeros(4), None),
+                (y, np.zeros(3), None), (y, np.zeros(4), np.zeros((4, 2)))):
+        with pytest.raises(ValueError, match=r"want \(4, %d\), \(4,\) and None or \(4, 3\)"
+                           % plant.size):
+            compiled.cycle(*bad, 0.0, False)
+    command, acts = compiled.cycle(y, np.zeros(4), None, 0.0, False)
+    assert command.shape == acts.shape == (4,)
+
+
 def test_experiments_run_on_the_numpy_cores():
     config = load_scene("excitation").config
     assert not supported(config)
