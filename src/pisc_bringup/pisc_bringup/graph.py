@@ -505,9 +505,14 @@ class _VoltageTap:
         self._handle.destroy_when_not_in_use()
 
 
+# how often the one-process runner looks at the recorder between voltages (a stall)
+STALL_CHECK_S = 0.05
+
+
 class _RecorderWatch:
-    """Notices that pisc_record died, at the next cycle's voltage or within a period of
-    wall time (a timer; with separate processes only the timer, :class:`_VoltageTap`),
+    """Notices that pisc_record died, at the next cycle's voltage or, while no voltage
+    comes, within :data:`STALL_CHECK_S` of wall time (a timer; with separate processes
+    only a timer, at each period, :class:`_VoltageTap`),
     in lockstep and on the wall clock alike, says so at once and ends the spin (the run
     stops; a driver is stopped, which commands 0 V)."""
 
@@ -815,7 +820,9 @@ def run_graph(options: RunOptions) -> RunResult:
 
         watcher.create_subscription(message_class(VOLTAGE.type), VOLTAGE.name, on_voltage,
                                     qos_profile(VOLTAGE.qos), raw=True)
-        watcher.create_timer(config.loop.period_s, watch.check)  # wall clock: also when stalled
+        # also when no voltage comes (a stall); not each period: a timer of its own costs
+        # the process 3-4 % of a core on the wall clock (docs/figures.md)
+        watcher.create_timer(STALL_CHECK_S, watch.check)
     else:
         def on_period() -> None:
             tap.drain()
