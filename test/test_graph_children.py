@@ -62,6 +62,40 @@ def test_a_stopping_child_is_waited_for_while_it_works_and_killed_when_idle(tmp_
     assert problem.startswith(f"{os.path.basename(sys.executable)} exited with status -9")
 
 
+SPINS_ON_SIGTERM = ("import signal, time\n"
+                    "asked = []\n"
+                    "signal.signal(signal.SIGTERM, lambda *a: asked.append(1))\n"
+                    "print('ready', flush=True)\n"
+                    "while True: pass\n")
+
+
+def test_a_controller_that_spins_after_sigterm_is_killed_with_a_warning(tmp_path, monkeypatch,
+                                                                       capsys):
+    """A supervisor process spun for minutes in Fast DDS's participant teardown after a
+    run (2026-12-04: DomainParticipant::set_listener waiting, busy, on a discovery callback
+    that waited on it); pisc_graph waited for it, busy, up to STOP_LIMIT_S. A controller
+    is now killed STOP_PATIENCE_S after SIGTERM, busy or not, with a warning; the source
+    (plant or driver) stopped first, and a hang of the source stays a failure."""
+    monkeypatch.setattr(graph, "STOP_PATIENCE_S", 1.0)
+    controller = _child(SPINS_ON_SIGTERM, tmp_path)
+    source = _child("print('ready', flush=True)\nimport time\ntime.sleep(60)", tmp_path)
+    assert controller.stdout.readline() == b"ready\n" == source.stdout.readline()
+    started = time.monotonic()
+    assert graph._stop_all([controller, source]) == ["", ""]
+    assert time.monotonic() - started < 10.0  # not STOP_LIMIT_S (600 s)
+    assert controller.returncode == -signal.SIGKILL and source.returncode == -signal.SIGTERM
+    err = capsys.readouterr().err
+    assert f"pisc_graph: {os.path.basename(sys.executable)} had not exited " in err, err
+    assert " s after SIGTERM, " in err and " CPU s meanwhile; killed (docs/limitations.md" in err
+    # the same hang in the source is a failure
+    hung = _child(SPINS_ON_SIGTERM, tmp_path)
+    assert hung.stdout.readline() == b"ready\n"
+    monkeypatch.setattr(graph, "STOP_LIMIT_S", 1.5)
+    problem = graph._stop_all([hung])
+    assert hung.returncode == -signal.SIGKILL
+    assert problem[0].startswith(f"{os.path.basename(sys.executable)} exited with status -9")
+
+
 @pytest.mark.skipif(sys.platform != "linux",
                     reason="CPU ticks are read from /proc, which only Linux has")
 def test_cpu_ticks_grow_with_work():
