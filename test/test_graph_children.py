@@ -72,8 +72,8 @@ SPINS_ON_SIGTERM = ("import signal, time\n"
 def test_a_controller_that_spins_after_sigterm_is_killed_with_a_warning(tmp_path, monkeypatch,
                                                                        capsys):
     """A supervisor process spun for minutes in Fast DDS's participant teardown after a
-    run (2026-12-04: DomainParticipant::set_listener waiting, busy, on a discovery callback
-    that waited on it); pisc_graph waited for it, busy, up to STOP_LIMIT_S. A controller
+    run (2026-12-04: DomainParticipant::set_listener waiting, busy, for a discovery
+    callback in flight); pisc_graph waited for it, busy, up to STOP_LIMIT_S. A controller
     is now killed STOP_PATIENCE_S after SIGTERM, busy or not, with a warning; the source
     (plant or driver) stopped first, and a hang of the source stays a failure."""
     monkeypatch.setattr(graph, "STOP_PATIENCE_S", 1.0)

@@ -821,7 +821,7 @@ def run_graph(options: RunOptions) -> RunResult:
         watcher.create_subscription(message_class(VOLTAGE.type), VOLTAGE.name, on_voltage,
                                     qos_profile(VOLTAGE.qos), raw=True)
         # also when no voltage comes (a stall); not each period: a timer of its own costs
-        # the process 2-4 % of a core on the wall clock (docs/figures.md)
+        # the process 2-4 % of a core on the wall clock (docs/soak.md)
         watcher.create_timer(STALL_CHECK_S, watch.check)
     else:
         def on_period() -> None:
