@@ -830,6 +830,7 @@ def run_graph(options: RunOptions) -> RunResult:
 
         watcher.create_timer(config.loop.period_s, on_period)
     nodes: list[Node] = []
+    executor: Any = None
     published: dict[str, int] = {}
     finished = False
     try:
@@ -855,7 +856,7 @@ def run_graph(options: RunOptions) -> RunResult:
             # the runner only watches here, but a SingleThreadedExecutor took 37 % of a
             # core doing it (two messages a cycle) from the nodes' two cores; the
             # EventsExecutor 11 % (docs/figures.md)
-            executor: Any = EXECUTORS[options.executor](context=context)
+            executor = EXECUTORS[options.executor](context=context)
         else:
             for node in graph.controllers:
                 nodes.append(node.instantiate(context))
@@ -912,6 +913,11 @@ def run_graph(options: RunOptions) -> RunResult:
         failures = _stop_all(children)
         if tap is not None:
             tap.destroy()
+        # the executor lets go of the nodes' entities while they live (a RecorderDied's
+        # traceback kept it alive past the context's shutdown, and freeing it then
+        # crashed pisc_graph, SIGSEGV in EventHandler.__exit__, once on 2026-12-04)
+        if executor is not None:
+            executor.shutdown()
         for node in [*reversed(nodes), watcher]:  # the plant or driver first: 0 V
             node.destroy_node()
         context.try_shutdown()
