@@ -35,9 +35,9 @@ from pisc_driver.protocol import command_voltage
 from pisc_driver.link import LinkError, SerialLink
 from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, run_node
 from pisc_msgs_py.convert import (
-    joint_sample_to_msg,
+    joint_sample_to_cdr,
     motor_sample_from_msg,
-    motor_sample_to_msg,
+    motor_sample_to_cdr,
 )
 from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE, VOLTAGE_SENT
 from pisc_msgs_py.types import JointSample, MotorSample
@@ -147,10 +147,8 @@ class DriverNode(PiscNode):
         """Say on VOLTAGE_SENT that ``byte`` was written just now (outside the lock: the
         write is not delayed by it, and its publish time is the write's to within the
         call)."""
-        msg = motor_sample_to_msg(MotorSample(stamp_ns, command_voltage(byte,
-                                                                       self._core.actuator)))
-        msg.header.frame_id = origin
-        self._sent_pub.publish(msg)
+        self._sent_pub.publish(motor_sample_to_cdr(
+            MotorSample(stamp_ns, command_voltage(byte, self._core.actuator)), origin))
 
     def _on_voltage(self, msg: Any) -> None:
         command = self.parse(msg, motor_sample_from_msg, "voltage command", WARN)
@@ -238,9 +236,9 @@ class DriverNode(PiscNode):
                     self.dropped_before_ready += len(samples)
                     samples = []
                 for s in samples:
-                    self._joint_pub.publish(joint_sample_to_msg(
+                    self._joint_pub.publish(joint_sample_to_cdr(
                         JointSample(s.stamp_ns, s.position_m, s.angle_rad)))
-                    self._current_pub.publish(motor_sample_to_msg(
+                    self._current_pub.publish(motor_sample_to_cdr(
                         MotorSample(s.stamp_ns, s.current_a)))
                     if self.routine_diagnostics(core.parser.frames):  # once a second
                         # (names the port: a recorder started with this process may

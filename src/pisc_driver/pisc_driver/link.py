@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import errno
 import os
+import select
 
 import serial
 
 from pisc_msgs_py.config import ConfigError
 
 __all__ = ["LinkError", "SerialLink"]
+
+READ_CHUNK = 4096  # most bytes one read takes (115200 baud: 11,520 bytes a second)
 
 
 class LinkError(ConfigError):
@@ -39,6 +42,7 @@ class SerialLink:
         self.baud = baud
         self.read_timeout_s = read_timeout_s
         self._serial: serial.Serial | None = None
+        self._poll: select.poll | None = None
 
     @property
     def is_open(self) -> bool:
@@ -62,23 +66,34 @@ class SerialLink:
         except OSError as exc:
             raise LinkError(_why(self.port, exc)) from exc
         port.reset_input_buffer()
+        self._poll = select.poll()
+        self._poll.register(port.fileno(), select.POLLIN)
         self._serial = port
 
     def read(self) -> bytes:
         """The bytes that arrived: waits up to ``read_timeout_s`` for the first, then takes
         what is there (a device burst), so a frame reaches the parser when it arrives.
-        A device that went away raises LinkError; the caller closes the port."""
+        A device that went away raises LinkError; the caller closes the port.
+
+        One ``poll`` and one ``read`` of the non-blocking descriptor pyserial opened, as
+        :meth:`write` does: pyserial's ``read(1)``, ``in_waiting`` and ``read(n)`` took
+        two ``select`` calls, two reads and an ioctl per burst (the reader wakes 400-600
+        times a second, issue 16).
+        """
         port = self._require()
         try:
-            data = port.read(1)
-            if data:
-                waiting = port.in_waiting
-                if waiting:
-                    data += port.read(waiting)
-            return data
-        except (serial.SerialException, OSError) as exc:
+            if not self._poll.poll(self.read_timeout_s * 1e3):
+                return b""
+            data = os.read(port.fileno(), READ_CHUNK)
+        except BlockingIOError:
+            return b""  # (woken, and another reader took it: nothing there now)
+        except OSError as exc:
             raise LinkError(f"driver.port = {self.port!r}: read failed, the device went away "
                             f"({exc})") from exc
+        if not data:
+            raise LinkError(f"driver.port = {self.port!r}: read failed, the device went away "
+                            "(ready to read but returned no data: disconnected?)")
+        return data
 
     def write(self, byte: int) -> bool:
         """Send one byte at once; False when the port cannot take it now (output full).
@@ -98,7 +113,7 @@ class SerialLink:
                             f"({exc})") from exc
 
     def close(self) -> None:
-        port, self._serial = self._serial, None
+        port, self._serial, self._poll = self._serial, None, None
         if port is not None:
             try:
                 port.close()

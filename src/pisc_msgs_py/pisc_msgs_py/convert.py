@@ -125,12 +125,16 @@ def _motor_sample_fields(sample: MotorSample) -> JointFields:
     return sample.stamp_ns, (MOTOR_JOINT,), (), (), (float(sample.value),)
 
 
-def motor_sample_to_msg(sample: MotorSample) -> JointState:
-    return _joint_state_msg(_motor_sample_fields(sample))
+def motor_sample_to_msg(sample: MotorSample, frame_id: str = "") -> JointState:
+    """``frame_id``: what the value is (the driver's ``/pisc/motor/voltage_sent`` says
+    why each byte was written: ``answer``, ``hold`` or ``zero``)."""
+    msg = _joint_state_msg(_motor_sample_fields(sample))
+    msg.header.frame_id = frame_id
+    return msg
 
 
-def motor_sample_to_cdr(sample: MotorSample) -> bytes:
-    return cdr.joint_state(*_motor_sample_fields(sample))
+def motor_sample_to_cdr(sample: MotorSample, frame_id: str = "") -> bytes:
+    return cdr.joint_state(*_motor_sample_fields(sample), frame_id=frame_id)
 
 
 def motor_sample_from_msg(msg: Any) -> MotorSample:

@@ -61,6 +61,21 @@ def test_the_bytes_are_the_message_rclpy_builds(value, to_msg, to_cdr, from_msg,
     assert from_msg(decode(to_cdr(value))) == value
 
 
+@pytest.mark.parametrize("frame_id", ["answer", "hold", "zero", ""])
+def test_a_motor_sample_with_a_frame_is_the_message_rclpy_builds(frame_id):
+    """The driver's /pisc/motor/voltage_sent names why each byte was written in the
+    header's frame; the string's length changes the padding before the effort. (Not
+    compared byte for byte with ``serialize_message``: its padding bytes are whatever its
+    buffer held before.)"""
+    value = MotorSample(STAMP, -7.3125)
+    msg = motor_sample_to_msg(value, frame_id)
+    assert msg.header.frame_id == frame_id
+    data = motor_sample_to_cdr(value, frame_id)
+    assert deserialize_message(data, JointState) == msg
+    assert cdr.decode_joint_state(data).header.frame_id == frame_id
+    assert motor_sample_from_msg(cdr.decode_joint_state(data)) == value
+
+
 def test_the_clock_is_the_message_rclpy_builds():
     msg = deserialize_message(clock_to_cdr(STAMP), Clock)
     assert (msg.clock.sec, msg.clock.nanosec) == (1_795_000_000, 123_456_789)
