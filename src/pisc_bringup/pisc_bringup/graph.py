@@ -83,6 +83,7 @@ from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy
+from rclpy.serialization import serialize_message
 from rclpy.task import Future
 
 import yaml
@@ -571,8 +572,10 @@ def _recorder_died(what: str, bag_dir: Path, period_s: float,
     return RecorderDied("\n".join(lines), bag_dir, summary, repair)
 
 
-def _count_publications(nodes: Sequence[Node]) -> dict[str, int]:
-    """Count every message the nodes publish, per topic, from now on (a live dict)."""
+def _count_publications(nodes: Sequence[Node],
+                        on_voltage: Callable[[bytes], None] | None = None) -> dict[str, int]:
+    """Count every message the nodes publish, per topic, from now on (a live dict), and
+    hand each voltage command to ``on_voltage`` as it is published (its CDR bytes)."""
     counts: dict[str, int] = {}
     for node in nodes:
         for publisher in node.publishers:
@@ -580,11 +583,14 @@ def _count_publications(nodes: Sequence[Node]) -> dict[str, int]:
             if name == "/rosout" or name == "/parameter_events":
                 continue
             counts.setdefault(name, 0)
+            tap = on_voltage if name == VOLTAGE.name else None
 
             def counted(msg: Any, _publish: Callable[[Any], None] = publisher.publish,
-                        _name: str = name) -> None:
+                        _name: str = name, _tap: Callable[[bytes], None] | None = tap) -> None:
                 _publish(msg)
                 counts[_name] += 1
+                if _tap is not None:
+                    _tap(msg if isinstance(msg, bytes) else serialize_message(msg))
 
             publisher.publish = counted  # type: ignore[method-assign]
     return counts
@@ -814,14 +820,11 @@ def run_graph(options: RunOptions) -> RunResult:
 
     tap = _VoltageTap(watcher, progress) if options.processes else None
     if tap is None:
-        def on_voltage(data: bytes) -> None:
-            progress(VOLTAGE.name, data)
-            watch.check()  # each cycle
-
-        watcher.create_subscription(message_class(VOLTAGE.type), VOLTAGE.name, on_voltage,
-                                    qos_profile(VOLTAGE.qos), raw=True)
-        # also when no voltage comes (a stall); not each period: a timer of its own costs
-        # the process 2-4 % of a core on the wall clock (docs/soak.md)
+        # The current loop is in this process: its voltages are followed as it publishes
+        # them (_count_publications), not through a subscription of the runner's, which
+        # was one more delivery and callback each cycle. Also when no voltage comes (a
+        # stall); not each period: a timer of its own costs the process 2-4 % of a core
+        # on the wall clock (docs/soak.md)
         watcher.create_timer(STALL_CHECK_S, watch.check)
     else:
         def on_period() -> None:
@@ -879,7 +882,11 @@ def run_graph(options: RunOptions) -> RunResult:
             # thread holds the interpreter lock and starves the rest of the process.
             executor = EXECUTORS[options.executor](context=context)
         if not options.processes:
-            published = _count_publications(nodes)
+            def on_voltage(data: bytes) -> None:
+                progress(VOLTAGE.name, data)
+                watch.check()  # each cycle
+
+            published = _count_publications(nodes, on_voltage)
         elif lockstep and not driver:
             published = expected_messages(options.duration_s, config.loop.period_s, recorded)
         else:
@@ -1177,8 +1184,7 @@ def _matched(nodes: Sequence[Node], recorded: Sequence[Topic],
             topic = next((t for t in GRAPH_TOPICS if t.name == publisher.topic_name), None)
             if topic is None or topic in (DIAGNOSTICS, CLOCK):
                 continue
-            expected = (expected_subscribers(topic, topic in recorded, controllers)
-                        + (topic is VOLTAGE))
+            expected = expected_subscribers(topic, topic in recorded, controllers)
             if publisher.get_subscription_count() < expected:
                 return False
     return True
