@@ -47,16 +47,22 @@ def test_fast_dds_reads_the_profile_without_an_error(env_for_domain, tmp_path):
     assert "XMLPARSER" in said and "<heartbeatPeriod>" in said, said
 
 
+def _seconds(duration):
+    return int(duration.find("f:sec", NS).text) + int(duration.find("f:nanosec", NS).text) * 1e-9
+
+
 def test_the_profile_is_the_default_writers_with_a_heartbeat_every_100_ms():
+    """... and requests to send a message again ignored for 10 ms after it was sent
+    (nackSupressionDuration: one armed timer for several messages, fastdds.xml)."""
     root = ET.parse(FASTDDS_PROFILE).getroot()
     writers = root.findall("f:data_writer", NS)
     assert len(writers) == 1 and writers[0].get("is_default_profile") == "true"
-    period = writers[0].find("f:times/f:heartbeatPeriod", NS)
-    seconds = int(period.find("f:sec", NS).text) + int(period.find("f:nanosec", NS).text) * 1e-9
-    assert seconds == 0.1
+    assert _seconds(writers[0].find("f:times/f:heartbeatPeriod", NS)) == 0.1
+    assert _seconds(writers[0].find("f:times/f:nackSupressionDuration", NS)) == 0.01
     # nothing else: the ROS QoS of every topic stays the code's (qos_profile)
     assert [e.tag.split("}")[1] for e in root.iter()] == [
-        "profiles", "data_writer", "times", "heartbeatPeriod", "sec", "nanosec"]
+        "profiles", "data_writer", "times", "heartbeatPeriod", "sec", "nanosec",
+        "nackSupressionDuration", "sec", "nanosec"]
 
 
 def test_the_environment_gets_the_profile_and_local_discovery_unless_it_has_its_own():
