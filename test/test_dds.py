@@ -48,7 +48,8 @@ def test_fast_dds_reads_the_profile_without_an_error(env_for_domain, tmp_path):
 
 
 def _seconds(duration):
-    return int(duration.find("f:sec", NS).text) + int(duration.find("f:nanosec", NS).text) * 1e-9
+    sec, nanosec = (int(duration.find(f"f:{unit}", NS).text) for unit in ("sec", "nanosec"))
+    return sec + nanosec * 1e-9
 
 
 def test_the_profile_is_the_default_writers_with_a_heartbeat_every_100_ms():

@@ -381,7 +381,8 @@ class RunResult:
     # with --processes in lockstep, what the samples of the run make (expected_messages)
     published: dict[str, int] = field(default_factory=dict)
     experiment: str = "none"  # experiment.kind: an identification run, not a swing-up
-    # wall time from the first voltage this runner received to the one ending the run:
+    # wall time from the first voltage this runner saw (its nodes published it, or with
+    # --processes it received it) to the one ending the run:
     # the loop itself, without start-up and finishing the bag (lockstep: its speed), and
     # the CPU time this process used meanwhile (all its threads; the nodes in one process)
     loop_s: float | None = None
