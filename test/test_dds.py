@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -54,16 +55,52 @@ def _seconds(duration):
 
 def test_the_profile_is_the_default_writers_with_a_heartbeat_every_100_ms():
     """... and requests to send a message again ignored for 10 ms after it was sent
-    (nackSupressionDuration: one armed timer for several messages, fastdds.xml)."""
+    (nackSupressionDuration: one armed timer for several messages, fastdds.xml); the
+    default participant's event thread at SCHED_BATCH."""
     root = ET.parse(FASTDDS_PROFILE).getroot()
     writers = root.findall("f:data_writer", NS)
     assert len(writers) == 1 and writers[0].get("is_default_profile") == "true"
     assert _seconds(writers[0].find("f:times/f:heartbeatPeriod", NS)) == 0.1
     assert _seconds(writers[0].find("f:times/f:nackSupressionDuration", NS)) == 0.01
+    participants = root.findall("f:participant", NS)
+    assert len(participants) == 1 and participants[0].get("is_default_profile") == "true"
+    policy = participants[0].find("f:rtps/f:timed_events_thread/f:scheduling_policy", NS)
+    assert int(policy.text) == os.SCHED_BATCH == 3
     # nothing else: the ROS QoS of every topic stays the code's (qos_profile)
     assert [e.tag.split("}")[1] for e in root.iter()] == [
-        "profiles", "data_writer", "times", "heartbeatPeriod", "sec", "nanosec",
+        "profiles", "participant", "rtps", "timed_events_thread", "scheduling_policy",
+        "data_writer", "times", "heartbeatPeriod", "sec", "nanosec",
         "nackSupressionDuration", "sec", "nanosec"]
+
+
+# every thread of a process with a node: its name and scheduling policy
+_THREADS = """
+import os
+import rclpy
+from rclpy.node import Node
+rclpy.init()
+node = Node("threads_probe")
+for task in sorted(os.listdir("/proc/self/task")):
+    with open(f"/proc/self/task/{task}/comm") as comm:
+        print(comm.read().strip(), os.sched_getscheduler(int(task)))
+node.destroy_node()
+rclpy.shutdown()
+"""
+
+
+def test_with_the_profile_only_fast_dds_event_thread_runs_at_sched_batch(env_for_domain):
+    env = dict(env_for_domain, **{FASTDDS_PROFILES: str(FASTDDS_PROFILE)})
+    done = subprocess.run([sys.executable, "-c", _THREADS], env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    threads = [(name, int(policy)) for name, policy in
+               (line.rsplit(" ", 1) for line in done.stdout.splitlines())]
+    assert [name for name, policy in threads if policy == os.SCHED_BATCH] == ["dds.ev.0"], \
+        threads
+    # the transports' receive threads (dds.shm.N, dds.udp.N) deliver messages between
+    # processes: they keep the process's policy, as every other thread does
+    assert any(name.startswith("dds.shm.") for name, _ in threads), threads
+    assert {policy for name, policy in threads if name != "dds.ev.0"} == {os.SCHED_OTHER}
 
 
 def test_the_environment_gets_the_profile_and_local_discovery_unless_it_has_its_own():

@@ -116,3 +116,38 @@ def test_the_recorders_counts_are_read_past_fast_dds_log_lines_on_its_stdout():
               "/clock 2001\n/pisc/motor/voltage_sent 0\n")
     assert graph.recorded_counts(output) == {"/pisc/joint_states": 2001, "/clock": 2001,
                                              "/pisc/motor/voltage_sent": 0}
+
+
+_POLICY = "import os; print(os.sched_getscheduler(0))"
+
+
+def test_the_recorder_runs_at_sched_batch_and_other_children_at_the_runners_policy():
+    """The recorder (batch_scheduling) must not preempt the graph's threads on each
+    message it is woken by (docs/soak.md); the nodes' processes keep the runner's."""
+    recorder = graph._spawn([sys.executable, "-c", _POLICY], dict(os.environ),
+                            graph.subprocess.PIPE, batch_scheduling=True)
+    node = graph._spawn([sys.executable, "-c", _POLICY], dict(os.environ),
+                        graph.subprocess.PIPE)
+    assert int(recorder.communicate(timeout=60)[0]) == os.SCHED_BATCH
+    assert int(node.communicate(timeout=60)[0]) == os.sched_getscheduler(0)
+
+
+def test_under_sched_fifo_the_recorder_still_runs_at_sched_batch():
+    """pisc_graph --realtime: the runner at SCHED_FIFO, its nodes' processes inherit it,
+    the recorder does not."""
+    code = ("import os, sys\n"
+            "try:\n"
+            "    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))\n"
+            "except PermissionError:\n"
+            "    print('no SCHED_FIFO here'); sys.exit(0)\n"
+            "from pisc_bringup import graph\n"
+            f"spawn = lambda **kw: graph._spawn([sys.executable, '-c', {_POLICY!r}], "
+            "dict(os.environ), graph.subprocess.PIPE, **kw)\n"
+            "print(int(spawn(batch_scheduling=True).communicate(timeout=60)[0]), "
+            "int(spawn().communicate(timeout=60)[0]))\n")
+    done = graph.subprocess.run([sys.executable, "-c", code], capture_output=True,
+                                text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    if done.stdout.strip() == "no SCHED_FIFO here":
+        pytest.skip("SCHED_FIFO is not allowed here (CAP_SYS_NICE)")
+    assert done.stdout.split() == [str(os.SCHED_BATCH), str(os.SCHED_FIFO)]

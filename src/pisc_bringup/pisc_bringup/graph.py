@@ -811,7 +811,7 @@ def run_graph(options: RunOptions) -> RunResult:
     recorder = _spawn([*console_command("pisc_record", "pisc_bringup.record"),
                        "--bag", str(bag_dir),
                        *topic_args, "--ros-args", "-r", f"__node:={recorder_name}"], env,
-                      subprocess.PIPE, normal_scheduling=True)
+                      subprocess.PIPE, batch_scheduling=True)
     children: list[subprocess.Popen] = []
     context = Context()
     rclpy.init(context=context, domain_id=options.domain_id)
@@ -1033,22 +1033,31 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
         pass
 
 
-def _normal_scheduling() -> None:  # pragma: no cover - runs in the child before exec
+def _batch_scheduling() -> None:  # pragma: no cover - runs in the child before exec
+    """The recorder's scheduling, whatever the runner's (SCHED_FIFO with --realtime):
+    SCHED_BATCH, the normal share of the CPU without preempting a thread it is woken by.
+    At SCHED_OTHER its shared-memory receive thread, woken by each message, preempted the
+    graph's main thread about six times a cycle on the wall clock (perf sched_switch,
+    docs/soak.md); at SCHED_FIFO (inherited) it made the graph miss its periods
+    (docs/driver.md)."""
     _die_with_parent()
-    if os.sched_getscheduler(0) != os.SCHED_OTHER:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    try:
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
+    except OSError:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
 STDERR_TAIL_LINES = 200  # of a child's standard error, kept for the message on its failure
 
 
 def _spawn(args: list[str], env: dict[str, str], stdout: int,
-           normal_scheduling: bool = False) -> subprocess.Popen:
+           batch_scheduling: bool = False) -> subprocess.Popen:
     """Start a child; a thread reads its standard error as it comes and keeps the last
     :data:`STDERR_TAIL_LINES` lines. (Read only when stopping it, the pipe filled on a
     long run: 344 lines of the driver's faults in a 10-minute soak blocked its reader
     thread in ``write`` at 163 s, and the run never ended.)"""
-    preexec = _normal_scheduling if normal_scheduling else _die_with_parent
+    preexec = _batch_scheduling if batch_scheduling else _die_with_parent
     child = subprocess.Popen(args, env=env, stdout=stdout, stderr=subprocess.PIPE,
                              preexec_fn=preexec if sys.platform == "linux" else None)
     tail: collections.deque[bytes] = collections.deque(maxlen=STDERR_TAIL_LINES)
