@@ -28,7 +28,9 @@ from pisc_bringup.soak import (
     missed_targets,
     observer_check,
     read_proc,
+    read_steal,
     recoveries,
+    steal_figures,
     usage_over,
 )
 from pisc_plant.virtual_rig import check_request
@@ -224,6 +226,33 @@ def test_read_proc_gives_this_process_cpu_and_resident_memory_and_none_once_gone
         child.kill()
         child.wait()
     assert read_proc(child.pid) is None
+
+
+def test_steal_figures_count_the_cycles_over_the_period_near_a_second_with_steal():
+    # steal grew over 105-106, 106-107 (0.03 s) and 115-116 (0.02 s)
+    steal = {106: 0.01, 107: 0.03, 116: 0.05}
+    samples, so_far = [], 0.0
+    for k in range(100, 121):
+        so_far = steal.get(k, so_far)
+        samples.append((float(k), so_far))
+    # widened by 1 s: 104-108 and 114-117, 7 s of the 20 s window
+    overs = [103.9, 104.2, 107.9, 110.0, 116.5, 125.0]  # the last is after the window
+    figures = steal_figures(samples, 99.0, 121.0, overs)
+    assert figures["steal_s"] == pytest.approx(0.05)
+    assert figures["intervals_with_steal"] == 3
+    assert figures["near_share"] == pytest.approx(7.0 / 20.0)
+    assert (figures["overs"], figures["overs_near"]) == (5, 3)
+    assert steal_figures(samples, 99.0, 121.0, overs, near_s=0.0)["overs_near"] == 0
+    with pytest.raises(ValueError, match="1 steal sample"):
+        steal_figures(samples, 104.5, 105.5, overs)
+
+
+def test_read_steal_is_the_eighth_value_of_proc_stats_cpu_line_in_seconds():
+    before = int(Path("/proc/stat").read_text().split("\n")[0].split()[8])
+    steal = read_steal()
+    after = int(Path("/proc/stat").read_text().split("\n")[0].split()[8])
+    tick = 1.0 / os.sysconf("SC_CLK_TCK")
+    assert before * tick <= steal <= after * tick
 
 
 def test_the_observer_check_counts_what_the_bag_misses_repeats_included():

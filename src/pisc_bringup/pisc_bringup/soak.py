@@ -438,6 +438,49 @@ def read_proc(pid: int) -> tuple[float, int] | None:
     return cpu, rss
 
 
+def read_steal() -> float | None:
+    """The machine's steal time so far, in seconds, summed over its CPUs: time the
+    hypervisor ran something else while a virtual CPU had work (``/proc/stat``'s ``cpu``
+    line, its eighth value; proc(5)). None where there is no such line."""
+    try:
+        for line in Path("/proc/stat").read_text().splitlines():
+            if line.startswith("cpu "):
+                return int(line.split()[8]) * _TICK_S
+    except (FileNotFoundError, IndexError, ValueError):
+        return None
+    return None
+
+
+def steal_figures(samples: Sequence[tuple[float, float]], start_s: float, end_s: float,
+                  over_unix_s: Sequence[float], near_s: float = 1.0) -> dict[str, float]:
+    """The hypervisor's steal over [start_s, end_s] (Unix seconds), from the machine's
+    samples (Unix time, steal seconds so far; about one a second), and how many of the
+    cycles over the period (``over_unix_s``: their samples' publish times) fell within
+    ``near_s`` of a sampling interval in which steal grew. ``near_share``: the share of
+    the window so near, the share of those cycles chance alone would put there.
+
+    Returns steal_s, intervals_with_steal, near_share, overs, overs_near; ValueError when
+    fewer than two samples fall in the window."""
+    inside = [s for s in samples if start_s <= s[0] <= end_s]
+    if len(inside) < 2:
+        raise ValueError(f"{len(inside)} steal sample(s) between {start_s:.1f} and "
+                         f"{end_s:.1f}")
+    stolen = [(a[0] - near_s, b[0] + near_s) for a, b in zip(inside, inside[1:])
+              if b[1] > a[1]]
+    window = inside[-1][0] - inside[0][0]
+    covered, reach = 0.0, inside[0][0]  # the union of the widened intervals, clipped
+    for lo, hi in stolen:
+        lo, hi = max(lo, reach), min(hi, inside[-1][0])
+        if hi > lo:
+            covered += hi - lo
+            reach = hi
+    overs = [u for u in over_unix_s if inside[0][0] <= u <= inside[-1][0]]
+    return {"steal_s": inside[-1][1] - inside[0][1], "intervals_with_steal": len(stolen),
+            "near_share": covered / window if window > 0 else math.nan,
+            "overs": len(overs),
+            "overs_near": sum(any(lo <= u <= hi for lo, hi in stolen) for u in overs)}
+
+
 def children_of(pid: int) -> dict[int, str]:
     """The live child processes of ``pid``: pid -> its command line."""
     found = {}
@@ -465,6 +508,7 @@ class Monitor:
         self.graph_pid = graph_pid
         self.pids: dict[str, int] = {"graph": graph_pid}
         self.samples: dict[str, list[Sample]] = {"graph": []}
+        self.steal: list[tuple[float, float]] = []  # the machine's: (Unix s, steal s)
 
     def add(self, name: str, pid: int) -> None:
         self.pids[name] = pid
@@ -481,6 +525,9 @@ class Monitor:
             seen = read_proc(pid)
             if seen is not None:
                 self.samples[name].append(Sample(now, seen[0], seen[1]))
+        steal = read_steal()
+        if steal is not None:
+            self.steal.append((now, steal))
 
 
 # -- the outside observer ----------------------------------------------------------------
@@ -729,6 +776,15 @@ def analyse(options: SoakOptions, out: Path, record: RunRecord) -> dict[str, Any
         except ValueError as exc:
             processes[name] = {"error": str(exc)}
     report["processes"] = processes
+    # the cycles over the period beside the hypervisor's steal: a virtual CPU that does
+    # not run stalls every process on it, whatever their scheduling (docs/soak.md)
+    over_s = [joints[s][0] * 1e-9 for s in stamps
+              if voltages[s] is not None and joints[s][0] is not None
+              and (voltages[s] - joints[s][0]) * 1e-6 > PERIOD_S * 1e3]  # as latency_figures
+    try:
+        report["steal"] = steal_figures(record.monitor.steal, t0, end, over_s)
+    except ValueError as exc:
+        report["steal"] = {"error": str(exc)}
     nodes = [n for n in ("graph", "driver") if n in processes]
     report["nodes_processes"] = nodes
     report["nodes_cpu_percent"] = (
@@ -804,6 +860,14 @@ def format_report(report: dict[str, Any]) -> str:
         u = report["observer_process"]
         lines.append(f"  {'(outside observer)':20s} {u['cpu_s']:8.1f} CPU s "
                      f"{u['cpu_percent']:6.1f} % of a core")
+    steal = report.get("steal", {"error": "not measured"})
+    if "error" in steal:
+        lines.append(f"steal (hypervisor)     {steal['error']}")
+    else:
+        lines.append(f"steal (hypervisor)     {steal['steal_s']:.2f} s in "
+                     f"{steal['intervals_with_steal']} seconds; {steal['overs_near']} of the "
+                     f"{steal['overs']} cycles over 5 ms within 1 s of one "
+                     f"({100 * steal['near_share']:.1f} % of the window is)")
     nodes = report["nodes_cpu_percent"]
     lines.append(f"four nodes             "
                  f"{'not measured' if nodes is None else f'{nodes:.1f} % of one core'} "
