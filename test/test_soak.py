@@ -17,7 +17,6 @@ import pytest
 from pisc_bringup.soak import (
     DROP_RATE,
     SILENCE_S,
-    Recovery,
     Sample,
     Targets,
     children_of,
