@@ -22,6 +22,7 @@ from pisc_bringup.soak import (
     children_of,
     expected_cycles,
     fault_schedule,
+    format_report,
     latency_figures,
     main,
     missed_targets,
@@ -238,7 +239,7 @@ def test_steal_figures_count_the_cycles_over_the_period_near_a_second_with_steal
     overs = [103.9, 104.2, 107.9, 110.0, 116.5, 125.0]  # the last is after the window
     figures = steal_figures(samples, 99.0, 121.0, overs)
     assert figures["steal_s"] == pytest.approx(0.05)
-    assert figures["intervals_with_steal"] == 3
+    assert figures["intervals_with_steal"] == 3 and figures["near_s"] == 1.0
     assert figures["near_share"] == pytest.approx(7.0 / 20.0)
     assert (figures["overs"], figures["overs_near"]) == (5, 3)
     assert steal_figures(samples, 99.0, 121.0, overs, near_s=0.0)["overs_near"] == 0
@@ -277,6 +278,21 @@ def good_report(**changes):
               "held": True}
     report.update(changes)
     return report
+
+
+def test_the_report_prints_the_steal_beside_the_cycles_over_the_period_or_why_not():
+    report = good_report(
+        duration_s=600.0, driver=False, realtime=None, date="2026-12-05 02:59 UTC",
+        bag="/tmp/bag", seed=0, nodes_processes=["graph"], caught_at_s=1.995,
+        hold_theta_rad=0.0019, hold_x_m=0.0034, state_source="true", faults_seen=[],
+        cycles={"completed": 120001, "expected": 120001, "nominal": 120001, "unanswered": 0},
+        steal={"steal_s": 0.48, "intervals_with_steal": 14, "near_s": 1.0,
+               "near_share": 0.07, "overs": 21, "overs_near": 4})
+    assert ("steal (hypervisor)     0.48 s in 14 seconds; 4 of the 21 cycles over 5 ms "
+            "within 1 s of one (7.0 % of the window is)") in format_report(report).splitlines()
+    report["steal"] = {"error": "1 steal sample(s) between 10.0 and 20.0"}
+    assert "steal (hypervisor)     1 steal sample(s) between 10.0 and 20.0" \
+        in format_report(report).splitlines()
 
 
 def test_a_run_that_meets_every_target_misses_none():

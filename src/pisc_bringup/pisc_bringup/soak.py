@@ -459,8 +459,8 @@ def steal_figures(samples: Sequence[tuple[float, float]], start_s: float, end_s:
     ``near_s`` of a sampling interval in which steal grew. ``near_share``: the share of
     the window so near, the share of those cycles chance alone would put there.
 
-    Returns steal_s, intervals_with_steal, near_share, overs, overs_near; ValueError when
-    fewer than two samples fall in the window."""
+    Returns steal_s, intervals_with_steal, near_s, near_share, overs, overs_near;
+    ValueError when fewer than two samples fall in the window."""
     inside = [s for s in samples if start_s <= s[0] <= end_s]
     if len(inside) < 2:
         raise ValueError(f"{len(inside)} steal sample(s) between {start_s:.1f} and "
@@ -476,6 +476,7 @@ def steal_figures(samples: Sequence[tuple[float, float]], start_s: float, end_s:
             reach = hi
     overs = [u for u in over_unix_s if inside[0][0] <= u <= inside[-1][0]]
     return {"steal_s": inside[-1][1] - inside[0][1], "intervals_with_steal": len(stolen),
+            "near_s": near_s,
             "near_share": covered / window if window > 0 else math.nan,
             "overs": len(overs),
             "overs_near": sum(any(lo <= u <= hi for lo, hi in stolen) for u in overs)}
@@ -741,9 +742,10 @@ def analyse(options: SoakOptions, out: Path, record: RunRecord) -> dict[str, Any
     summary = summarise(_tee(read_bag(bag, topics), keep), PERIOD_S)
     # per cycle, the summary's own rule: the voltage's publish time minus its sample's
     stamps = sorted(s for s in joints if s in voltages)
-    latencies = [(voltages[s] - joints[s][0]) * 1e-6 for s in stamps
+    # (the sample's publish time [ns], the cycle's latency [ms])
+    cycles_ms = [(joints[s][0], (voltages[s] - joints[s][0]) * 1e-6) for s in stamps
                  if voltages[s] is not None and joints[s][0] is not None]
-    figures = latency_figures(latencies, PERIOD_S)
+    figures = latency_figures([latency for _, latency in cycles_ms], PERIOD_S)
     for key in ("median", "p99", "max"):  # the same cycles and rule as the summary's
         if not math.isclose(figures[f"{key}_ms"], summary.latency_ms[key], abs_tol=1e-9):
             raise RuntimeError(f"latency {key}: {figures[key + '_ms']} here, "
@@ -778,9 +780,8 @@ def analyse(options: SoakOptions, out: Path, record: RunRecord) -> dict[str, Any
     report["processes"] = processes
     # the cycles over the period beside the hypervisor's steal: a virtual CPU that does
     # not run stalls every process on it, whatever their scheduling (docs/soak.md)
-    over_s = [joints[s][0] * 1e-9 for s in stamps
-              if voltages[s] is not None and joints[s][0] is not None
-              and (voltages[s] - joints[s][0]) * 1e-6 > PERIOD_S * 1e3]  # as latency_figures
+    over_s = [sample_ns * 1e-9 for sample_ns, latency in cycles_ms
+              if latency > PERIOD_S * 1e3]  # latency_figures' rule
     try:
         report["steal"] = steal_figures(record.monitor.steal, t0, end, over_s)
     except ValueError as exc:
@@ -866,7 +867,7 @@ def format_report(report: dict[str, Any]) -> str:
     else:
         lines.append(f"steal (hypervisor)     {steal['steal_s']:.2f} s in "
                      f"{steal['intervals_with_steal']} seconds; {steal['overs_near']} of the "
-                     f"{steal['overs']} cycles over 5 ms within 1 s of one "
+                     f"{steal['overs']} cycles over 5 ms within {steal['near_s']:g} s of one "
                      f"({100 * steal['near_share']:.1f} % of the window is)")
     nodes = report["nodes_cpu_percent"]
     lines.append(f"four nodes             "
