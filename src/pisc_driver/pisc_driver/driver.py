@@ -16,6 +16,8 @@ commands it received and the time (ROS time, integer nanoseconds) of each event:
   byte, the driver sends one itself (the byte held, which is 0 V once the newest
   command is older than the allowed age), so that the firmware's command watchdog
   (docs/driver-protocol.md) never trips while the driver is alive;
+* ``deadline_ns()``: when ``tick`` next acts on its own (the age or the silence rule's
+  deadline), until which the node's reader may wait for bytes;
 * ``end_run()``: the run is over (the driver stops): no more bytes of its own, so that
   once the driver is gone the firmware's watchdog zeroes the motor;
 * ``hold_off(intruders)``: another publisher is on the command topic (the node pins the
@@ -69,8 +71,9 @@ class DriverParams(ParserParams):
         2.0, "send 0 V when the newest voltage command is older than this many periods",
         "", in_range(0.5, 100.0))
     read_timeout_s: float = param(
-        0.002, "longest wait for a byte before the safety rules are checked again", "s",
-        in_range(0.0005, 0.1))
+        0.05, "longest wait for a byte when no safety rule falls due sooner (the age and "
+        "silence rules wake the reader at their deadlines; this bounds how soon it sees a "
+        "stop)", "s", in_range(0.0005, 0.1))
     reopen_interval_s: float = param(0.5, "wait between attempts to reopen a port that went "
                                      "away", "s", in_range(0.01, 60.0))
     watchdog_periods: int = param(3, "frames in a row left unanswered after which the driver "
@@ -237,6 +240,23 @@ class DriverCore:
         self.sent_byte = ZERO
         self._answered = self._frames
         return ZERO
+
+    def deadline_ns(self) -> int | None:
+        """The earliest time at which :meth:`tick` acts with no new frame or command: the
+        age rule zeroes the newest command, or the silence rule reports a silent device
+        (a trip waiting to be reported: at once); None when it never does. Right after
+        ``tick(now)`` it is None or later than ``now``. The reader waits for bytes until
+        then: with frames every period and commands answering them it wakes once a frame,
+        not also every ``read_timeout_s`` (issue 16)."""
+        if self._trip is not None:
+            return 0
+        due = None
+        if self.sent_byte != ZERO:
+            due = 0 if self.sent_stamp_ns is None else self.sent_stamp_ns + self.max_age_ns + 1
+        if not self.silent and self.last_frame_ns is not None:
+            quiet = self.last_frame_ns + self.silence_ns + 1
+            due = quiet if due is None else min(due, quiet)
+        return due
 
     def command_age_ns(self, now_ns: int) -> int | None:
         return None if self.sent_stamp_ns is None else now_ns - self.sent_stamp_ns

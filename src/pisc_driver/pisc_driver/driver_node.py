@@ -69,6 +69,7 @@ class DriverNode(PiscNode):
                                             self._check_publishers)
         self._reader: threading.Thread | None = None
         self._running = False
+        self._wake_ns = 0  # when the reader's wait for bytes ends at the latest (ROS time)
         self._unwritten = 0  # command bytes the port did not take
         self._ready = False  # the graph's subscribers are there (driver.min_subscribers)
         self.dropped_before_ready = 0  # frames read before then, not published
@@ -107,6 +108,8 @@ class DriverNode(PiscNode):
         with self._lock:
             self._core.end_run()
         self._running = False
+        with self._lock:
+            self._link.wake()
         if self._reader is not None:
             self._reader.join(timeout=1.0)
             self._reader = None
@@ -162,6 +165,9 @@ class DriverNode(PiscNode):
                                 refused=not admitted)
             written = byte is not None and self._send(byte)
             resumed, core.resumed_from = core.resumed_from, None
+            due = core.deadline_ns()
+            if due is not None and due < self._wake_ns:  # (a first command after 0 V:
+                self._link.wake()  # the age rule's deadline comes before the reader's)
         if written:
             self._sent(command.stamp_ns, byte, "answer")
         if resumed is not None:
@@ -216,15 +222,23 @@ class DriverNode(PiscNode):
             last_answered_stamp_ns=answered)
 
     def _read_loop(self) -> None:
+        """Read bytes, publish the frames, apply the safety rules. The wait for bytes
+        ends at the next frame, at the core's next deadline (``DriverCore.deadline_ns``;
+        :meth:`_on_voltage` wakes the reader when a command sets one sooner) or after
+        ``driver.read_timeout_s``: once a frame when the graph answers every frame."""
         core = self._core
         link = self._link
+        longest_ns = round(core.params.read_timeout_s * 1e9)
+        with self._lock:
+            self._wake_ns = self._now_ns() + longest_ns
+        wait_s = core.params.read_timeout_s
         while self._running and self.context.ok():
             try:
                 if not link.is_open:
                     time.sleep(core.params.reopen_interval_s)
                     link.open()
                     self.diagnose(OK, f"{link.port} reopened")
-                data = link.read()
+                data = link.read(wait_s)
                 now = self._now_ns()
                 with self._lock:
                     samples = core.receive(data, now) if data else []
@@ -232,6 +246,10 @@ class DriverNode(PiscNode):
                     written = byte is not None and self._send(byte)
                     trip = core.new_trip
                     newest = core.newest_stamp_ns
+                    due = core.deadline_ns()  # (after tick: None or later than now)
+                    self._wake_ns = now + longest_ns if due is None else min(
+                        due, now + longest_ns)
+                wait_s = (self._wake_ns - now) * 1e-9
                 if samples and not self._subscribers_ready():
                     self.dropped_before_ready += len(samples)
                     samples = []

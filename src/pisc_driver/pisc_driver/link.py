@@ -34,15 +34,17 @@ class SerialLink:
     baud
         Line speed (``driver.baud``); 8 data bits, no parity, one stop bit.
     read_timeout_s
-        How long :meth:`read` waits for a first byte before returning nothing.
+        How long :meth:`read` waits for a first byte before returning nothing, unless
+        told otherwise (its ``wait_s``) or woken (:meth:`wake`).
     """
 
-    def __init__(self, port: str, baud: int = 115200, read_timeout_s: float = 0.002) -> None:
+    def __init__(self, port: str, baud: int = 115200, read_timeout_s: float = 0.05) -> None:
         self.port = port
         self.baud = baud
         self.read_timeout_s = read_timeout_s
         self._serial: serial.Serial | None = None
         self._poll: select.poll | None = None
+        self._wake_fd: int | None = None  # an eventfd in the poll: wake() ends a read's wait
 
     @property
     def is_open(self) -> bool:
@@ -66,13 +68,22 @@ class SerialLink:
         except OSError as exc:
             raise LinkError(_why(self.port, exc)) from exc
         port.reset_input_buffer()
+        self._wake_fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         self._poll = select.poll()
         self._poll.register(port.fileno(), select.POLLIN)
+        self._poll.register(self._wake_fd, select.POLLIN)
         self._serial = port
 
-    def read(self) -> bytes:
-        """The bytes that arrived: waits up to ``read_timeout_s`` for the first, then takes
-        what is there (a device burst), so a frame reaches the parser when it arrives.
+    def wake(self) -> None:
+        """End the wait of a :meth:`read` in progress (or the next one's, at once): it
+        returns what arrived, maybe nothing. From any thread; nothing when closed."""
+        if self._wake_fd is not None:
+            os.eventfd_write(self._wake_fd, 1)
+
+    def read(self, wait_s: float | None = None) -> bytes:
+        """The bytes that arrived: waits up to ``wait_s`` (default ``read_timeout_s``)
+        for the first, then takes what is there (a device burst), so a frame reaches the
+        parser when it arrives; b"" when the wait ends first or :meth:`wake` ended it.
         A device that went away raises LinkError; the caller closes the port.
 
         One ``poll`` and one ``read`` of the non-blocking descriptor pyserial opened, as
@@ -81,12 +92,20 @@ class SerialLink:
         times a second, issue 16).
         """
         port = self._require()
+        fd = port.fileno()
         try:
-            if not self._poll.poll(self.read_timeout_s * 1e3):
+            ready = False
+            for f, _ in self._poll.poll(
+                    (self.read_timeout_s if wait_s is None else wait_s) * 1e3):
+                if f == fd:
+                    ready = True
+                else:  # woken
+                    os.eventfd_read(self._wake_fd)
+            if not ready:
                 return b""
-            data = os.read(port.fileno(), READ_CHUNK)
+            data = os.read(fd, READ_CHUNK)
         except BlockingIOError:
-            return b""  # (woken, and another reader took it: nothing there now)
+            return b""  # (another reader took what woke it: nothing there now)
         except OSError as exc:
             raise LinkError(f"driver.port = {self.port!r}: read failed, the device went away "
                             f"({exc})") from exc
@@ -114,6 +133,9 @@ class SerialLink:
 
     def close(self) -> None:
         port, self._serial, self._poll = self._serial, None, None
+        wake_fd, self._wake_fd = self._wake_fd, None
+        if wake_fd is not None:
+            os.close(wake_fd)
         if port is not None:
             try:
                 port.close()

@@ -244,3 +244,102 @@ def test_while_another_publisher_is_there_every_command_is_zero_volts():
     c.hold_off(("/visitor",))
     sent = run_frames(c, 40)
     assert sent and all(b == ZERO for _, b in sent)
+
+
+def run_on_deadlines(c: DriverCore, frames_ms: list[int], answer=lambda k: None,
+                     longest_ms: int = 50) -> tuple[list[tuple[int, int]], int]:
+    """Frames at ``frames_ms`` and the controllers' answers 1 ms after frame k
+    (``answer(k)``, None: none), read the way driver_node's reader reads (issue 16): it
+    ticks only when it wakes, at a frame, at the core's deadline as it stood after its
+    last tick, ``longest_ms`` after that tick, or when a command sets a deadline sooner
+    than its wake (the node's wake()). Returns the (time in ns, byte) the driver sent and
+    the reader's wake-ups."""
+    c.receive(frame(400, 780, 0) * 2, -5 * MS)  # locked on the frames before
+    events = sorted([(t * MS, 0, k) for k, t in enumerate(frames_ms)]
+                    + [(t * MS + MS, 1, k) for k, t in enumerate(frames_ms)
+                       if answer(k) is not None])
+    sent: list[tuple[int, int]] = []
+    wakes = 0
+
+    def wake(now: int, data: bytes = b"") -> int:  # one pass of the reader's loop
+        nonlocal wakes
+        wakes += 1
+        if data:
+            c.receive(data, now)
+        byte, _ = c.tick(now)
+        if byte is not None:
+            sent.append((now, byte))
+        due = c.deadline_ns()
+        assert due is None or due > now  # the reader never spins
+        return now + longest_ms * MS if due is None else min(due, now + longest_ms * MS)
+
+    planned = wake(0)
+    for at, kind, k in events:
+        while planned < at:  # its wait ended before this event
+            planned = wake(planned)
+        if kind == 0:
+            planned = wake(at, frame(400, 780, 0))
+        else:
+            byte = c.command(frames_ms[k] * MS, answer(k), at)
+            if byte is not None:
+                sent.append((at, byte))
+            due = c.deadline_ns()
+            if due is not None and due < planned:
+                planned = wake(at)
+    return sent, wakes
+
+
+@pytest.mark.parametrize("answer, frames_ms", [
+    (lambda k: 1.0, range(0, 201, 5)),  # every frame answered
+    (lambda k: 3.0 if k < 4 else None, range(0, 201, 5)),  # the controllers stop
+    (lambda k: 1.0 if k % 2 == 0 else None, range(0, 201, 5)),  # every other frame
+    (lambda k: 2.0, [*range(0, 51, 5), *range(120, 201, 5)]),  # the device falls silent
+    (lambda k: 2.0 if k != 3 else None, [0, 5, 10, 15, 40, 45, 50]),  # ... a command first
+], ids=["answered", "stopped", "every-other", "silence", "silence-unanswered"])
+def test_a_reader_woken_only_at_frames_and_deadlines_sends_what_a_fine_poll_sends(
+        answer, frames_ms):
+    """The reader no longer wakes every read_timeout_s to apply the age and silence rules
+    (issue 16: three wake-ups a period, two of them for nothing); it waits until the
+    core's deadline. It sends the bytes a reader ticking every 0.1 ms would send, each at
+    the rule's deadline itself (to the nanosecond), so never later. (A 1 ms tick sends
+    fewer: answering every other frame, it ticks only after the next answer came and
+    misses the 0 V due 1 ns after the command before it turned 10 ms old.)"""
+    frames_ms = list(frames_ms)
+    step = MS // 10
+    polled = core()
+    polled.receive(frame(400, 780, 0) * 2, -5 * MS)
+    want = []
+    for t in range(0, frames_ms[-1] * MS + 1, step):
+        if t % MS == 0 and t // MS in frames_ms:
+            polled.receive(frame(400, 780, 0), t)
+        elif t % MS == 0 and t // MS - 1 in frames_ms:
+            k = frames_ms.index(t // MS - 1)
+            byte = None if answer(k) is None else polled.command(t - MS, answer(k), t)
+            if byte is not None:
+                want.append((t, byte))
+        byte, _ = polled.tick(t)
+        if byte is not None:
+            want.append((t, byte))
+    got, wakes = run_on_deadlines(core(), frames_ms, answer)
+    got = [(t, b) for t, b in got if t <= frames_ms[-1] * MS]
+    assert [b for _, b in got] == [b for _, b in want]
+    assert all(0 <= w - g < step for (g, _), (w, _) in zip(got, want)), (got, want)
+    if all(answer(k) is not None for k in range(len(frames_ms))) and frames_ms == list(
+            range(0, 201, 5)):
+        # once a frame; also the first pass and the first command (a deadline sooner
+        # than the wait the reader began after 0 V)
+        assert wakes == len(frames_ms) + 2
+
+
+def test_the_deadline_is_the_age_or_the_silence_rule_whichever_comes_first():
+    c = core()
+    assert c.deadline_ns() is None  # no frame, nothing sent: nothing falls due
+    c.receive(frame(400, 780, 0) * 2 + frame(400, 780, 0)[:6], 0)
+    c.receive(b"\x00", 2 * MS)
+    assert c.deadline_ns() == 17 * MS + 1  # silence: 15 ms after the last frame
+    c.command(2 * MS, 3.0, 3 * MS)
+    assert c.deadline_ns() == 12 * MS + 1  # the age rule: 10 ms after its sample
+    assert c.tick(12 * MS) == (None, None) and c.tick(12 * MS + 1) == (ZERO, None)
+    assert c.deadline_ns() == 17 * MS + 1  # 0 V sent: the age rule has nothing to do
+    assert c.tick(17 * MS + 1)[1].startswith("device silent")
+    assert c.deadline_ns() is None  # silent, 0 V: until a frame comes

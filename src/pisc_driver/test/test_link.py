@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import threading
 import time
 import tty
 
@@ -83,3 +84,32 @@ def test_a_device_that_goes_away_is_a_link_error_not_a_crash(pty):
     assert not link.is_open
     with pytest.raises(LinkError, match="no such device|cannot open"):
         link.open()
+
+
+def test_wake_ends_a_reads_wait_from_another_thread_and_is_used_once(pty):
+    """The driver's reader waits until the core's next deadline (up to read_timeout_s);
+    a command that sets a sooner one wakes it (issue 16)."""
+    master, path, _ = pty
+    link = SerialLink(path, read_timeout_s=0.05)
+    link.open()
+    try:
+        waker = threading.Timer(0.05, link.wake)
+        waker.start()
+        started = time.monotonic()
+        assert link.read(wait_s=30.0) == b""  # woken, with nothing to read
+        waited = time.monotonic() - started
+        waker.join()
+        assert 0.04 <= waited < 15.0  # ended by the wake, not by the 30 s wait
+        started = time.monotonic()
+        assert link.read(wait_s=0.1) == b""  # the wake was used: this read waits it out
+        assert time.monotonic() - started >= 0.09
+        link.wake()  # a wake before the read: the read returns at once ...
+        os.write(master, b"\xAA\x01")
+        time.sleep(0.01)
+        assert link.read(wait_s=30.0) == b"\xAA\x01"  # ... with what is there
+        started = time.monotonic()
+        assert link.read(wait_s=0.1) == b""
+        assert time.monotonic() - started >= 0.09
+    finally:
+        link.close()
+    link.wake()  # closed: nothing to wake, no error
