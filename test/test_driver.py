@@ -530,6 +530,75 @@ def test_parameter_change_sends_zero_and_a_vanished_port_is_reported_and_retried
         rig.stop()
 
 
+def test_the_reader_looks_for_another_command_publisher_at_every_frame(ros_context):
+    """Who publishes commands is looked at on every command, at every frame by the reader
+    and every 0.1 s besides; a timer each period cost the driver's process 200 wake-ups a
+    second of two threads (issue 16). Here the driver's executor never spins: a visitor
+    that joins while no command comes is found by the frames alone, and 0 V is written
+    at once."""
+    import struct
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    os.set_blocking(master, False)
+    count = [0]
+
+    def frames(n: int = 1) -> None:  # a frame every 5 ms, the count still
+        for _ in range(n):
+            os.write(master, struct.pack(">BHHh", 0xAA, 400, 780, count[0]))
+            time.sleep(0.005)
+
+    def written() -> bytes:
+        try:
+            return os.read(master, 4096)
+        except BlockingIOError:
+            return b""
+
+    node = DriverNode(context=ros_context, parameter_overrides=[
+        Parameter("driver.port", value=path)])
+    loop = Node("current_loop", context=ros_context)
+    visitor = None
+    errors: list[str] = []
+    loop.create_subscription(
+        message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
+        lambda m: errors.extend(s.message for s in m.status
+                                if s.name == "pisc/driver" and s.level == b"\x02"),
+        qos_profile(DIAGNOSTICS.qos))
+    listen = SingleThreadedExecutor(context=ros_context)
+    listen.add_node(loop)  # (the probe's subscription only: the driver is not spun)
+    try:
+        loop.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name, qos_profile(VOLTAGE.qos))
+        deadline = time.monotonic() + 20.0
+        while node._pin.pinned is None and time.monotonic() < deadline:
+            frames(2)  # (the first two lock the parser on)
+        assert node._pin.pinned is not None and not node._pin.intruders  # pinned by frames
+        frames(3)
+        written()  # (what came before: 0 V if the graph listed the loop late)
+        visitor = Node("visitor", context=ros_context)
+        visitor.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
+                                 qos_profile(VOLTAGE.qos))
+        while node._sub.get_publisher_count() < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        frames_before = node._core.parser.frames
+        while not node._pin.intruders and time.monotonic() < deadline:
+            frames()
+        assert node._pin.intruders == ("/visitor",)
+        assert node._core.parser.frames > frames_before  # a frame it read found it
+        time.sleep(0.02)
+        assert written()[:1] == bytes([0x00])  # 0 V at once, with no command to answer
+        assert spin_until(listen, lambda: any(e.startswith(
+            f"another publisher on {VOLTAGE.name}: /visitor") for e in errors), 10.0), errors
+    finally:
+        node.destroy_node()
+        loop.destroy_node()
+        if visitor is not None:
+            visitor.destroy_node()
+        for fd in (master, slave):
+            os.close(fd)
+
+
 def test_the_driver_runs_on_the_wall_clock_only(tmp_path):
     completed = subprocess.run(
         # a port that opens: the clock is what is refused, not the port

@@ -18,7 +18,7 @@ rig was sent and when.
 The same guards as the plant (docs/safety.md, :mod:`pisc_msgs_py.watchdog`): the command
 publisher of ``driver.command_node`` is pinned when first seen, and while any other
 publisher is matched on the command topic every command is sent as 0 V and
-``/diagnostics`` names it (checked on every command and every period); when
+``/diagnostics`` names it (checked on every command and at every frame); when
 ``driver.watchdog_periods`` frames in a row went unanswered the driver sends 0 V and names
 the stage of the chain that stopped (it watches the estimator's and the supervisor's
 outputs for that).
@@ -50,6 +50,11 @@ from pisc_msgs_py.watchdog import (
 )
 from pisc_model.params import ActuatorParams, LoopParams, SensorParams
 
+# The command publisher is looked at on every command, by the reader at every frame, and
+# every PIN_LOOK_S besides (while no frame comes). A timer each period woke the executor's
+# and rclpy's timer threads 200 times a second for it: 2.5 % of a core (issue 16).
+PIN_LOOK_S = 0.1
+
 SECTIONS = {"driver": DriverParams, "sensors": SensorParams, "actuator": ActuatorParams,
             "loop": LoopParams}
 
@@ -65,8 +70,8 @@ class DriverNode(PiscNode):
         # newest stamp out of each stage of the chain, to say which one stopped
         self._upstream = self.newest_stamps(CHAIN)
         self._pin = PublisherPin(self.config.params.command_node)
-        self._pin_timer = self.create_timer(self.config.period_ns * 1e-9,
-                                            self._check_publishers)
+        self._pin_lock = threading.Lock()  # the pin: the executor's thread and the reader
+        self._pin_timer = self.create_timer(PIN_LOOK_S, self._check_publishers)
         self._reader: threading.Thread | None = None
         self._running = False
         self._wake_ns = 0  # when the reader's wait for bytes ends at the latest (ROS time)
@@ -157,8 +162,9 @@ class DriverNode(PiscNode):
         command = self.parse(msg, motor_sample_from_msg, "voltage command", WARN)
         if command is None:
             return
-        self._check_publishers()
-        admitted = self._pin.admits(command.stamp_ns)
+        with self._pin_lock:
+            self._look_at_publishers()
+            admitted = self._pin.admits(command.stamp_ns)
         with self._lock:
             core = self._core
             byte = core.command(command.stamp_ns, command.value, self._now_ns(),
@@ -177,7 +183,12 @@ class DriverNode(PiscNode):
 
     def _check_publishers(self) -> None:
         """Pin the graph's command publisher; 0 V and a fault while any other one is
-        matched (on every command and every period, in the executor's thread)."""
+        matched (on every command, at every frame and every PIN_LOOK_S; from the
+        executor's thread and the reader's)."""
+        with self._pin_lock:
+            self._look_at_publishers()
+
+    def _look_at_publishers(self) -> None:  # (holding the pin's lock)
         matched = self._sub.get_publisher_count()
         if not self._pin.needs_look(matched):
             return
@@ -264,6 +275,8 @@ class DriverNode(PiscNode):
                         self._report(OK, f"link up on {link.port}", now)
                 if written and newest >= 0:  # (after the samples: they start a cycle)
                     self._sent(newest, byte, "zero" if byte == ZERO else "hold")
+                if samples:  # a period: who publishes commands (cheap unless it changed)
+                    self._check_publishers()
                 if trip is not None:
                     self._report(ERROR, f"{fault} (the stage that stopped is named when it "
                                  "has fallen behind)", trip.stamp_ns, sample=trip.sample,
