@@ -510,8 +510,15 @@ def test_parameter_change_sends_zero_and_a_vanished_port_is_reported_and_retried
     try:
         assert spin_until(executor, lambda: node._core.parser.frames > 20, 10.0)
         assert spin_until(executor, lambda: voltage.get_subscription_count() > 0, 10.0)
-        voltage.publish(motor_sample_to_msg(MotorSample(node._core.last_frame_ns, -11.47)))
-        assert spin_until(executor, lambda: rig.status()["last_byte"] == 0xFF, 10.0)
+
+        def answered() -> bool:  # a command answering the newest frame, as a current
+            # loop sends: one alone can be refused, older than 10 ms when it arrives under
+            # load, or not newer than a frame at which the pin saw the graph name the probe
+            voltage.publish(motor_sample_to_msg(MotorSample(node._core.last_frame_ns, -11.47)))
+            executor.spin_once(timeout_sec=0.005)
+            return rig.status()["last_byte"] == 0xFF
+
+        assert spin_until(executor, answered, 10.0)
         result = node.set_parameters([Parameter("driver.silence_timeout_s", value=0.02)])[0]
         assert result.successful
         assert node._core.params.silence_timeout_s == 0.02
