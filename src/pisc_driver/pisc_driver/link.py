@@ -88,8 +88,8 @@ class SerialLink:
 
         One ``poll`` and one ``read`` of the non-blocking descriptor pyserial opened, as
         :meth:`write` does: pyserial's ``read(1)``, ``in_waiting`` and ``read(n)`` took
-        two ``select`` calls, two reads and an ioctl per burst (the reader wakes 400-600
-        times a second, issue 16).
+        two ``select`` calls, two reads and an ioctl per burst (issue 16: the reader then
+        woke 400-600 times a second; now about once a frame, 200).
         """
         port = self._require()
         fd = port.fileno()
