@@ -8,6 +8,7 @@ rig, or the pseudo-terminal that ``pisc_virtual_rig`` prints. 115200 baud, 8N1
 from __future__ import annotations
 
 import errno
+import math
 import os
 import select
 
@@ -84,19 +85,22 @@ class SerialLink:
         """The bytes that arrived: waits up to ``wait_s`` (default ``read_timeout_s``)
         for the first, then takes what is there (a device burst), so a frame reaches the
         parser when it arrives; b"" when the wait ends first or :meth:`wake` ended it.
-        A device that went away raises LinkError; the caller closes the port.
+        A device that went away raises LinkError; the caller closes the port. A negative
+        or non-finite ``wait_s`` raises ValueError (a negative poll would never return).
 
         One ``poll`` and one ``read`` of the non-blocking descriptor pyserial opened, as
         :meth:`write` does: pyserial's ``read(1)``, ``in_waiting`` and ``read(n)`` took
         two ``select`` calls, two reads and an ioctl per burst (issue 16: the reader then
         woke 400-600 times a second; now about once a frame, 200).
         """
+        wait = self.read_timeout_s if wait_s is None else wait_s
+        if not (math.isfinite(wait) and wait >= 0.0):  # (poll waits for ever on a negative)
+            raise ValueError(f"wait_s = {wait_s}: must be a finite number of seconds >= 0")
         port = self._require()
         fd = port.fileno()
         try:
             ready = False
-            for f, _ in self._poll.poll(
-                    (self.read_timeout_s if wait_s is None else wait_s) * 1e3):
+            for f, _ in self._poll.poll(wait * 1e3):
                 if f == fd:
                     ready = True
                 else:  # woken

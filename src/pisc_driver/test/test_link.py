@@ -113,3 +113,17 @@ def test_wake_ends_a_reads_wait_from_another_thread_and_is_used_once(pty):
     finally:
         link.close()
     link.wake()  # closed: nothing to wake, no error
+
+
+@pytest.mark.parametrize("wait_s", [-0.001, float("nan"), float("inf")])
+def test_a_wait_that_poll_would_never_end_is_refused_by_name(pty, wait_s):
+    _, path, _ = pty
+    link = SerialLink(path)
+    link.open()
+    try:
+        with pytest.raises(ValueError, match=r"wait_s = .*: must be a finite number of "
+                                             r"seconds >= 0"):
+            link.read(wait_s)
+        assert link.read(0.0) == b""  # 0: look and return
+    finally:
+        link.close()
