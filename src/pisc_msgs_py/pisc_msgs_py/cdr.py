@@ -23,6 +23,16 @@ Fast DDS puts on the wire for the same message (exact length, zero padding; a te
 compares with the reference bags byte for byte). Reading takes little- and big-endian
 CDR (``00 00``); anything else, or bytes that end inside a field, is a
 :class:`MessageError`.
+
+**Shapes met before.** The graph's messages of one kind differ only in their stamp and
+their doubles: same frame, joint names, sequence lengths and padding. After reading a
+message, the reader keeps its *shape* (every byte but the stamp's and the doubles', and
+where the doubles are); a later message of the same length whose other bytes are those
+is read by comparing them and unpacking its doubles, which gives the view the full reader
+would build from those bytes (test_cdr: the same view or the same refusal, for every
+message). Anything else goes through the full reader. At most :data:`SHAPES_KEPT` shapes
+of messages up to :data:`SHAPE_MAX_BYTES` long are kept a type, so a stream of odd
+messages costs no memory, only the full read.
 """
 
 from __future__ import annotations
@@ -93,17 +103,30 @@ class _Template:
         self.uint32(count)
         self.double_run(count)
 
+    def compile(self) -> _Template:
+        """Once built: one format for the whole message, the bytes around the stamp and
+        the doubles as strings of their own (:meth:`fill` packs it in one call)."""
+        runs = [(o, fmt.size) for o, fmt in self.doubles if o is not None]
+        fixed, at, fmt = [], 0, "<"
+        for start, size, code in [(_BASE, 8, "iI")] + [(o, n, f"{n // 8}d") for o, n in runs]:
+            fixed.append(bytes(self.buf[at:start]))
+            fmt += f"{start - at}s{code}"
+            at = start + size
+        fixed.append(bytes(self.buf[at:]))
+        self._pack = struct.Struct(fmt + f"{len(self.buf) - at}s").pack
+        self._fixed = tuple(fixed)
+        self._filled = tuple(i for i, (o, _) in enumerate(self.doubles) if o is not None)
+        return self
+
     def fill(self, stamp_ns: int, *runs: Sequence[float]) -> bytes:
         """The message with this stamp and, in order, the values of each run."""
-        out = bytearray(self.buf)
-        _STAMP.pack_into(out, _BASE, *divmod(int(stamp_ns), 1_000_000_000))
-        for (offset, fmt), values in zip(self.doubles, runs):
-            if offset is not None:
-                fmt.pack_into(out, offset, *values)
-        return bytes(out)
-
-
-_STAMP = struct.Struct("<iI")
+        fixed = self._fixed
+        args = [fixed[0], *divmod(int(stamp_ns), 1_000_000_000)]
+        for k, i in enumerate(self._filled, 1):
+            args.append(fixed[k])
+            args += runs[i]
+        args.append(fixed[-1])
+        return self._pack(*args)
 
 
 def _joint_state_template(frame_id: str, names: tuple[str, ...], *counts: int) -> _Template:
@@ -114,21 +137,21 @@ def _joint_state_template(frame_id: str, names: tuple[str, ...], *counts: int) -
         t.string(name)
     for count in counts:  # position, velocity, effort
         t.sequence_of_doubles(count)
-    return t
+    return t.compile()
 
 
 def _wrench_stamped_template(frame_id: str) -> _Template:
     t = _Template()
     t.header(frame_id)
     t.double_run(6)  # force, torque
-    return t
+    return t.compile()
 
 
 def _clock_template() -> _Template:
     t = _Template()
     t.uint32(0)  # clock.sec, filled in
     t.uint32(0)  # clock.nanosec
-    return t
+    return t.compile()
 
 
 _joint_states: dict[tuple[Any, ...], _Template] = {}
@@ -253,7 +276,73 @@ def _header(data: bytes, f: _Formats) -> tuple[Header, int]:
     return Header(Stamp(*f.stamp(data, _BASE)), frame_id), offset
 
 
+#: Shapes kept a message type, and the longest message whose shape is kept.
+SHAPES_KEPT = 16
+SHAPE_MAX_BYTES = 512
+
+
+class _Shape(NamedTuple):
+    """A message's bytes but its stamp's and its doubles': ``fixed`` are the (start,
+    end, bytes) that must match, ``runs`` the (offset, unpack_from) of each run of
+    doubles (None for an empty one), ``fields`` what the bytes give besides (frame,
+    names)."""
+    fixed: tuple[tuple[int, int, bytes], ...]
+    stamp: Callable[[bytes, int], tuple[int, int]]
+    runs: tuple[tuple[int, Callable[[bytes, int], tuple[float, ...]] | None], ...]
+    fields: tuple[Any, ...]
+
+
+class _Shapes:
+    """The shapes met so far of one message type, by message length."""
+
+    def __init__(self) -> None:
+        self._by_size: dict[int, list[_Shape]] = {}
+        self._kept = 0
+
+    def match(self, data: bytes) -> _Shape | None:
+        for shape in self._by_size.get(len(data), ()):
+            for start, end, fixed in shape.fixed:
+                if data[start:end] != fixed:
+                    break
+            else:
+                return shape
+        return None
+
+    def learn(self, data: bytes, f: _Formats, runs: Sequence[tuple[int, int]],
+              fields: tuple[Any, ...]) -> None:
+        """Keep the shape of ``data``, which the full reader read: ``runs`` are the
+        (offset, count) of its runs of doubles, in order."""
+        if self._kept >= SHAPES_KEPT or len(data) > SHAPE_MAX_BYTES:
+            return
+        fixed, at = [], 0
+        for start, end in [(_BASE, _BASE + 8)] + [(o, o + 8 * n) for o, n in runs if n]:
+            if start > at:
+                fixed.append((at, start, bytes(data[at:start])))
+            at = end
+        if at < len(data):
+            fixed.append((at, len(data), bytes(data[at:])))
+        self._by_size.setdefault(len(data), []).append(_Shape(
+            tuple(fixed), f.stamp,
+            tuple((o, f.doubles[n] if n < len(f.doubles) else
+                   struct.Struct(f"{f.order}{n}d").unpack_from) if n else (o, None)
+                  for o, n in runs),
+            fields))
+        self._kept += 1
+
+
+_JOINT_STATE_SHAPES = _Shapes()
+_WRENCH_STAMPED_SHAPES = _Shapes()
+
+
 def _joint_state(data: bytes) -> JointStateView:
+    shape = _JOINT_STATE_SHAPES.match(data)
+    if shape is not None:
+        frame_id, names = shape.fields
+        (p, read_p), (v, read_v), (e, read_e) = shape.runs
+        return JointStateView(Header(Stamp(*shape.stamp(data, _BASE)), frame_id), names,
+                              read_p(data, p) if read_p else (),
+                              read_v(data, v) if read_v else (),
+                              read_e(data, e) if read_e else ())
     f = _formats(data)
     header, offset = _header(data, f)
     offset += -(offset - _BASE) % 4
@@ -266,16 +355,29 @@ def _joint_state(data: bytes) -> JointStateView:
         name, offset = _string(data, offset, f)
         names.append(name)
     position, offset = _doubles(data, offset, f)
+    p = offset - 8 * len(position)
     velocity, offset = _doubles(data, offset, f)
+    v = offset - 8 * len(velocity)
     effort, offset = _doubles(data, offset, f)
-    return JointStateView(header, tuple(names), position, velocity, effort)
+    view = JointStateView(header, tuple(names), position, velocity, effort)
+    _JOINT_STATE_SHAPES.learn(data, f, ((p, len(position)), (v, len(velocity)),
+                                        (offset - 8 * len(effort), len(effort))),
+                              (header.frame_id, view.name))
+    return view
 
 
 def _wrench_stamped(data: bytes) -> WrenchStampedView:
-    f = _formats(data)
-    header, offset = _header(data, f)
-    offset += -(offset - _BASE) % 8
-    x, y, z, tx, ty, tz = f.doubles[6](data, offset)
+    shape = _WRENCH_STAMPED_SHAPES.match(data)
+    if shape is None:
+        f = _formats(data)
+        header, offset = _header(data, f)
+        offset += -(offset - _BASE) % 8
+        x, y, z, tx, ty, tz = f.doubles[6](data, offset)
+        _WRENCH_STAMPED_SHAPES.learn(data, f, ((offset, 6),), (header.frame_id,))
+    else:
+        (frame_id,), ((offset, read),) = shape.fields, shape.runs
+        header = Header(Stamp(*shape.stamp(data, _BASE)), frame_id)
+        x, y, z, tx, ty, tz = read(data, offset)
     return WrenchStampedView(header, Wrench(Vector3(x, y, z), Vector3(tx, ty, tz)))
 
 

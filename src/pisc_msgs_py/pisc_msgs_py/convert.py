@@ -71,16 +71,17 @@ def stamp_from_msg(stamp: Any) -> int:
 
 
 def _finite(values: list[float], what: str) -> list[float]:
-    if not all(math.isfinite(v) for v in values):
-        raise MessageError(f"{what}: non-finite value in {values}")
+    for v in values:
+        if not math.isfinite(v):
+            raise MessageError(f"{what}: non-finite value in {values}")
     return values
 
 
 def _joint_values(msg: Any, names: tuple[str, ...], field: str, what: str) -> list[float]:
-    got = tuple(msg.name)
-    if got != names:
+    got = msg.name
+    if got is not names and tuple(got) != names:
         raise MessageError(f"{what}: expected joints {list(names)}, got {list(got)}")
-    values = [float(v) for v in getattr(msg, field)]
+    values = list(map(float, getattr(msg, field)))
     if len(values) != len(names):
         raise MessageError(
             f"{what}: expected {len(names)} values in '{field}', got {len(values)}")

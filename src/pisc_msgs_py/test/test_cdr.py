@@ -130,3 +130,77 @@ def test_non_finite_values_go_through_to_the_converters_which_refuse_them():
     data = motor_sample_to_cdr(MotorSample(0, math.nan))
     with pytest.raises(MessageError, match="non-finite"):
         motor_sample_from_msg(cdr.decode_joint_state(data))
+
+
+# -- shapes met before: the same view or the same refusal as the full reader -----------------
+
+def _full_read(decode, data, monkeypatch):
+    """What the full reader makes of ``data`` (no shape kept): a view or the refusal."""
+    with monkeypatch.context() as m:
+        m.setattr(cdr, "_JOINT_STATE_SHAPES", cdr._Shapes())
+        m.setattr(cdr, "_WRENCH_STAMPED_SHAPES", cdr._Shapes())
+        return _outcome(decode, data)
+
+
+def _outcome(decode, data):
+    try:
+        return decode(data)
+    except MessageError as exc:
+        return str(exc)
+
+
+@pytest.mark.parametrize("value,to_msg,to_cdr,from_msg,decode", CASES, ids=IDS)
+def test_a_shape_met_before_reads_every_byte_as_the_full_reader_does(
+        value, to_msg, to_cdr, from_msg, decode, monkeypatch):
+    """Once a message's shape is kept, every message of its length is read through it or
+    the full reader: changing any one byte of the message (to each of three values) gives
+    what the full reader gives, a view or the same refusal. A change in the stamp or a
+    double is read through the shape; one anywhere else is not that shape."""
+    data = to_cdr(value)
+    monkeypatch.setattr(cdr, "_JOINT_STATE_SHAPES", cdr._Shapes())
+    monkeypatch.setattr(cdr, "_WRENCH_STAMPED_SHAPES", cdr._Shapes())
+    assert from_msg(decode(data)) == value  # the full reader, which keeps the shape
+    shapes = cdr._WRENCH_STAMPED_SHAPES if decode is cdr.decode_wrench_stamped \
+        else cdr._JOINT_STATE_SHAPES
+    shape = shapes.match(data)
+    assert shape is not None
+    values = [run for run in _runs(decode(data)) if run]
+    starts = [offset for offset, read in shape.runs if read is not None]
+    varying = {*range(4, 12), *(k for start, run in zip(starts, values)
+                                for k in range(start, start + 8 * len(run)))}
+    assert len(varying) == 8 + 8 * sum(map(len, values))
+    for at in range(len(data)):
+        for byte in {0x00, 0x41, 0xFF, data[at] ^ 0x01} - {data[at]}:
+            changed = data[:at] + bytes([byte]) + data[at + 1:]
+            assert (shapes.match(changed) is shape) == (at in varying), at
+            assert _outcome(decode, changed) == _full_read(decode, changed, monkeypatch), at
+
+
+def _runs(view):
+    if isinstance(view, cdr.WrenchStampedView):
+        return [(*view.wrench.force, *view.wrench.torque)]
+    return [view.position, view.velocity, view.effort]
+
+
+def test_shapes_kept_are_bounded_and_odd_messages_still_read(monkeypatch):
+    """A stream of messages of ever new shapes (frames of every length) keeps at most
+    SHAPES_KEPT shapes, none of a message longer than SHAPE_MAX_BYTES, and every one of
+    them still reads right through the full reader."""
+    monkeypatch.setattr(cdr, "_JOINT_STATE_SHAPES", cdr._Shapes())
+    for k in range(3 * cdr.SHAPES_KEPT):
+        data = motor_sample_to_cdr(MotorSample(STAMP + k, float(k)), "f" * k)
+        view = cdr.decode_joint_state(data)
+        assert view.header.frame_id == "f" * k and view.effort == (float(k),)
+    kept = cdr._JOINT_STATE_SHAPES._by_size
+    assert sum(map(len, kept.values())) == cdr.SHAPES_KEPT
+    monkeypatch.setattr(cdr, "_JOINT_STATE_SHAPES", cdr._Shapes())
+    long = motor_sample_to_cdr(MotorSample(STAMP, 1.0), "x" * cdr.SHAPE_MAX_BYTES)
+    assert cdr.decode_joint_state(long).effort == (1.0,)
+    assert cdr._JOINT_STATE_SHAPES.match(long) is None
+
+
+def test_a_big_endian_shape_reads_big_endian(monkeypatch):
+    monkeypatch.setattr(cdr, "_JOINT_STATE_SHAPES", cdr._Shapes())
+    cdr.decode_joint_state(_big_endian_motor_sample(3, 5_000_000, -0.75))  # keeps it
+    view = cdr.decode_joint_state(_big_endian_motor_sample(-4, 999_999_999, 1e-300))
+    assert motor_sample_from_msg(view) == MotorSample(-3_000_000_001, 1e-300)
