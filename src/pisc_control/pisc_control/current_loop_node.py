@@ -36,8 +36,9 @@ class CurrentLoopNode(PiscNode):
         self._setpoint_pub = self.publisher(CURRENT_SETPOINT)
         self._voltage_pub = self.publisher(VOLTAGE)
         self._subs = [
-            self.subscription(CART_FORCE, self._on_force),
-            self.subscription(MOTOR_CURRENT, self._on_current),
+            self.subscription(CART_FORCE, self._on_force, cart_force_from_msg, "cart_force"),
+            self.subscription(MOTOR_CURRENT, self._on_current, motor_sample_from_msg,
+                              "motor current"),
             self.subscription(MODE, self._on_mode),
         ]
 
@@ -50,18 +51,17 @@ class CurrentLoopNode(PiscNode):
         loop, motor, params = config
         self._loop.configure(motor, params, loop.period_s)
 
-    def _on_force(self, msg: Any) -> None:
-        self._pair(self.parse(msg, cart_force_from_msg, "cart_force"), self._pairs.add_first)
+    def _on_force(self, force: CartForce) -> None:
+        self._pair(force, self._pairs.add_first)
 
-    def _on_current(self, msg: Any) -> None:
-        self._pair(self.parse(msg, motor_sample_from_msg, "motor current"),
-                   self._pairs.add_second)
+    def _on_current(self, current: MotorSample) -> None:
+        self._pair(current, self._pairs.add_second)
 
-    def _pair(self, item: CartForce | MotorSample | None,
+    def _pair(self, item: CartForce | MotorSample,
               add: Callable[[int, Any], tuple[CartForce, MotorSample] | None]) -> None:
         """One half of a cycle: a resent stamp gets its first answer again; the half
         that completes a pair runs the cycle."""
-        if item is None or self._answers.resend(item.stamp_ns):
+        if self._answers.resend(item.stamp_ns):
             return
         pair = add(item.stamp_ns, item)
         if pair:

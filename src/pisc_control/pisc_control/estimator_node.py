@@ -9,7 +9,7 @@ from pisc_control.scalar import OneRigEstimator
 from pisc_msgs_py.base_node import OK, PiscNode, ResendCache, run_node
 from pisc_msgs_py.convert import joint_sample_from_msg, state_to_cdr
 from pisc_msgs_py.topics import JOINT_STATES, STATE
-from pisc_msgs_py.types import StateEstimate
+from pisc_msgs_py.types import JointSample, StateEstimate
 from pisc_model.params import LoopParams
 
 
@@ -21,7 +21,8 @@ class EstimatorNode(PiscNode):
         self._samples = 0
         self._answers = ResendCache()  # a resent sample: same answer, same state
         self._state_pub = self.publisher(STATE)
-        self._sub = self.subscription(JOINT_STATES, self._on_joint_states)
+        self._sub = self.subscription(JOINT_STATES, self._on_joint_states,
+                                      joint_sample_from_msg, "joint_states")
 
     def build(self, flat: dict[str, Any]) -> tuple[LoopParams, EstimatorParams]:
         return self.section(flat, "loop"), self.section(flat, "estimator")
@@ -31,9 +32,8 @@ class EstimatorNode(PiscNode):
         loop, params = config
         self._estimator.configure(params, loop.period_s)
 
-    def _on_joint_states(self, msg: Any) -> None:
-        sample = self.parse(msg, joint_sample_from_msg, "joint_states")
-        if sample is None or self._answers.resend(sample.stamp_ns):
+    def _on_joint_states(self, sample: JointSample) -> None:
+        if self._answers.resend(sample.stamp_ns):
             return
         x_dot, theta_dot = self._estimator.step(sample.position_m, sample.angle_rad)
         out = state_to_cdr(StateEstimate(

@@ -21,7 +21,7 @@ from pisc_model.params import LoopParams, RigParams
 from pisc_msgs_py.base_node import ERROR, OK, PiscNode, ResendCache, run_node
 from pisc_msgs_py.convert import cart_force_to_cdr, mode_to_msg, state_from_msg
 from pisc_msgs_py.topics import CART_FORCE, MODE, STATE
-from pisc_msgs_py.types import CartForce, Mode, ModeReport
+from pisc_msgs_py.types import CartForce, Mode, ModeReport, StateEstimate
 
 SECTIONS = {
     "rig": RigParams,
@@ -43,7 +43,7 @@ class SupervisorNode(PiscNode):
         self._answers = ResendCache()  # a resent cycle: same force, same state
         self._force_pub = self.publisher(CART_FORCE)
         self._mode_pub = self.publisher(MODE)
-        self._sub = self.subscription(STATE, self._on_state)
+        self._sub = self.subscription(STATE, self._on_state, state_from_msg, "state")
         self.get_logger().info(f"catch gain K = {np.array2string(self.config.gain, precision=5)}")
 
     def build(self, flat: dict[str, Any]) -> Supervisor:
@@ -53,9 +53,8 @@ class SupervisorNode(PiscNode):
         self.config = config
         self._supervisor.configure(config)
 
-    def _on_state(self, msg: Any) -> None:
-        state = self.parse(msg, state_from_msg, "state")
-        if state is None or self._answers.resend(state.stamp_ns):
+    def _on_state(self, state: StateEstimate) -> None:
+        if self._answers.resend(state.stamp_ns):
             return
         supervisor: Supervisor = self.config
         force, code = self._supervisor.step(state.position_m, state.velocity_mps,

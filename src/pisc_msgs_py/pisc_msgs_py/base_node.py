@@ -54,7 +54,13 @@ from rclpy.type_support import check_is_valid_msg_type
 
 from pisc_msgs_py import cdr
 from pisc_msgs_py import config as cfg
-from pisc_msgs_py.convert import MessageError, stamp_from_msg, stamp_to_msg
+from pisc_msgs_py.convert import (
+    MessageError,
+    fast_read,
+    note_read,
+    stamp_from_msg,
+    stamp_to_msg,
+)
 from pisc_msgs_py.topics import DIAGNOSTICS, QosSpec, Topic
 
 __all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "LogLimit", "NewestStamps", "Override",
@@ -409,23 +415,51 @@ class PiscNode(Node):
     def publisher(self, topic: Topic) -> Any:
         return self.create_publisher(message_class(topic.type), topic.name, qos_profile(topic.qos))
 
-    def subscription(self, topic: Topic, callback: Callable[..., None]) -> Any:
+    def subscription(self, topic: Topic, callback: Callable[..., None],
+                     read: Callable[[Any], Any] | None = None, what: str = "",
+                     level: int = ERROR) -> Any:
         """Subscribe ``callback`` to ``topic``. A type :mod:`pisc_msgs_py.cdr` reads is
         taken raw and handed over as a view with the message's fields (no rclpy message
         object is built, issue 16); bytes it cannot read are refused on /diagnostics
-        (``rejected TOPIC: ...``) and the callback is not called."""
+        (``rejected TOPIC: ...``) and the callback is not called.
+
+        With ``read`` (a ``*_from_msg`` of :mod:`pisc_msgs_py.convert`) the callback
+        gets the typed value instead; a message it refuses is said as :meth:`parse`
+        says it (``rejected WHAT: ...`` at ``level``) and the callback is not called.
+        A message of a shape ``read`` read before goes from its bytes to the value
+        without a view (:func:`pisc_msgs_py.convert.fast_read`)."""
         decode = cdr.DECODERS.get(topic.type)
         if decode is None:
+            if read is None:
+                return self.create_subscription(
+                    message_class(topic.type), topic.name, callback, qos_profile(topic.qos))
+
+            def on_msg(msg: Any) -> None:
+                value = self.parse(msg, read, what, level)
+                if value is not None:
+                    callback(value)
+
             return self.create_subscription(
-                message_class(topic.type), topic.name, callback, qos_profile(topic.qos))
+                message_class(topic.type), topic.name, on_msg, qos_profile(topic.qos))
 
         def on_bytes(data: bytes) -> None:
+            if read is not None:
+                value = fast_read(read, data)
+                if value is not None:
+                    callback(value)
+                    return
             try:
                 msg = decode(data)
             except MessageError as exc:
                 self.diagnose(ERROR, f"rejected {topic.name}: {exc}")
                 return
-            callback(msg)
+            if read is None:
+                callback(msg)
+                return
+            value = self.parse(msg, read, what, level)
+            if value is not None:
+                note_read(read, data)
+                callback(value)
 
         return self.create_subscription(message_class(topic.type), topic.name, on_bytes,
                                         qos_profile(topic.qos), raw=True)

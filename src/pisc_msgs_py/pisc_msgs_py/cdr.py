@@ -44,7 +44,8 @@ from typing import Any, NamedTuple
 __all__ = ["DECODERS", "ENCAPSULATION", "Header", "JointStateView", "MessageError", "Stamp",
            "Vector3",
            "Wrench", "WrenchStampedView", "clock", "decode_joint_state",
-           "decode_wrench_stamped", "joint_state", "wrench_stamped"]
+           "decode_wrench_stamped", "joint_state", "joint_state_shape", "wrench_stamped",
+           "wrench_stamped_shape"]
 
 #: Encapsulation header of little-endian plain CDR (what this module writes).
 ENCAPSULATION = b"\x00\x01\x00\x00"
@@ -285,11 +286,21 @@ class _Shape(NamedTuple):
     """A message's bytes but its stamp's and its doubles': ``fixed`` are the (start,
     end, bytes) that must match, ``runs`` the (offset, unpack_from) of each run of
     doubles (None for an empty one), ``fields`` what the bytes give besides (frame,
-    names)."""
+    names); ``read_by`` the converters found to read this shape whole
+    (:func:`pisc_msgs_py.convert.fast_read`)."""
     fixed: tuple[tuple[int, int, bytes], ...]
     stamp: Callable[[bytes, int], tuple[int, int]]
     runs: tuple[tuple[int, Callable[[bytes, int], tuple[float, ...]] | None], ...]
     fields: tuple[Any, ...]
+    read_by: set[Any]
+
+    def stamp_ns(self, data: bytes) -> int:
+        sec, nanosec = self.stamp(data, _BASE)
+        return sec * 1_000_000_000 + nanosec
+
+    def doubles(self, data: bytes) -> tuple[tuple[float, ...], ...]:
+        """Each run of doubles of ``data``, a message of this shape."""
+        return tuple(read(data, offset) if read else () for offset, read in self.runs)
 
 
 class _Shapes:
@@ -326,12 +337,24 @@ class _Shapes:
             tuple((o, f.doubles[n] if n < len(f.doubles) else
                    struct.Struct(f"{f.order}{n}d").unpack_from) if n else (o, None)
                   for o, n in runs),
-            fields))
+            fields, set()))
         self._kept += 1
 
 
 _JOINT_STATE_SHAPES = _Shapes()
 _WRENCH_STAMPED_SHAPES = _Shapes()
+
+
+
+def joint_state_shape(data: bytes) -> _Shape | None:
+    """The kept shape of ``data``, a ``JointState``, or None (not met before, or not
+    kept)."""
+    return _JOINT_STATE_SHAPES.match(data)
+
+
+def wrench_stamped_shape(data: bytes) -> _Shape | None:
+    """The kept shape of ``data``, a ``WrenchStamped``, or None."""
+    return _WRENCH_STAMPED_SHAPES.match(data)
 
 
 def _joint_state(data: bytes) -> JointStateView:

@@ -32,6 +32,7 @@ from pisc_msgs_py.convert import (
     true_state_to_cdr,
     true_state_to_msg,
 )
+from pisc_msgs_py import convert
 from pisc_msgs_py.types import CartForce, JointSample, MotorSample, StateEstimate, TrueState
 
 STAMP = 1_795_000_000_123_456_789
@@ -204,3 +205,55 @@ def test_a_big_endian_shape_reads_big_endian(monkeypatch):
     cdr.decode_joint_state(_big_endian_motor_sample(3, 5_000_000, -0.75))  # keeps it
     view = cdr.decode_joint_state(_big_endian_motor_sample(-4, 999_999_999, 1e-300))
     assert motor_sample_from_msg(view) == MotorSample(-3_000_000_001, 1e-300)
+
+
+def _converted(from_msg, decode, data):
+    try:
+        return from_msg(decode(data))
+    except MessageError as exc:
+        return str(exc)
+
+
+@pytest.mark.parametrize("value,to_msg,to_cdr,from_msg,decode", CASES, ids=IDS)
+def test_bytes_go_straight_to_the_value_only_as_the_converter_would_read_them(
+        value, to_msg, to_cdr, from_msg, decode, monkeypatch):
+    """fast_read gives nothing for a shape the converter has not read whole; once it
+    has (note_read), it gives what the converter gives for every one-byte change of the
+    message, or nothing (the node then reads it in full): never another value, and
+    nothing where the converter refuses (a non-finite value, other names)."""
+    monkeypatch.setattr(cdr, "_JOINT_STATE_SHAPES", cdr._Shapes())
+    monkeypatch.setattr(cdr, "_WRENCH_STAMPED_SHAPES", cdr._Shapes())
+    data = to_cdr(value)
+    assert convert.fast_read(from_msg, data) is None  # shape not met
+    assert from_msg(decode(data)) == value  # keeps the shape
+    assert convert.fast_read(from_msg, data) is None  # not yet read whole by from_msg
+    convert.note_read(from_msg, data)
+    assert convert.fast_read(from_msg, data) == value
+    fast = refused = 0
+    for at in range(len(data)):
+        for byte in {0x00, 0x7F, 0xFF, data[at] ^ 0x01} - {data[at]}:
+            changed = data[:at] + bytes([byte]) + data[at + 1:]
+            got = convert.fast_read(from_msg, changed)
+            full = _converted(from_msg, decode, changed)
+            if got is None:
+                refused += isinstance(full, str)
+            else:
+                fast += 1
+                assert got == full, at
+    assert fast and refused  # both kinds were met
+
+
+def test_a_converter_reads_fast_only_the_shapes_it_read_whole(monkeypatch):
+    """The estimator's joint_states and the motor current share a type: a motor sample's
+    shape read whole by motor_sample_from_msg is not one joint_sample_from_msg reads, and
+    a JointState with other joint names is never read fast."""
+    monkeypatch.setattr(cdr, "_JOINT_STATE_SHAPES", cdr._Shapes())
+    current = motor_sample_to_cdr(MotorSample(STAMP, 0.5))
+    motor_sample_from_msg(cdr.decode_joint_state(current))
+    convert.note_read(motor_sample_from_msg, current)
+    assert convert.fast_read(motor_sample_from_msg, current) == MotorSample(STAMP, 0.5)
+    assert convert.fast_read(joint_sample_from_msg, current) is None
+    other = cdr.joint_state(STAMP, ("x", "y"), (1.0, 2.0))
+    with pytest.raises(MessageError, match="expected joints"):
+        joint_sample_from_msg(cdr.decode_joint_state(other))
+    assert convert.fast_read(joint_sample_from_msg, other) is None
