@@ -50,7 +50,10 @@ class CommandWatchdog:
 
     def fresh(self, stamp_ns: int) -> int | None:
         """The index of the recent sample a command of this stamp answers, else None."""
-        return next((i for s, i in self._recent if s == stamp_ns), None)
+        for s, i in reversed(self._recent):  # the newest first: usually the one
+            if s == stamp_ns:
+                return i
+        return None
 
     def stamp_of(self, index: int) -> int | None:
         return next((s for s, i in self._recent if i == index), None)

@@ -329,6 +329,9 @@ class Plant:
             self._p_rows = np.ascontiguousarray(self._p.T)  # rig k's constants, contiguous
             self._lanes[self.rigs] = kernel.lanes(self._p)
         self._u1 = np.zeros(1)  # the one rig's input, for the kernel's rows
+        # measurement_one: the IR sensor's decoded position by ADC code (a function of
+        # the code alone, so the same bits; at most adc_levels entries)
+        self._ir_position: dict[int, float] = {}
         self.nominal_substep_s = c.loop.period_s / c.integrator.substeps
         stiffest = float(np.max(-self.lam, initial=0.0))  # of the stiffest rig
         if c.integrator.method == "rk4" and self.nominal_substep_s * stiffest >= RK4_STABILITY:
@@ -686,9 +689,11 @@ class Plant:
         ir_code = min(max(math.floor((v_ir - low) / lsb), 0), top)  # sensors.adc_code
         cur_code = min(max(math.floor((v_cur - low) / lsb), 0), top)
         count = math.floor((theta - s.encoder_zero_rad) / s.encoder_rad_per_count + 0.5)
-        # sensors.decode
-        v = np.asarray(float(ir_code) * lsb + low) ** (-s.ir_exponent)
-        x = s.ir_origin_m - s.ir_scale_m * float(v)
+        # sensors.decode; the IR curve's power once per code
+        x = self._ir_position.get(ir_code)
+        if x is None:
+            v = np.asarray(float(ir_code) * lsb + low) ** (-s.ir_exponent)
+            x = self._ir_position[ir_code] = s.ir_origin_m - s.ir_scale_m * float(v)
         angle = float(count) * s.encoder_rad_per_count + s.encoder_zero_rad
         current = s.current_scale_a_per_v * (float(cur_code) * lsb + low) - s.current_offset_a
         return x, angle, current

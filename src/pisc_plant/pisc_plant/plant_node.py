@@ -204,6 +204,7 @@ class PlantNode(PiscNode):
         self._pin = PublisherPin(self._sim_params.command_node)
         self._first_voltage_ns: int | None = None  # stamp of the first voltage seen
         self._finished = False  # the voltage ending the run (duration_s) has come
+        self._duration_ns = round(self._sim_params.duration_s * 1e9)
         self._stop_requested = False  # a signal asked the process to stop
         # with the topics created: discovery goes on meanwhile, in DDS's threads
         _warm_up(plant, state)
@@ -361,7 +362,7 @@ class PlantNode(PiscNode):
     def _watch_duration(self, msg: Any) -> None:
         """The run's end, by pisc_graph's own rule (a voltage stamped ``duration_s`` after
         the first voltage, whatever answered): the plant publishes no sample after it."""
-        duration_ns = round(self._sim_params.duration_s * 1e9)
+        duration_ns = self._duration_ns
         if not duration_ns:
             return
         stamp = stamp_from_msg(msg.header.stamp)

@@ -12,6 +12,7 @@ It reads no clock: the node passes the delay it measured (wall clock) or zero
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -76,9 +77,10 @@ class SampledPlant:
         A delay of a period or more means the command missed this period; it then
         takes effect at the start of the next one.
         """
-        if not np.isfinite(voltage_v):
+        voltage = float(voltage_v)
+        if not math.isfinite(voltage):
             raise ValueError(f"voltage command {voltage_v} is not finite")
-        self._next = (float(voltage_v), max(0.0, float(delay_s)) + self._latency_s)
+        self._next = (voltage, max(0.0, float(delay_s)) + self._latency_s)
 
     def advance(self) -> None:
         """Integrate to the next sample."""
