@@ -345,7 +345,6 @@ _JOINT_STATE_SHAPES = _Shapes()
 _WRENCH_STAMPED_SHAPES = _Shapes()
 
 
-
 def joint_state_shape(data: bytes) -> _Shape | None:
     """The kept shape of ``data``, a ``JointState``, or None (not met before, or not
     kept)."""
