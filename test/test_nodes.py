@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,7 @@ import rclpy.node
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from rclpy.time import Time
 
 from conftest import spin_until
 from pisc_control.current_loop_node import CurrentLoopNode
@@ -109,6 +111,21 @@ def test_the_lockstep_plant_waits_for_every_clock_subscriber_it_was_told_of(ros_
     finally:
         plant.destroy_node()
         probe.destroy_node()
+
+
+def test_the_wall_clock_plant_reads_the_node_clock_and_a_clock_override(ros_context):
+    """The wall-clock plant stamps with its node's clock: the system's realtime clock
+    (read without an rclpy Time), or /clock's time once ROS time overrides it."""
+    plant = PlantNode(context=ros_context)
+    try:
+        before = time.time_ns()
+        assert before <= plant._wall_ns() <= time.time_ns()
+        clock = plant.get_clock()
+        clock._set_ros_time_is_active(True)  # what use_sim_time's TimeSource does
+        clock.set_ros_time_override(Time(seconds=12, nanoseconds=345))
+        assert plant._wall_ns() == 12_000_000_345
+    finally:
+        plant.destroy_node()
 
 
 def test_the_lockstep_plant_publishes_clock_with_every_clock_every_th_sample(ros_context):

@@ -49,11 +49,11 @@ sample. rclpy's own handler shut the context down at once, so a signal inside
 from __future__ import annotations
 
 import signal
+import time
 from dataclasses import dataclass
 from typing import Any
 
 import rclpy
-from rclpy.time import Time
 
 from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, run_node
 from pisc_msgs_py.config import ConfigError, in_range, one_of, param
@@ -224,10 +224,14 @@ class PlantNode(PiscNode):
         self.get_logger().warning("plant parameters are read at start-up; restart to apply")
 
     def _wall_ns(self) -> int:
-        return self._clock_now().nanoseconds
-
-    def _clock_now(self) -> Time:
-        return self.get_clock().now()
+        """Now on the node's clock. Without a /clock override (``use_sim_time``) that is
+        the system's realtime clock, which rcl reads as ``time.time_ns`` does, read here
+        without building an rclpy Time (3 calls a wall-clock cycle took 13 us each, a
+        tenth of the plant's timer callback: timers around them, 2026-12-05)."""
+        clock = self.get_clock()
+        if clock.ros_time_is_active:
+            return clock.now().nanoseconds
+        return time.time_ns()
 
     def _publish_sample(self) -> None:
         sample = self._sim.sample()
