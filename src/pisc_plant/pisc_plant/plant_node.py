@@ -226,8 +226,8 @@ class PlantNode(PiscNode):
     def _wall_ns(self) -> int:
         """Now on the node's clock. Without a /clock override (``use_sim_time``) that is
         the system's realtime clock, which rcl reads as ``time.time_ns`` does, read here
-        without building an rclpy Time (3 calls a wall-clock cycle took 13 us each, a
-        tenth of the plant's timer callback: timers around them, 2026-12-05)."""
+        without building an rclpy Time (three calls a wall-clock cycle, 13 us each in a
+        running graph: timers around them, 2026-12-05)."""
         clock = self.get_clock()
         if clock.ros_time_is_active:
             return clock.now().nanoseconds
