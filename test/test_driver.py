@@ -429,6 +429,12 @@ def test_every_byte_the_driver_writes_is_published_as_written(tmp_path, env_for_
         # (and the driver's writer ours: discovery matches the two ends one at a time,
         # and a message published before its writer has matched a reader is not its)
         answerer.spin_until(lambda: False, 2.0)
+        # Counted from here: a byte written before (a 0 V while the answering node was
+        # not yet named, an intruder until then) may have been published before the
+        # driver's writer matched this reader: 6 of 61 runs failed so on 2026-12-05, and
+        # in the two with the driver's own log of what it published, that "zero" came
+        # first, about 2 s before the first answer, and the observer never got it.
+        received_before, sent_before = rig.status()["bytes_received"], len(sent)
         answerer.answering = True
         assert answerer.spin_until(lambda: len(sent) > 250, 30.0), len(sent)
         answerer.answering = False  # the controllers die
@@ -447,8 +453,8 @@ def test_every_byte_the_driver_writes_is_published_as_written(tmp_path, env_for_
     answers = [m for m in sent if m[1] == "answer"]
     own = [m for m in sent if m[1] != "answer"]
     print(f"{received} bytes received by the rig; {len(answers)} answers and {len(own)} of "
-          f"the driver's own published")
-    assert received == len(sent)
+          f"the driver's own published; {received_before} and {sent_before} before counting")
+    assert received - received_before == len(sent) - sent_before
     assert {m[1] for m in sent} <= {"answer", "hold", "zero"}
     volts = command_voltage(encode_command(3.0))
     # 0 V until the driver has pinned the answering node as the command's one publisher
