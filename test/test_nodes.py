@@ -27,6 +27,7 @@ from pisc_msgs_py.convert import (
     joint_sample_to_cdr,
     joint_sample_to_msg,
     motor_sample_from_msg,
+    mode_to_msg,
     motor_sample_to_msg,
     stamp_from_msg,
     state_to_cdr,
@@ -36,11 +37,19 @@ from pisc_msgs_py.topics import (
     CLOCK,
     DIAGNOSTICS,
     JOINT_STATES,
+    MODE,
     MOTOR_CURRENT,
     STATE,
     VOLTAGE,
 )
-from pisc_msgs_py.types import CartForce, JointSample, MotorSample, StateEstimate
+from pisc_msgs_py.types import (
+    CartForce,
+    JointSample,
+    Mode,
+    ModeReport,
+    MotorSample,
+    StateEstimate,
+)
 from pisc_plant.plant_node import PlantNode
 
 pytestmark = pytest.mark.integration
@@ -284,6 +293,36 @@ def test_bytes_that_are_no_joint_state_are_refused_on_diagnostics_and_the_node_a
         assert tuple(states[0].position) == (0.05, math.pi)
     finally:
         for n in (estimator, probe):
+            n.destroy_node()
+
+
+def test_the_current_loop_takes_the_mode_as_a_value_and_refuses_an_unknown_one(ros_context):
+    """A topic without a raw reader (/pisc/mode, a DiagnosticArray) hands the callback the
+    converter's value too; a mode it does not know is refused on /diagnostics as parse
+    says it, and a fault after it is taken."""
+    loop = CurrentLoopNode(context=ros_context)
+    probe = rclpy.node.Node("probe", context=ros_context)
+    modes = probe.create_publisher(message_class(MODE.type), MODE.name, qos_profile(MODE.qos))
+    statuses = []
+    probe.create_subscription(message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
+                              lambda m: statuses.extend(s.message for s in m.status),
+                              qos_profile(DIAGNOSTICS.qos))
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (loop, probe):
+        executor.add_node(n)
+    try:
+        assert spin_until(executor, lambda: modes.get_subscription_count() >= 1
+                          and loop._diagnostics.get_subscription_count() >= 1, 10.0)
+        unknown = mode_to_msg(ModeReport(5_000_000, Mode.CATCH))
+        unknown.status[0].message = "dancing"
+        modes.publish(unknown)
+        assert spin_until(executor, lambda: any("rejected" in m for m in statuses), 10.0)
+        assert [m for m in statuses if "rejected" in m] == [
+            "rejected mode: mode: unknown mode 'dancing'"]
+        modes.publish(mode_to_msg(ModeReport(10_000_000, Mode.FAULT, "x below x_min")))
+        assert spin_until(executor, lambda: loop._fault == "x below x_min", 10.0)
+    finally:
+        for n in (loop, probe):
             n.destroy_node()
 
 

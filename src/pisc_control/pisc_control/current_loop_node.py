@@ -16,7 +16,7 @@ from pisc_msgs_py.convert import (
 )
 from pisc_msgs_py.sync import StampPairer
 from pisc_msgs_py.topics import CART_FORCE, CURRENT_SETPOINT, MODE, MOTOR_CURRENT, VOLTAGE
-from pisc_msgs_py.types import CartForce, Mode, MotorSample
+from pisc_msgs_py.types import CartForce, Mode, ModeReport, MotorSample
 from pisc_model.params import LoopParams, MotorParams
 
 
@@ -39,7 +39,7 @@ class CurrentLoopNode(PiscNode):
             self.subscription(CART_FORCE, self._on_force, cart_force_from_msg, "cart_force"),
             self.subscription(MOTOR_CURRENT, self._on_current, motor_sample_from_msg,
                               "motor current"),
-            self.subscription(MODE, self._on_mode),
+            self.subscription(MODE, self._on_mode, mode_from_msg, "mode"),
         ]
 
     def build(self, flat: dict[str, Any]) -> tuple[LoopParams, MotorParams, CurrentLoopParams]:
@@ -67,10 +67,7 @@ class CurrentLoopNode(PiscNode):
         if pair:
             self._cycle(*pair)
 
-    def _on_mode(self, msg: Any) -> None:
-        report = self.parse(msg, mode_from_msg, "mode")
-        if report is None:
-            return
+    def _on_mode(self, report: ModeReport) -> None:
         self._fault = (report.reason or "supervisor fault") if report.mode is Mode.FAULT else ""
         if self._fault:
             self.diagnose(ERROR, f"supervisor fault ({self._fault}): commanding 0 V",
