@@ -249,8 +249,8 @@ def mode_from_msg(msg: Any) -> ModeReport:
 
 class _Fast(NamedTuple):
     shape_of: Callable[[bytes], Any]  # cdr.*_shape
-    finite: tuple[tuple[int, int | None], ...]  # (run, how many of its values, or all)
-    # the converter checks are finite
+    # which values the converter checks are finite: (run, its first n, or None: all)
+    finite: tuple[tuple[int, int | None], ...]
     build: Callable[..., Any]  # (stamp_ns, *runs) -> the converter's value
 
 
