@@ -260,24 +260,32 @@ def test_controllers_answer_a_sample_with_a_voltage_of_the_same_stamp(ros_contex
             n.destroy_node()
 
 
+def _diagnostics_probe(ros_context, node):
+    """A probe node whose subscription gathers every status message on /diagnostics, and
+    an executor spinning it with ``node``: (probe, the messages, executor)."""
+    probe = rclpy.node.Node("probe", context=ros_context)
+    statuses: list[str] = []
+    probe.create_subscription(message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
+                              lambda m: statuses.extend(s.message for s in m.status),
+                              qos_profile(DIAGNOSTICS.qos))
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (node, probe):
+        executor.add_node(n)
+    return probe, statuses, executor
+
+
 def test_bytes_that_are_no_joint_state_are_refused_on_diagnostics_and_the_node_answers_on(
         ros_context):
     """The nodes read their cycle's topics raw (issue 16): a sample whose bytes are no
     JointState is refused on /diagnostics, naming the topic and what is wrong, and the
     next good sample is answered (rclpy's own deserialisation raised in the executor)."""
     estimator = EstimatorNode(context=ros_context)
-    probe = rclpy.node.Node("probe", context=ros_context)
+    probe, statuses, executor = _diagnostics_probe(ros_context, estimator)
     joints = probe.create_publisher(message_class(JOINT_STATES.type), JOINT_STATES.name,
                                     qos_profile(JOINT_STATES.qos))
-    statuses, states = [], []
-    probe.create_subscription(message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
-                              lambda m: statuses.extend(s.message for s in m.status),
-                              qos_profile(DIAGNOSTICS.qos))
+    states = []
     probe.create_subscription(message_class(STATE.type), STATE.name, states.append,
                               qos_profile(STATE.qos))
-    executor = SingleThreadedExecutor(context=ros_context)
-    for n in (estimator, probe):
-        executor.add_node(n)
     try:
         assert spin_until(executor, lambda: joints.get_subscription_count() >= 1
                           and estimator._state_pub.get_subscription_count() >= 1
@@ -301,15 +309,8 @@ def test_the_current_loop_takes_the_mode_as_a_value_and_refuses_an_unknown_one(r
     converter's value too; a mode it does not know is refused on /diagnostics as parse
     says it, and a fault after it is taken."""
     loop = CurrentLoopNode(context=ros_context)
-    probe = rclpy.node.Node("probe", context=ros_context)
+    probe, statuses, executor = _diagnostics_probe(ros_context, loop)
     modes = probe.create_publisher(message_class(MODE.type), MODE.name, qos_profile(MODE.qos))
-    statuses = []
-    probe.create_subscription(message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
-                              lambda m: statuses.extend(s.message for s in m.status),
-                              qos_profile(DIAGNOSTICS.qos))
-    executor = SingleThreadedExecutor(context=ros_context)
-    for n in (loop, probe):
-        executor.add_node(n)
     try:
         assert spin_until(executor, lambda: modes.get_subscription_count() >= 1
                           and loop._diagnostics.get_subscription_count() >= 1, 10.0)
