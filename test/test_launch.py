@@ -146,6 +146,31 @@ def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path
     assert g.controllers[2].command()[-2:] == ["-p", "use_sim_time:=true"]
 
 
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_node_processes_wait_until_their_publishers_have_matched_their_readers(lockstep):
+    """With --processes each node is told, per publication, how many readers to match
+    before it subscribes (start.await_subscribers): the next controller, the recorder, the
+    runner's voltage tap and, in lockstep, where the plant starts with them, the plant.
+    A publisher's match with the recorder can come long after the recorder's with it
+    (docs/recording.md, "Late matches")."""
+    g = read_graph("sim", {"markers": "true"})
+    recorded = graph.recorded_topics(None) + (graph.MARKERS,)
+    counted = [*g.controllers, *([g.source] if lockstep else [])]
+    told = {n.name: graph.awaiting(n, counted, recorded).parameters[
+        "start.await_subscribers"] for n in (*g.controllers, *g.observers)}
+    # supervisor and recorder; current loop and recorder (twice); the recorder alone;
+    # the recorder, the tap and the plant; the recorder
+    assert told == {
+        "estimator": "/pisc/state=2", "supervisor": "/pisc/cart_force=2,/pisc/mode=2",
+        "current_loop": "/pisc/motor/current_setpoint=1,"
+                        f"/pisc/motor/voltage={3 if lockstep else 2}",
+        "markers": "/pisc/markers=1"}
+    # on the command line, after the launch file's parameters
+    command = graph.awaiting(g.controllers[0], counted, recorded).command()
+    assert command[-4:] == ["-p", "use_sim_time:=true", "-p",
+                            "start.await_subscribers:=/pisc/state=2"]
+
+
 def test_the_driver_waits_for_the_graphs_readers_and_the_recorder(tmp_path):
     options = RunOptions(clock="wall", driver_port="/dev/ttyUSB0", markers=True)
     files = _run_files(tmp_path, options)

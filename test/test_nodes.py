@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -20,7 +21,13 @@ from conftest import spin_until
 from pisc_control.current_loop_node import CurrentLoopNode
 from pisc_control.estimator_node import EstimatorNode
 from pisc_control.supervisor_node import SupervisorNode
-from pisc_msgs_py.base_node import PISC_SECTIONS, message_class, parse_ros_arguments, qos_profile
+from pisc_msgs_py.base_node import (
+    PISC_SECTIONS,
+    StartError,
+    message_class,
+    parse_ros_arguments,
+    qos_profile,
+)
 from pisc_msgs_py.config import ConfigError
 from pisc_msgs_py.convert import (
     cart_force_to_cdr,
@@ -73,6 +80,16 @@ NODES = {"plant": PlantNode, "estimator": EstimatorNode, "supervisor": Superviso
     ("supervisor", {"swing_up.k_vv": 0.1}, r"swing_up.k_vv: unknown parameter"),
     ("plant", {"simulation.clock_every": 0},
      r"simulation.clock_every = 0 must lie in \[1, 1000\]"),
+    ("estimator", {"start.await_subscribers": "pisc/state=2"},
+     r"start.await_subscribers = 'pisc/state=2' must list TOPIC=N \(an absolute topic "
+     r"name, a count >= 0\): 'pisc/state=2' is not"),
+    ("current_loop", {"start.await_subscribers": "/pisc/motor/voltage=1, /pisc/motor/voltage=2"},
+     r"start.await_subscribers = .* names /pisc/motor/voltage twice"),
+    ("supervisor", {"start.await_subscribers": "/pisc/state=1"},
+     r"start.await_subscribers: /pisc/state is not published by node 'supervisor' \(it "
+     r"publishes /diagnostics, /parameter_events, /pisc/cart_force, /pisc/mode\)"),
+    ("plant", {"start.await_timeout_s": 0.0},
+     r"start.await_timeout_s = 0.0 must lie in \[0.01, 600"),
 ])
 def test_node_refuses_to_start_on_an_invalid_parameter(ros_context, node, overrides, message):
     params = [Parameter(k, value=v) for k, v in overrides.items()]
@@ -88,6 +105,60 @@ def test_entry_point_refuses_and_says_why(env_for_domain, tmp_path):
     assert completed.returncode == 2
     assert "refusing to start: invalid parameter: swing_up.k_v / swing_up.k_e" in completed.stderr
     assert "(3.29)" in completed.stderr
+
+
+def test_a_node_subscribes_once_its_publishers_have_matched_the_readers_it_awaits(
+        ros_context, monkeypatch):
+    """start.await_subscribers (pisc_graph gives it to node processes): the estimator
+    creates no subscription before /pisc/state has matched the reader it was told of, so
+    nothing it answers is lost to a reader that matches it late."""
+    counts_at_subscribing = []
+    create = rclpy.node.Node.create_subscription
+
+    def create_subscription(self, *args, **kwargs):
+        counts_at_subscribing.append(self._state_pub.get_subscription_count())
+        return create(self, *args, **kwargs)
+
+    monkeypatch.setattr(EstimatorNode, "create_subscription", create_subscription)
+    made = []
+    starting = threading.Thread(target=lambda: made.append(EstimatorNode(
+        context=ros_context, parameter_overrides=[
+            Parameter("start.await_subscribers", value="/pisc/state=1")])))
+    starting.start()
+    probe = rclpy.node.Node("probe", context=ros_context)
+    try:
+        starting.join(1.0)  # no reader of /pisc/state exists: it cannot have started
+        assert starting.is_alive() and counts_at_subscribing == []
+        probe.create_subscription(message_class(STATE.type), STATE.name, lambda msg: None,
+                                  qos_profile(STATE.qos))
+        starting.join(30.0)
+        assert not starting.is_alive() and made
+        assert counts_at_subscribing == [1]  # /pisc/joint_states, after the match
+    finally:
+        starting.join(30.0)
+        for node in made:
+            node.destroy_node()
+        probe.destroy_node()
+
+
+def test_a_node_whose_readers_do_not_come_does_not_start_and_names_them(ros_context,
+                                                                          env_for_domain):
+    with pytest.raises(StartError, match=(
+            r"^node 'current_loop': within 0.2 s \(start.await_timeout_s\) "
+            r"/pisc/motor/voltage matched 0 of the 2 subscribers of "
+            r"start.await_subscribers$")):
+        CurrentLoopNode(context=ros_context, parameter_overrides=[
+            Parameter("start.await_subscribers",
+                      value="/pisc/motor/current_setpoint=0,/pisc/motor/voltage=2"),
+            Parameter("start.await_timeout_s", value=0.2)])
+    # its entry point: exit status 1 (not started), said on standard error
+    completed = subprocess.run(
+        [sys.executable, "-m", "pisc_control.estimator_node", "--ros-args",
+         "-p", "start.await_subscribers:=/pisc/state=1", "-p", "start.await_timeout_s:=0.5"],
+        env=env_for_domain, capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 1
+    assert ("not started: node 'estimator': within 0.5 s (start.await_timeout_s) "
+            "/pisc/state matched 0 of the 1 subscribers") in completed.stderr
 
 
 def test_the_lockstep_plant_waits_for_every_clock_subscriber_it_was_told_of(ros_context):
@@ -383,7 +454,7 @@ def test_the_known_sections_are_those_the_nodes_read():
     from pisc_plant.plant_node import SECTIONS as PLANT_SECTIONS
 
     read = {*PLANT_SECTIONS, *SUPERVISOR_SECTIONS, *DRIVER_SECTIONS, *MARKERS_SECTIONS,
-            "loop", "estimator", "motor", "current_loop"}
+            "loop", "estimator", "motor", "current_loop", "start"}  # start: every PiscNode
     assert PISC_SECTIONS == read
 
 

@@ -70,7 +70,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -848,7 +848,8 @@ def run_graph(options: RunOptions) -> RunResult:
             children = _start_processes(graph, watcher, env, recorded,
                                         source_waits=lockstep)
             for node in graph.observers:  # the lockstep plant starts once the recorder
-                children.insert(0, _spawn(node.command(), env, subprocess.DEVNULL))  # matched it
+                children.insert(0, _spawn(awaiting(node, (), recorded).command(),  # matched it
+                                          env, subprocess.DEVNULL))
             # a node process that dies ends the run at once; the plant's watchdog has
             # zeroed the motor, and _stop below names the process
             _DeathWatch(watcher, children, progress)
@@ -1200,6 +1201,20 @@ def _matched(nodes: Sequence[Node], recorded: Sequence[Topic],
     return True
 
 
+def awaiting(node: GraphNode, counted: Sequence[GraphNode],
+             recorded: Sequence[Topic]) -> GraphNode:
+    """``node`` with ``start.await_subscribers`` (:class:`pisc_msgs_py.base_node.StartParams`)
+    for a process of its own: each of its publications but /diagnostics and /clock waits
+    for its subscribers among ``counted``, the recorder when the topic is recorded, and,
+    for the voltage, the runner's tap (:class:`_VoltageTap`)."""
+    wanted = ",".join(
+        f"{t.name}={expected_subscribers(t, t in recorded, counted) + (t is VOLTAGE)}"
+        for t in node.publishes if t not in (DIAGNOSTICS, CLOCK))
+    if not wanted:
+        return node
+    return replace(node, parameters={**node.parameters, "start.await_subscribers": wanted})
+
+
 def _start_processes(graph: Graph, watcher: Node, env: dict[str, str],
                      recorded: Sequence[Topic] = GRAPH_TOPICS,
                      source_waits: bool = False) -> list[subprocess.Popen]:
@@ -1211,7 +1226,12 @@ def _start_processes(graph: Graph, watcher: Node, env: dict[str, str],
     controllers, so that it loads while they do (from the controllers' connection to the
     recorder's last match took 0.6-3.4 s before, 0.5-0.8 s after, two runs each here on
     2026-12-03); its own subscriptions are not counted as the controllers'."""
-    children = [_spawn(node.command(), env, subprocess.DEVNULL) for node in graph.controllers]
+    # each waits, before it subscribes, until its publishers have matched the readers
+    # counted here: the recorder's too, which DDS may match long after the recorder
+    # matched them (docs/recording.md, "Late matches")
+    counted = [*graph.controllers, *([graph.source] if source_waits else [])]
+    children = [_spawn(awaiting(node, counted, recorded).command(), env, subprocess.DEVNULL)
+                for node in graph.controllers]
     if source_waits:
         children.append(_spawn(graph.source.command(), env, subprocess.DEVNULL))
 

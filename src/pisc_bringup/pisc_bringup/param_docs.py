@@ -35,7 +35,7 @@ def _node_sections() -> dict[str, tuple[str, ...]]:
                "markers": tuple(MARKERS)}
     out: dict[str, list[str]] = {}
     for node, sections in readers.items():
-        for section in sections:
+        for section in (*sections, "start"):  # every PISC node (PiscNode) reads it
             out.setdefault(section, []).append(node)
     return {s: tuple(nodes) for s, nodes in out.items()}
 
@@ -44,10 +44,11 @@ def _sections() -> dict[str, type]:
     from pisc_sim.configuration import SECTIONS
     from pisc_bringup.markers import MarkersParams
     from pisc_driver.driver import DriverParams
+    from pisc_msgs_py.base_node import StartParams
     from pisc_plant.plant_node import SimulationParams
 
     return {**SECTIONS, "simulation": SimulationParams, "driver": DriverParams,
-            "markers": MarkersParams}
+            "markers": MarkersParams, "start": StartParams}
 
 
 def _value(value: Any) -> str:

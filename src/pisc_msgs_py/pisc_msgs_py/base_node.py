@@ -64,8 +64,9 @@ from pisc_msgs_py.convert import (
 from pisc_msgs_py.topics import DIAGNOSTICS, QosSpec, Topic
 
 __all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "LogLimit", "NewestStamps", "Override",
-           "PiscNode", "ResendCache", "freeze_startup_objects", "message_class",
-           "parse_ros_arguments", "qos_profile", "raw_subscription", "run_node"]
+           "PiscNode", "ResendCache", "StartError", "StartParams", "freeze_startup_objects",
+           "message_class", "parse_ros_arguments", "qos_profile", "raw_subscription",
+           "run_node"]
 
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
@@ -100,7 +101,51 @@ def _ros_value(value: Any) -> Any:
 PISC_SECTIONS = frozenset({
     "actuator", "catch", "current_loop", "driver", "estimator", "experiment", "friction",
     "initial", "integrator", "loop", "markers", "models", "motor", "noise", "rig", "safety",
-    "sensors", "simulation", "startup", "swing_up", "switching", "track"})
+    "sensors", "simulation", "start", "startup", "swing_up", "switching", "track"})
+
+def _await_entries(text: str) -> list[tuple[str, int]]:
+    """``start.await_subscribers``' ``TOPIC=N,...`` as (topic, N); raises ConfigError
+    with what is wrong (the rule's words, after the value)."""
+    entries: list[tuple[str, int]] = []
+    for item in text.split(","):
+        topic, sep, count = (part.strip() for part in item.partition("="))
+        if not sep or not topic.startswith("/") or not count.isdigit():
+            raise cfg.ConfigError(f"must list TOPIC=N (an absolute topic name, a count "
+                                  f">= 0): {item.strip()!r} is not")
+        if any(topic == t for t, _ in entries):
+            raise cfg.ConfigError(f"names {topic} twice")
+        entries.append((topic, int(count)))
+    return entries
+
+
+def _await_rule(value: Any) -> str | None:
+    try:
+        return None if not value else (_await_entries(value) and None)
+    except cfg.ConfigError as exc:
+        return str(exc)
+
+
+@dataclass(frozen=True)
+class StartParams:
+    """What every PISC node waits for before it takes its first input."""
+
+    await_subscribers: str = cfg.param(
+        "", "TOPIC=N[,TOPIC=N...]: before its first subscription the node waits until each "
+        "of these publications of its own has matched at least N subscribers, so that "
+        "nothing it publishes is lost to a reader that matches it late (a DDS writer "
+        "learns of a reader apart from the reader learning of it). pisc_graph sets it for "
+        "the nodes it starts as processes (its recorder and the graph's other nodes); '': "
+        "no wait", "", _await_rule)
+    await_timeout_s: float = cfg.param(
+        30.0, "the longest wait for start.await_subscribers; after it the node does not "
+        "start (exit status 1), naming each publication still short of its subscribers",
+        "s", cfg.in_range(0.01, 600.0))
+
+
+class StartError(RuntimeError):
+    """A node's start condition was not met in time (:class:`StartParams`)."""
+
+
 
 # parameter file sections every node of the graph reads
 _SHARED_KEYS = ("/**", "/*")
@@ -335,7 +380,8 @@ class PiscNode(Node):
         declared by it."""
         super().__init__(node_name, parameter_overrides=parameter_overrides, **kwargs)
         self._newest_stamps: list[NewestStamps] = []
-        self._sections = dict(sections)
+        self._sections = {**dict(sections), "start": StartParams}
+        self._inputs_opened = False
         for section, cls in self._sections.items():
             for name, default, unit, description in cfg.describe(cls, section):
                 text = f"{description} [{unit}]" if unit else description
@@ -349,7 +395,9 @@ class PiscNode(Node):
             DiagnosticArray, DIAGNOSTICS.name, qos_profile(DIAGNOSTICS.qos))
         self._log_limit = LogLimit()
         # Refuses to start on a bad value: ConfigError propagates out of __init__.
-        self.config = self.build(self.flat_parameters())
+        flat = self.flat_parameters()
+        self.config = self.build(flat)
+        self._start = self.section(flat, "start")
         self.add_on_set_parameters_callback(self._validate_change)
         self.add_post_set_parameters_callback(self._apply_change)
 
@@ -402,6 +450,7 @@ class PiscNode(Node):
         flat = self.flat_parameters()
         flat.update({p.name: p.value for p in params})
         try:
+            self.section(flat, "start")  # checked; it matters only at the start
             self._pending = self.build(flat)
         except cfg.ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
@@ -427,7 +476,14 @@ class PiscNode(Node):
         gets the typed value instead; a message it refuses is said as :meth:`parse`
         says it (``rejected WHAT: ...`` at ``level``) and the callback is not called.
         A message of a shape ``read`` read before goes from its bytes to the value
-        without a view (:func:`pisc_msgs_py.convert.fast_read`)."""
+        without a view (:func:`pisc_msgs_py.convert.fast_read`).
+
+        The node's first subscription waits for ``start.await_subscribers``
+        (:meth:`await_subscribers`): a node creates its publishers first, so that what it
+        publishes in answer to its inputs reaches every reader it was told of."""
+        if not self._inputs_opened:
+            self._inputs_opened = True
+            self.await_subscribers()
         decode = cdr.DECODERS.get(topic.type)
         if decode is None:
             if read is None:
@@ -463,6 +519,35 @@ class PiscNode(Node):
 
         return self.create_subscription(message_class(topic.type), topic.name, on_bytes,
                                         qos_profile(topic.qos), raw=True)
+
+    def await_subscribers(self) -> None:
+        """Return once each publication ``start.await_subscribers`` names has matched its
+        count of subscribers (DDS matches in its own threads: nothing is spun); raise
+        :class:`StartError` after ``start.await_timeout_s``, or ConfigError for a topic
+        this node does not publish."""
+        if not self._start.await_subscribers:
+            return
+        wanted = _await_entries(self._start.await_subscribers)
+        mine = {p.topic_name: p for p in self.publishers}
+        for topic, _ in wanted:
+            if topic not in mine:
+                raise cfg.ConfigError(
+                    f"start.await_subscribers: {topic} is not published by node "
+                    f"'{self.get_name()}' (it publishes {', '.join(sorted(mine))})")
+        timeout_s = self._start.await_timeout_s
+        deadline = time.monotonic() + timeout_s
+        while True:
+            short = [(topic, mine[topic].get_subscription_count(), count)
+                     for topic, count in wanted
+                     if mine[topic].get_subscription_count() < count]
+            if not short:
+                return
+            if time.monotonic() >= deadline:
+                raise StartError(
+                    f"node '{self.get_name()}': within {timeout_s:g} s (start.await_timeout_s) "
+                    + "; ".join(f"{topic} matched {have} of the {count} subscribers of "
+                                "start.await_subscribers" for topic, have, count in short))
+            time.sleep(0.005)
 
     def newest_stamps(self, named: Sequence[tuple[str, Topic]]) -> NewestStamps:
         """The newest stamp of each ``(name, topic)``, read when asked
@@ -575,6 +660,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     except cfg.ConfigError as exc:
         print(f"refusing to start: invalid parameter: {exc}", file=sys.stderr)
         return 2
+    except StartError as exc:
+        print(f"not started: {exc}", file=sys.stderr)
+        return 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
