@@ -421,7 +421,7 @@ def _node_from_command_line(cls, domain_id, ros_args):
      r"^swingup.k_v .*'supervisor'; did you mean swing_up.k_v\?"),
     # a section another node reads, aimed at this one: still refused
     ("estimator", ["-p", "swing_up.k_v:=0.05"],
-     r"^swing_up.k_v .*not a parameter of node 'estimator' \(it reads loop, estimator\)"),
+     r"^swing_up.k_v .*not a parameter of node 'estimator' \(it reads loop, estimator, start\)"),
     # -p NODE:NAME:=VALUE aims at that node only
     ("current_loop", ["-p", "current_loop:loop.period:=0.005", "-p", "plant:nosuch.x:=1"],
      r"^loop.period \(-p current_loop:loop.period:=0.005\): not a parameter of node "

@@ -397,7 +397,7 @@ class PiscNode(Node):
         # Refuses to start on a bad value: ConfigError propagates out of __init__.
         flat = self.flat_parameters()
         self.config = self.build(flat)
-        self._start = self.section(flat, "start")
+        self._start_params = self.section(flat, "start")
         self.add_on_set_parameters_callback(self._validate_change)
         self.add_post_set_parameters_callback(self._apply_change)
 
@@ -525,16 +525,16 @@ class PiscNode(Node):
         count of subscribers (DDS matches in its own threads: nothing is spun); raise
         :class:`StartError` after ``start.await_timeout_s``, or ConfigError for a topic
         this node does not publish."""
-        if not self._start.await_subscribers:
+        if not self._start_params.await_subscribers:
             return
-        wanted = _await_entries(self._start.await_subscribers)
+        wanted = _await_entries(self._start_params.await_subscribers)
         mine = {p.topic_name: p for p in self.publishers}
         for topic, _ in wanted:
             if topic not in mine:
                 raise cfg.ConfigError(
                     f"start.await_subscribers: {topic} is not published by node "
                     f"'{self.get_name()}' (it publishes {', '.join(sorted(mine))})")
-        timeout_s = self._start.await_timeout_s
+        timeout_s = self._start_params.await_timeout_s
         deadline = time.monotonic() + timeout_s
         while True:
             short = [(topic, mine[topic].get_subscription_count(), count)
