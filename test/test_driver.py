@@ -718,8 +718,12 @@ def _start_balancing(tmp_path, env, ros_context, processes: bool):
     # From hanging at x0 = 0 the swing-up passes within 11 mm of the range's end, and a
     # late cycle faulted it before any catch (modes swing_up, fault; the rig at 0 V): the
     # CI run of 138efbd and 2 of about 40 runs here on 2026-12-03, as test_faults.py's
-    # kills through the plant had before they started so
-    rig = start_rig(tmp_path, "--x0", "-0.05", "--set", "initial.theta_rad=0.05")
+    # kills through the plant had before they started so. Held there (--hold) until the
+    # controllers' first voltage: the rig simulates from its own start, and in the 5-8 s
+    # the graph takes to come up the pendulum had fallen and swung, so the run began
+    # from wherever it was; 2 of 10 such starts faulted (cart at x = -0.2251 m),
+    # 2026-12-05
+    rig = start_rig(tmp_path, "--x0", "-0.05", "--set", "initial.theta_rad=0.05", "--hold")
     graph = None
     try:  # a failure here stops the rig and the graph (a rig left at SCHED_FIFO loads
         # every later test of the run)

@@ -212,6 +212,10 @@ class Firmware:
     trips: int = 0
     last_byte_s: float | None = None  # firmware time of the last command byte
     trip_delay_s: float | None = None  # last trip: its time after the last byte
+    # a hand on the rig (``--hold``): the state stays as it is until the first command
+    # byte of a nonzero voltage, from which it moves; time and frames go on meanwhile
+    held: bool = False
+    released_s: float | None = None  # firmware time of that byte
     _changes: list[tuple[float, float]] = field(default_factory=list)
     # the sensors' noise (``noise.*``), drawn as the simulator's sampled plant draws it
     _noise: np.random.Generator | None = field(default=None, init=False, repr=False)
@@ -259,6 +263,14 @@ class Firmware:
     def advance(self) -> None:
         period = self.plant.config.loop.period_s
         t = 0.0
+        if self.held:  # the state moves from the first nonzero byte on, or not at all
+            release = next((o for o, volts in self._changes if volts != 0.0), None)
+            if release is None:
+                t = period
+            else:
+                t = min(max(release, 0.0), period)
+                self.held = False
+                self.released_s = self.time_s + t
         for offset, volts in self._changes:
             offset = min(max(offset, 0.0), period)
             if offset > t:
@@ -354,6 +366,7 @@ class Rig:
             "watchdog_delay_s": self.firmware.trip_delay_s,
             "watchdog_trip_time": self.watchdog_trip_time,
             "refused_requests": self.refused,
+            "held": self.firmware.held, "released_s": self.firmware.released_s,
             "state": {"x": float(y[X]), "x_dot": float(y[X_DOT]), "theta": float(y[THETA]),
                       "theta_dot": float(y[THETA_DOT]),
                       "i": float(self.firmware.plant.current(y))},
@@ -616,6 +629,11 @@ def main(argv: list[str] | None = None) -> int:
                         "until the next byte (checked at each 5 ms tick, so 0 V comes "
                         "within one period after it); 0 = none, the thesis's firmware "
                         f"(default {DEFAULT_WATCHDOG_MS:g} ms: 10 periods)")
+    parser.add_argument("--hold", action="store_true",
+                        help="hold the cart and pendulum at the initial state, as a hand "
+                        "would, until the first command byte of a nonzero voltage lets go: "
+                        "a run started at a state (near upright, to be caught) starts there "
+                        "however long the graph takes to come up; frames are sent meanwhile")
     args = parser.parse_args(argv)
     try:
         if not (math.isfinite(args.watchdog_ms) and 0.0 <= args.watchdog_ms <= 60_000.0):
@@ -643,8 +661,8 @@ def main(argv: list[str] | None = None) -> int:
     log = open(args.log, "w", buffering=1 << 20) if args.log else None  # noqa: SIM115
     if log is not None:
         log.write("t_s,monotonic_s,unix_s,x,x_dot,theta,theta_dot,i,applied_v\n")
-    rig = Rig(Firmware(plant, state, watchdog_s=args.watchdog_ms * 1e-3), faults, args.seed,
-              log)
+    rig = Rig(Firmware(plant, state, watchdog_s=args.watchdog_ms * 1e-3, held=args.hold),
+              faults, args.seed, log)
 
     def stop(signum: int, frame: Any) -> None:
         rig.running = False

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pisc_msgs_py.config import ConfigError
-from pisc_plant.plant import Plant, PlantConfig
+from pisc_plant.plant import THETA, Plant, PlantConfig
 from pisc_plant.sampled import SampledPlant
 from pisc_plant.virtual_rig import (
     Firmware,
@@ -102,6 +102,29 @@ def test_the_count_register_wraps_at_16_bits(plant):
     turns = 9.0  # 36000 counts: past the int16 range
     fw = Firmware(plant, plant.initial_state(0.0, 0.0, math.pi + turns * 2 * math.pi, 0.0))
     assert struct.unpack(">h", fw.frame()[5:])[0] == 36000 - 65536
+
+
+def test_a_held_rig_stays_put_until_a_nonzero_byte_lets_go_where_it_arrives(plant):
+    """--hold: a hand on the pendulum. Time passes and 0 V bytes change nothing; the first
+    nonzero byte releases the state from its arrival in the period, so the rest is the
+    unheld rig's motion started there (the same plant steps)."""
+    state = plant.initial_state(-0.05, 0.0, 0.05, 0.0)  # 0.05 rad from upright: it falls
+    fw = Firmware(plant, state.copy(), held=True)
+    for _ in range(200):  # a second of frames, the driver's 0 V among them
+        fw.receive(0x00, 0.001)
+        fw.advance()
+    np.testing.assert_array_equal(fw.state, state)
+    assert fw.held and fw.released_s is None and fw.time_s == pytest.approx(1.0)
+    fw.receive(0x80, 0.0005)  # -0 V: still zero
+    fw.receive(0x7F, 0.0013)
+    fw.advance()
+    assert not fw.held and fw.released_s == pytest.approx(1.0013)
+    expected = plant.advance(state, 11.47, 0.005 - 0.0013)
+    np.testing.assert_allclose(fw.state, expected, rtol=0, atol=1e-12)
+    free = Firmware(plant, state.copy())  # unheld, the same second passes: it fell
+    for _ in range(200):
+        free.advance()
+    assert abs(free.state[THETA] - state[THETA]) > 0.5
 
 
 @pytest.mark.parametrize("byte,volts", [
