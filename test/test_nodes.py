@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import subprocess
 import sys
 import threading
@@ -512,3 +513,44 @@ def test_an_array_parameter_changes_through_the_set_parameters_service(ros_conte
     finally:
         node.destroy_node()
         client_node.destroy_node()
+
+
+_LEAVES_REALTIME = """
+import os, threading
+import rclpy
+from pisc_control.estimator_node import EstimatorNode
+from pisc_msgs_py.base_node import run_node
+os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+seen = {}
+
+class Probe(EstimatorNode):
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.create_timer(0.3, lambda: rclpy.try_shutdown())
+        self.other = threading.Thread(target=threading.Event().wait, args=(30.0,),
+                                      daemon=True)
+        self.other.start()  # started at SCHED_FIFO: keeps it
+
+    def destroy_node(self):
+        seen["main"] = os.sched_getscheduler(0)
+        seen["other"] = os.sched_getscheduler(self.other.native_id)
+        super().destroy_node()
+
+status = run_node(Probe, [])
+print(status, seen["main"], seen["other"])
+"""
+
+
+def test_a_stopping_node_gives_up_sched_fifo_before_it_destroys_its_node(env_for_domain):
+    """run_node (and pisc_graph) leave SCHED_FIFO in the thread that destroys the node:
+    Fast DDS's wait there takes no turns and starved the threads it waits for
+    (base_node.leave_realtime). Other threads keep the policy."""
+    probe = subprocess.run([sys.executable, "-c", "import os; os.sched_setscheduler("
+                            "0, os.SCHED_FIFO, os.sched_param(1))"], capture_output=True,
+                           timeout=30)
+    if probe.returncode != 0:
+        pytest.skip("SCHED_FIFO is not allowed here (CAP_SYS_NICE)")
+    done = subprocess.run([sys.executable, "-c", _LEAVES_REALTIME], env=env_for_domain,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["0", str(os.SCHED_OTHER), str(os.SCHED_FIFO)], done.stdout

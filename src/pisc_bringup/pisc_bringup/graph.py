@@ -98,6 +98,7 @@ from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.processes import console_command
 from pisc_msgs_py.base_node import (
     freeze_startup_objects,
+    leave_realtime,
     message_class,
     qos_profile,
     raw_subscription,
@@ -920,6 +921,7 @@ def run_graph(options: RunOptions) -> RunResult:
         gc.unfreeze()
         # the plant first, so the controllers see no sample after their peers stopped
         failures = _stop_all(children)
+        leave_realtime()  # before any node or participant is destroyed (base_node)
         if tap is not None:
             tap.destroy()
         # the executor lets go of the nodes' entities while they live (a RecorderDied's

@@ -32,6 +32,7 @@ from __future__ import annotations
 import fnmatch
 import gc
 import importlib
+import os
 import re
 import sys
 import time
@@ -65,7 +66,7 @@ from pisc_msgs_py.topics import DIAGNOSTICS, QosSpec, Topic
 
 __all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "LogLimit", "NewestStamps", "Override",
            "PiscNode", "ResendCache", "StartError", "StartParams", "freeze_startup_objects",
-           "message_class", "parse_ros_arguments", "qos_profile", "raw_subscription",
+           "leave_realtime", "message_class", "parse_ros_arguments", "qos_profile", "raw_subscription",
            "run_node"]
 
 OK = DiagnosticStatus.OK
@@ -619,6 +620,22 @@ def _shutting_down(wait_s: float = 0.5) -> bool:
     return True
 
 
+def leave_realtime() -> None:
+    """The calling thread gives up SCHED_FIFO (or SCHED_RR) for SCHED_OTHER, before it
+    destroys nodes. Fast DDS 2.14 waits without sleeping in ``destroy_participant`` for a
+    discovery callback in flight (its issue 6513; seen here at 100 % of a core, docs/
+    limitations.md); the callback runs in a receive thread of the same priority, and at
+    SCHED_FIFO two such waits on the two cores leave it, and every other thread of that
+    priority, no turn. On 2026-12-05 two controller processes of a ``--realtime 40`` run
+    each held a core so, with Fast DDS's flow-controller thread, for 18 minutes, and
+    pisc_graph, at the same priority, never ran to kill them (their stacks were not taken).
+    The other threads keep their policy."""
+    if not hasattr(os, "sched_getscheduler"):
+        return
+    if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     """Run one node on an EventsExecutor until shutdown; the shape of ros2/demos' talker.
 
@@ -666,6 +683,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        leave_realtime()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
