@@ -20,6 +20,11 @@ it at start-up, naming it and the closest known name:
 :func:`run_node` reads ``--ros-args`` before rclpy does, so a missing or broken
 parameter file and a malformed ``-p`` are a one-line refusal, not an rcl traceback.
 
+**Start.** Every node also reads ``start.*`` (:class:`StartParams`): before its first
+subscription it can wait until its publishers have matched the readers a runner counts
+for them (:meth:`PiscNode.await_subscribers`). A thread that destroys a node leaves
+SCHED_FIFO first (:func:`leave_realtime`).
+
 **Shell code said once.** :meth:`PiscNode.parse` turns a message into its core type or
 says on ``/diagnostics`` why it was rejected; :meth:`PiscNode.diagnose` publishes a
 status and logs an error, at most :class:`LogLimit`'s burst of one kind a window; :meth:`PiscNode.routine_diagnostics` is the
@@ -66,8 +71,8 @@ from pisc_msgs_py.topics import DIAGNOSTICS, QosSpec, Topic
 
 __all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "LogLimit", "NewestStamps", "Override",
            "PiscNode", "ResendCache", "StartError", "StartParams", "freeze_startup_objects",
-           "leave_realtime", "message_class", "parse_ros_arguments", "qos_profile", "raw_subscription",
-           "run_node"]
+           "leave_realtime", "message_class", "parse_ros_arguments", "qos_profile",
+           "raw_subscription", "run_node"]
 
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
@@ -104,6 +109,7 @@ PISC_SECTIONS = frozenset({
     "initial", "integrator", "loop", "markers", "models", "motor", "noise", "rig", "safety",
     "sensors", "simulation", "start", "startup", "swing_up", "switching", "track"})
 
+
 def _await_entries(text: str) -> list[tuple[str, int]]:
     """``start.await_subscribers``' ``TOPIC=N,...`` as (topic, N); raises ConfigError
     with what is wrong (the rule's words, after the value)."""
@@ -120,10 +126,12 @@ def _await_entries(text: str) -> list[tuple[str, int]]:
 
 
 def _await_rule(value: Any) -> str | None:
-    try:
-        return None if not value else (_await_entries(value) and None)
-    except cfg.ConfigError as exc:
-        return str(exc)
+    if value:
+        try:
+            _await_entries(value)
+        except cfg.ConfigError as exc:
+            return str(exc)
+    return None
 
 
 @dataclass(frozen=True)
@@ -145,7 +153,6 @@ class StartParams:
 
 class StartError(RuntimeError):
     """A node's start condition was not met in time (:class:`StartParams`)."""
-
 
 
 # parameter file sections every node of the graph reads
@@ -538,9 +545,9 @@ class PiscNode(Node):
         timeout_s = self._start_params.await_timeout_s
         deadline = time.monotonic() + timeout_s
         while True:
-            short = [(topic, mine[topic].get_subscription_count(), count)
-                     for topic, count in wanted
-                     if mine[topic].get_subscription_count() < count]
+            have = {topic: mine[topic].get_subscription_count() for topic, _ in wanted}
+            short = [(topic, have[topic], count) for topic, count in wanted
+                     if have[topic] < count]
             if not short:
                 return
             if time.monotonic() >= deadline:
