@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pisc_bringup.machine_probe import ProbeRun, Probes, load, probe_figures
 from pisc_bringup.soak import (
     DROP_RATE,
     SILENCE_S,
@@ -247,6 +249,70 @@ def test_steal_figures_count_the_cycles_over_the_period_near_a_second_with_steal
         steal_figures(samples, 104.5, 105.5, overs)
 
 
+def probe_run(cpu, late_ms, start_s=100.0, period_s=0.005):
+    return ProbeRun(cpu, 41, round(period_s * 1e9), round(start_s * 1e9),
+                    np.round(np.asarray(late_ms) * 1e6).astype(np.int64))
+
+
+def test_probe_figures_count_wakeups_over_the_period_and_the_cycles_near_a_stall():
+    # CPU 0 wakes 0.02 ms late but for a 12 ms stall at deadline 1000 (105.0 s): the
+    # deadlines it covered are 12, 7 and 2 ms late; CPU 1 is 1.5 ms late at 110.0 s
+    late0 = np.full(4000, 0.02)
+    late0[1000:1003] = [12.0, 7.0, 2.0]
+    late1 = np.full(4000, 0.01)
+    late1[2000] = 1.5
+    runs = [probe_run(0, late0), probe_run(1, late1)]
+    overs = [105.05, 109.95, 112.0, 130.0]  # the last is after the window
+    figures = probe_figures(runs, 99.999, 119.002, overs)
+    assert [(c["cpu"], c["wakeups"], c["over_period"]) for c in figures["cpus"]] == [
+        (0, 3801, 2), (1, 3801, 0)]
+    assert figures["cpus"][0]["max_ms"] == pytest.approx(12.0)
+    assert figures["cpus"][1]["p99_ms"] == pytest.approx(0.01)
+    assert figures["wakeups"] == 7602 and figures["over_period"] == 2
+    assert figures["max_ms"] == pytest.approx(12.0)
+    # stalls (over 1 ms late) at 105.000, 105.005, 105.010 and 110.000 s, widened by 0.1 s:
+    # 104.9-105.11 and 109.9-110.1, 0.41 s of the 19.003 s window
+    assert figures["stalls"] == 4
+    assert figures["near_share"] == pytest.approx(0.41 / 19.003)
+    assert (figures["overs"], figures["overs_near"]) == (3, 2)
+    with pytest.raises(ValueError, match="no probe wake-up between 200.0 and 300.0"):
+        probe_figures(runs, 200.0, 300.0, overs)
+
+
+def test_a_stopped_machine_probe_wakes_late_by_the_stop_and_counts_each_deadline(tmp_path):
+    probes = Probes(tmp_path, 0, 0.005, 30.0)
+    try:
+        time.sleep(0.3)
+        victim = probes.processes[0]
+        victim.send_signal(signal.SIGSTOP)
+        time.sleep(0.06)
+        victim.send_signal(signal.SIGCONT)
+        time.sleep(0.2)
+    finally:
+        runs = probes.stop()
+    assert [r.cpu for r in runs] == sorted(os.sched_getaffinity(0))
+    stopped = runs[0]
+    late_ms = stopped.lateness_ns * 1e-6
+    assert late_ms.size >= 80 and (late_ms >= 0).all()
+    # no wake-up during the 60 ms stop: the first deadline in it is >= 55 ms late, and
+    # each of the ten or more after it, 5 ms less each, is counted
+    assert late_ms.max() >= 55.0
+    assert (late_ms > 5.0).sum() >= 10
+    assert stopped.period_ns == 5_000_000 and stopped.priority == 0
+    assert abs(stopped.deadlines_unix_s()[0] - (time.time() - late_ms.size * 0.005)) < 1.0
+
+
+def test_a_machine_probe_on_a_cpu_that_does_not_exist_says_so(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "pisc_bringup.machine_probe", "--cpu",
+                           "4096", "--out", str(tmp_path / "p.npz")],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.startswith("machine_probe: CPU 4096, priority 0: ")
+    assert not (tmp_path / "p.npz").exists()
+    with pytest.raises(ValueError, match="machine probe .*p.npz"):
+        load(tmp_path / "p.npz")
+
+
 def test_read_steal_is_the_eighth_value_of_proc_stats_cpu_line_in_seconds():
     before = int(Path("/proc/stat").read_text().split("\n")[0].split()[8])
     steal = read_steal()
@@ -293,6 +359,17 @@ def test_the_report_prints_the_steal_beside_the_cycles_over_the_period_or_why_no
     report["steal"] = {"error": "1 steal sample(s) between 10.0 and 20.0"}
     assert "steal (hypervisor)     1 steal sample(s) between 10.0 and 20.0" \
         in format_report(report).splitlines()
+    assert "machine (bare timer)   not measured" in format_report(report).splitlines()
+    report["machine"] = {"cpus": [{}, {}], "p99_ms": 0.061, "max_ms": 17.494,
+                         "over_period": 40, "wakeups": 239950, "overs_near": 19,
+                         "overs": 21, "near_s": 0.1, "stall_ms": 1.0, "stalls": 142,
+                         "near_share": 0.0484}
+    lines = format_report(report).splitlines()
+    at = lines.index("machine (bare timer)   2 loops, one per CPU: p99 0.061 ms, max 17.494 "
+                     "ms late, 40 wake-ups over 5 ms of 239950")
+    assert lines[at + 1] == ("                       19 of the 21 cycles over 5 ms within "
+                             "0.1 s of a wake-up over 1 ms late (142 such; 4.8 % of the "
+                             "window is)")
 
 
 def test_a_run_that_meets_every_target_misses_none():

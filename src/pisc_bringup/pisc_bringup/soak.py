@@ -17,6 +17,10 @@ node process, the recorder, the virtual rig). Then it reads the bag and prints:
 * CPU seconds and % of one core per process, over the window from 10 s after the first
   cycle to the last one (start-up and the final read of the bag are outside it);
 * resident memory per process at 10 s and at the end, and the growth;
+* the machine's anchor: the hypervisor's steal time, and a bare timer loop per CPU at
+  the graph's scheduling, one SCHED_FIFO priority above it with ``--realtime``
+  (:mod:`pisc_bringup.machine_probe`): how late it woke (p99, max, wake-ups over the
+  period) and how many of the cycles over 5 ms fell near its stalls;
 * whether the pendulum was held (the run summary's criteria).
 
 ``--faults`` (with ``--driver``): byte drops at 1e-3 from the start, a 0.2 s silence of
@@ -55,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from pisc_bringup.machine_probe import ProbeRun, Probes, near_share, probe_figures
 from pisc_msgs_py.processes import DomainClaim, console_command
 
 __all__ = ["FaultSchedule", "Recovery", "Sample", "Targets", "expected_cycles", "fault_schedule",
@@ -75,6 +80,7 @@ GARBAGE_BYTES = (1, 64)  # bytes per burst, uniform, inclusive
 RECOVERY_BAND_RAD = 0.05  # |theta| from upright, the run summary's hold criterion
 RECOVERY_SETTLE_S = 1.0  # ... held for this long counts as recovered
 MB = 1_000_000
+PROBE_MARGIN_S = 120.0  # a machine probe stops by itself this long after the run's end
 
 
 # -- pure parts: statistics, the fault schedule, recoveries, usage, targets -------------
@@ -467,19 +473,9 @@ def steal_figures(samples: Sequence[tuple[float, float]], start_s: float, end_s:
                          f"{end_s:.1f}")
     stolen = [(a[0] - near_s, b[0] + near_s) for a, b in zip(inside, inside[1:])
               if b[1] > a[1]]
-    window = inside[-1][0] - inside[0][0]
-    covered, reach = 0.0, inside[0][0]  # the union of the widened intervals, clipped
-    for lo, hi in stolen:
-        lo, hi = max(lo, reach), min(hi, inside[-1][0])
-        if hi > lo:
-            covered += hi - lo
-            reach = hi
-    overs = [u for u in over_unix_s if inside[0][0] <= u <= inside[-1][0]]
+    share, overs, near = near_share(stolen, inside[0][0], inside[-1][0], over_unix_s)
     return {"steal_s": inside[-1][1] - inside[0][1], "intervals_with_steal": len(stolen),
-            "near_s": near_s,
-            "near_share": covered / window if window > 0 else math.nan,
-            "overs": len(overs),
-            "overs_near": sum(any(lo <= u <= hi for lo, hi in stolen) for u in overs)}
+            "near_s": near_s, "near_share": share, "overs": overs, "overs_near": near}
 
 
 def children_of(pid: int) -> dict[int, str]:
@@ -602,6 +598,7 @@ class RunRecord:
     rig_final: dict[str, Any] = field(default_factory=dict)
     observed: dict[str, list[int]] | None = None
     observer_samples: list[Sample] = field(default_factory=list)
+    probes: list[ProbeRun] | str = field(default_factory=list)  # or why there are none
 
 
 def run(options: SoakOptions, out: Path, domain_id: int,
@@ -615,7 +612,7 @@ def run(options: SoakOptions, out: Path, domain_id: int,
     env = dds_environment(dict(os.environ))  # what pisc_graph gives its processes
     env["ROS_DOMAIN_ID"] = str(domain_id)
     schedule = fault_schedule(options.seed, options.duration_s) if options.faults else None
-    rig = observer = graph = None
+    rig = observer = graph = probes = None
     graph_log = (out / "graph.log").open("w")
     try:
         if options.faults:
@@ -639,6 +636,10 @@ def run(options: SoakOptions, out: Path, domain_id: int,
             command += ["--driver", rig.device]
         if options.realtime:
             command += ["--realtime", str(options.realtime)]
+        # the machine's own latency beside the run, one bare timer loop per CPU, just above
+        # the graph's priority (machine_probe; started before the graph, stopped after)
+        probes = Probes(out, options.realtime + 1 if options.realtime else 0, PERIOD_S,
+                        options.duration_s + PROBE_MARGIN_S)
         say("running: " + " ".join(command))
         graph = subprocess.Popen(command, env=env, stdout=graph_log,
                                  stderr=subprocess.STDOUT)
@@ -682,6 +683,11 @@ def run(options: SoakOptions, out: Path, domain_id: int,
                 graph.kill()
         raise
     finally:
+        if probes is not None:
+            try:
+                probe_runs: list[ProbeRun] | str = probes.stop()
+            except ValueError as exc:
+                probe_runs = str(exc)
         if observer is not None:
             if observer.poll() is None:
                 observer.send_signal(signal.SIGTERM)
@@ -693,6 +699,7 @@ def run(options: SoakOptions, out: Path, domain_id: int,
             final = rig.stop()
         graph_log.close()
     record.graph_output = (out / "graph.log").read_text()
+    record.probes = probe_runs or "no machine probe finished"
     if rig is not None:
         record.rig_final = final
     if observer is not None and (out / "observer.json").exists():
@@ -786,6 +793,12 @@ def analyse(options: SoakOptions, out: Path, record: RunRecord) -> dict[str, Any
         report["steal"] = steal_figures(record.monitor.steal, t0, end, over_s)
     except ValueError as exc:
         report["steal"] = {"error": str(exc)}
+    try:
+        if isinstance(record.probes, str):
+            raise ValueError(record.probes)
+        report["machine"] = probe_figures(record.probes, t0, end, over_s)
+    except ValueError as exc:
+        report["machine"] = {"error": str(exc)}
     nodes = [n for n in ("graph", "driver") if n in processes]
     report["nodes_processes"] = nodes
     report["nodes_cpu_percent"] = (
@@ -869,6 +882,17 @@ def format_report(report: dict[str, Any]) -> str:
                      f"{steal['intervals_with_steal']} seconds; {steal['overs_near']} of the "
                      f"{steal['overs']} cycles over 5 ms within {steal['near_s']:g} s of one "
                      f"({100 * steal['near_share']:.1f} % of the window is)")
+    machine = report.get("machine", {"error": "not measured"})
+    if "error" in machine:
+        lines.append(f"machine (bare timer)   {machine['error']}")
+    else:
+        lines.append(f"machine (bare timer)   {len(machine['cpus'])} loops, one per CPU: p99 "
+                     f"{machine['p99_ms']:.3f} ms, max {machine['max_ms']:.3f} ms late, "
+                     f"{machine['over_period']} wake-ups over 5 ms of {machine['wakeups']}")
+        lines.append(f"                       {machine['overs_near']} of the {machine['overs']} "
+                     f"cycles over 5 ms within {machine['near_s']:g} s of a wake-up over "
+                     f"{machine['stall_ms']:g} ms late ({machine['stalls']} such; "
+                     f"{100 * machine['near_share']:.1f} % of the window is)")
     nodes = report["nodes_cpu_percent"]
     lines.append(f"four nodes             "
                  f"{'not measured' if nodes is None else f'{nodes:.1f} % of one core'} "
