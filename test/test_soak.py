@@ -302,6 +302,23 @@ def test_a_stopped_machine_probe_wakes_late_by_the_stop_and_counts_each_deadline
     assert abs(stopped.deadlines_unix_s()[0] - (time.time() - late_ms.size * 0.005)) < 1.0
 
 
+def test_probes_that_cannot_start_say_why_and_leave_none_running(tmp_path):
+    with pytest.raises(RuntimeError, match=r"the machine probe on CPU \d+ did not start: "
+                       r"machine_probe: CPU \d+, priority 100: "):
+        Probes(tmp_path, 100, 0.005, 30.0)  # SCHED_FIFO priorities end at 99
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_machine_probe_that_died_is_named_when_the_probes_stop(tmp_path):
+    probes = Probes(tmp_path, 0, 0.005, 30.0)
+    probes.processes[-1].kill()
+    probes.processes[-1].wait()
+    name = f"probe-cpu{max(os.sched_getaffinity(0))}.npz"
+    with pytest.raises(ValueError, match=f"machine probe {name} exited with status -9"):
+        probes.stop()
+    assert all(p.poll() is not None for p in probes.processes)
+
+
 def test_a_machine_probe_on_a_cpu_that_does_not_exist_says_so(tmp_path):
     done = subprocess.run([sys.executable, "-m", "pisc_bringup.machine_probe", "--cpu",
                            "4096", "--out", str(tmp_path / "p.npz")],

@@ -29,9 +29,9 @@ The table gives each figure, issue 16's target for it and whether it is met, and
 ratio to an anchor of the same run: a lockstep cycle and a latency in rclpy hops, a
 batch rig-period and the kernel against the single-rig kernel's sample, ``solve_ivp``
 against the kernel, a soak's cycles over 5 ms against a bare timer loop's wake-ups
-over 5 ms late in the same run (:mod:`pisc_bringup.machine_probe`). Everything each step printed is in ``DIR/STEP.log`` and the figures
-in ``DIR/bench.json`` (``--out``; default a scratch directory, removed at the end unless
-given). A step that fails is reported with its log's end; the others still run. Exit
+over 5 ms late in the same run (:mod:`pisc_bringup.machine_probe`). Everything each
+step printed is in ``DIR/STEP.log`` and the figures in ``DIR/bench.json`` (``--out``;
+default a scratch directory, removed at the end unless given). A step that fails is reported with its log's end; the others still run. Exit
 status 0 when every step ran (targets met or not), 1 when one failed.
 """
 

@@ -131,7 +131,8 @@ def probe_figures(runs: Sequence[ProbeRun], start_s: float, end_s: float,
 
 class Probes:
     """One probe process per CPU this process may run on, started at once; :meth:`stop`
-    ends them and reads their files (a probe that failed is named with its output)."""
+    ends them and reads their files, or raises ValueError naming a probe that failed
+    with its output."""
 
     def __init__(self, out_dir: Path, priority: int, period_s: float,
                  max_duration_s: float) -> None:
@@ -152,10 +153,18 @@ class Probes:
                     raise RuntimeError(f"the machine probe on CPU {cpu} did not start: "
                                        f"{process.stderr.read().strip()}")
         except BaseException:
-            self.stop()
+            self._end()
             raise
 
     def stop(self) -> list[ProbeRun]:
+        self._end()
+        for path, process in zip(self.files, self.processes):
+            if process.returncode != 0:
+                raise ValueError(f"machine probe {path.name} exited with status "
+                                 f"{process.returncode}: {process.stderr.read().strip()}")
+        return [load(path) for path in self.files]
+
+    def _end(self) -> None:
         for process in self.processes:
             if process.poll() is None:
                 process.send_signal(signal.SIGTERM)
@@ -165,8 +174,6 @@ class Probes:
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()
-        return [load(f) for f, p in zip(self.files, self.processes)
-                if p.returncode == 0 and f.exists()]
 
 
 def main(argv: list[str] | None = None) -> int:
