@@ -330,6 +330,28 @@ def test_a_machine_probe_on_a_cpu_that_does_not_exist_says_so(tmp_path):
         load(tmp_path / "p.npz")
 
 
+def test_a_machine_probe_refuses_an_output_it_could_not_write_before_it_runs(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "pisc_bringup.machine_probe", "--cpu", "0",
+                           "--out", str(tmp_path / "nowhere" / "p.npz")],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stdout == ""  # never said ready
+    assert f"--out {tmp_path / 'nowhere' / 'p.npz'}: {tmp_path / 'nowhere'} is not a " \
+        "directory" in done.stderr
+
+
+def test_a_soak_whose_machine_probe_cannot_start_says_so_without_a_traceback(
+        tmp_path, capsys, monkeypatch):
+    import pisc_bringup.soak as soak_module
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("the machine probe on CPU 0 did not start: refused")
+
+    monkeypatch.setattr(soak_module, "Probes", refuse)
+    assert main(["--duration", "15", "--out", str(tmp_path / "soak")]) == 1
+    err = capsys.readouterr().err
+    assert err == "pisc_soak: the machine probe on CPU 0 did not start: refused\n"
+
+
 def test_read_steal_is_the_eighth_value_of_proc_stats_cpu_line_in_seconds():
     before = int(Path("/proc/stat").read_text().split("\n")[0].split()[8])
     steal = read_steal()

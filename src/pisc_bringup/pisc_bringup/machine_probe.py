@@ -190,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--period {args.period}: must be from 0.0001 to 1 s")
     if not (math.isfinite(args.max_duration) and args.max_duration > 0):
         parser.error(f"--max-duration {args.max_duration}: must be > 0 s")
+    if not args.out.parent.is_dir():  # refused now, not after the whole run
+        parser.error(f"--out {args.out}: {args.out.parent} is not a directory")
     try:
         os.sched_setaffinity(0, {args.cpu})
         if args.priority:

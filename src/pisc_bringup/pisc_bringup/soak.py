@@ -965,6 +965,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("pisc_soak: interrupted", file=sys.stderr)
         return 1
+    except RuntimeError as exc:  # a helper process that did not start: said, not traced
+        print(f"pisc_soak: {exc}", file=sys.stderr)
+        return 1
     finally:
         claim.release()
     if record.graph_status not in (0, 1):
