@@ -322,8 +322,12 @@ def test_a_killed_recorder_is_noticed_within_a_period_and_the_run_stops(
     was recorded (as `pisc_bag repair` does), the summary of that part is printed, and
     the exit status (2) comes with the command that finishes such a bag named."""
     bag = tmp_path / "killed"
-    graph, watch = start_graph_with_watch(["--duration", "40", "--clock", clock], bag,
-                                          env_for_domain, ros_context)
+    # long enough that the kill comes mid-run: lockstep ran 40 s in about 2 s at 16:45 on
+    # 2026-12-05, and the run ended before this process's watch had received 600
+    # voltages (the kill stops the run: the rest is never simulated)
+    duration_s = {"lockstep": 300, "wall": 40}[clock]
+    graph, watch = start_graph_with_watch(["--duration", str(duration_s), "--clock", clock],
+                                          bag, env_for_domain, ros_context)
     try:
         killed_ns, dead_ns = kill_the_recorder(graph, bag, watch, 600)
         out, err = graph.communicate(timeout=120)
@@ -350,7 +354,7 @@ def test_a_killed_recorder_is_noticed_within_a_period_and_the_run_stops(
                for stamp in after_death), (after_death, noticed_ns)
     if clock == "wall":
         assert len(after_death) <= 2, after_death
-    assert (exited_ns - killed_ns) * 1e-9 < 20.0  # not the rest of a 40 s run
+    assert (exited_ns - killed_ns) * 1e-9 < 10.0  # not the rest of the run
     lines = err.splitlines()
     assert any(x.startswith("pisc_graph: pisc_record was killed by SIGKILL at t = ")
                and x.endswith("; stopping the run") for x in lines), err
