@@ -615,6 +615,77 @@ def test_the_reader_looks_for_another_command_publisher_at_every_frame(ros_conte
             os.close(fd)
 
 
+def test_a_command_the_driver_cannot_read_is_refused_with_its_reason_and_writes_nothing(
+        ros_context):
+    """A voltage command goes from its bytes to a value on the subscription's fast path
+    (issue 16) and is checked there as the controllers' inputs are: a command with a NaN
+    voltage or without the motor joint is refused on /diagnostics, at WARN, naming what
+    is wrong, and no byte is written for it; the next good command is written at once."""
+    import struct
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    os.set_blocking(master, False)
+    node = DriverNode(context=ros_context, parameter_overrides=[
+        Parameter("driver.port", value=path)])
+    loop = Node("current_loop", context=ros_context)
+    warnings: list[str] = []
+    loop.create_subscription(
+        message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
+        lambda m: warnings.extend(s.message for s in m.status
+                                  if s.name == "pisc/driver" and s.level == b"\x01"),
+        qos_profile(DIAGNOSTICS.qos))
+    pub = loop.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
+                                qos_profile(VOLTAGE.qos))
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    executor.add_node(loop)
+
+    def written() -> bytes:
+        try:
+            return os.read(master, 4096)
+        except BlockingIOError:
+            return b""
+
+    def command(volts: float, joint: str = "motor") -> None:
+        msg = motor_sample_to_msg(MotorSample(node._core.newest_stamp_ns, volts))
+        msg.name = [joint]
+        pub.publish(msg)
+
+    try:
+        deadline = time.monotonic() + 20.0
+        while node._core.newest_stamp_ns < 0 and time.monotonic() < deadline:
+            os.write(master, struct.pack(">BHHh", 0xAA, 400, 780, 0))
+            executor.spin_once(timeout_sec=0.005)
+        assert node._core.newest_stamp_ns >= 0
+        while node._sub.get_publisher_count() < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        written()
+        command(math.nan)
+        assert spin_until(executor, lambda: any(
+            w == "rejected voltage command: motor: non-finite value in [nan]"
+            for w in warnings), 10.0), warnings
+        command(2.0, joint="cart")
+        assert spin_until(executor, lambda: any(
+            w == "rejected voltage command: motor: expected joints ['motor'], got ['cart']"
+            for w in warnings), 10.0), warnings
+        assert written() == b"" and node._core.commands == 0
+        command(2.0)
+        assert spin_until(executor, lambda: node._core.commands == 1, 10.0)
+        out = written()
+        while not out and time.monotonic() < deadline:
+            time.sleep(0.005)
+            out = written()
+        assert out == bytes([encode_command(2.0)]), out
+    finally:
+        node.destroy_node()
+        loop.destroy_node()
+        for fd in (master, slave):
+            os.close(fd)
+
+
 def test_the_driver_runs_on_the_wall_clock_only(tmp_path):
     completed = subprocess.run(
         # a port that opens: the clock is what is refused, not the port

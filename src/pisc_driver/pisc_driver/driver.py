@@ -41,9 +41,9 @@ from dataclasses import dataclass
 
 from pisc_driver.protocol import (
     FrameParser,
+    FrameToSi,
     ParserParams,
     encode_command,
-    frame_to_si,
     unwrap_count,
 )
 from pisc_msgs_py.config import any_value, in_range, param
@@ -125,6 +125,7 @@ class DriverCore:
         self.max_age_ns = round(params.command_max_age_periods * period_s * 1e9)
         self.silence_ns = round(params.silence_timeout_s * 1e9)
         self.parser = FrameParser(sensors, period_s, params.parser)
+        self._to_si = FrameToSi(sensors)
         self._count: int | None = None  # unwrapped encoder count
         self._stamp_ns: int | None = None  # stamp of the newest sample
         self._read_ns: dict[float, int] = {}  # the latest reads' times: seconds -> ns
@@ -173,7 +174,7 @@ class DriverCore:
         for k, frame in enumerate(frames):
             self._count = (frame.count if self._count is None
                            else unwrap_count(self._count, frame.count))
-            x, theta, current = frame_to_si(self.sensors, frame, self._count)
+            x, theta, current = self._to_si(frame, self._count)
             if frame.arrival_s is not None and frame.arrival_s < now_s:
                 arrival = self._read_ns.get(frame.arrival_s, now_ns)
             else:  # completed by this read: a period before each frame after it

@@ -67,7 +67,8 @@ class DriverNode(PiscNode):
         self._joint_pub = self.publisher(JOINT_STATES)
         self._current_pub = self.publisher(MOTOR_CURRENT)
         self._sent_pub = self.publisher(VOLTAGE_SENT)  # each byte as it is written
-        self._sub = self.subscription(VOLTAGE, self._on_voltage)
+        self._sub = self.subscription(VOLTAGE, self._on_voltage, motor_sample_from_msg,
+                                      "voltage command", WARN)
         # newest stamp out of each stage of the chain, to say which one stopped
         self._upstream = self.newest_stamps(CHAIN)
         self._pin = PublisherPin(self.config.params.command_node)
@@ -159,10 +160,7 @@ class DriverNode(PiscNode):
         self._sent_pub.publish(motor_sample_to_cdr(
             MotorSample(stamp_ns, command_voltage(byte, self._core.actuator)), origin))
 
-    def _on_voltage(self, msg: Any) -> None:
-        command = self.parse(msg, motor_sample_from_msg, "voltage command", WARN)
-        if command is None:
-            return
+    def _on_voltage(self, command: MotorSample) -> None:
         with self._pin_lock:
             self._look_at_publishers()
             admitted = self._pin.admits(command.stamp_ns)

@@ -24,10 +24,11 @@ driver passes each read's arrival time; see docs/driver-protocol.md.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import struct
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from pisc_msgs_py.config import in_range, param, positive
 from pisc_model import sensors
@@ -38,6 +39,7 @@ __all__ = [
     "HEADER",
     "Frame",
     "FrameParser",
+    "FrameToSi",
     "NaiveParser",
     "ParserParams",
     "ProtocolError",
@@ -125,11 +127,15 @@ def encode_command(voltage_v: float, actuator: ActuatorParams = ActuatorParams()
     ``magnitude = round(|u| * 127 / 11.47)`` (half away from zero) saturated at 127,
     bit 7 set for a negative voltage. A voltage that rounds to magnitude 0 is the byte
     0x00 whatever its sign, so "zero voltage" has one byte.
+
+    The arithmetic of ``ActuatorParams.magnitude`` on one float, without numpy (the
+    driver encodes a command a period; test_protocol pins the two equal).
     """
     if not math.isfinite(voltage_v):
         raise ProtocolError(f"voltage command {voltage_v} is not finite")
     _check_actuator(actuator)
-    magnitude = int(actuator.magnitude(voltage_v))
+    magnitude = min(math.floor(abs(voltage_v) / actuator.step_v + 0.5),
+                    actuator.command_levels)
     if magnitude == 0:
         return 0
     return (_NEGATIVE if voltage_v < 0.0 else 0) | magnitude
@@ -169,6 +175,40 @@ def frame_to_si(s: SensorParams, frame: Frame, count: int | None = None
     x, theta, current = sensors.decode(
         s, frame.ir_code, frame.current_code, frame.count if count is None else count)
     return float(x), float(theta), float(current)
+
+
+class FrameToSi:
+    """:func:`frame_to_si` for one set of sensor parameters, by table look-up.
+
+    The ADC codes are 10 bits, so the position and the current of every code are
+    computed once, with :mod:`pisc_model.sensors`' own functions (numpy), when this is
+    made; a frame then costs two list look-ups and one multiply-add for the angle, the
+    same operations :func:`pisc_model.sensors.encoder_angle` does. The results equal
+    :func:`frame_to_si`'s bit for bit (test_protocol, every code). The driver converts
+    a frame every period: numpy's per-call cost on four scalars was the larger part of
+    its own work per frame (issue 16, docs/soak.md). A code beyond the ADC's levels
+    (``sensors.adc_bits`` below 10) goes to :func:`frame_to_si`.
+    """
+
+    def __init__(self, s: SensorParams) -> None:
+        self.sensors = s
+        codes = np.arange(s.adc_levels)
+        with np.errstate(divide="ignore", invalid="ignore"):  # (as frame_to_si gives them)
+            x = sensors.ir_position(s, sensors.adc_voltage(s, codes))
+            current = sensors.current_from_voltage(s, sensors.adc_voltage(s, codes))
+        self._x: list[float] = x.tolist()
+        self._current: list[float] = current.tolist()
+        self._rad_per_count = s.encoder_rad_per_count
+        self._zero_rad = s.encoder_zero_rad
+
+    def __call__(self, frame: Frame, count: int | None = None) -> tuple[float, float, float]:
+        """(x [m], theta [rad], i [A]) of ``frame``; ``count`` as for :func:`frame_to_si`."""
+        n = len(self._x)
+        if not (0 <= frame.ir_code < n and 0 <= frame.current_code < n):
+            return frame_to_si(self.sensors, frame, count)
+        c = frame.count if count is None else count
+        return (self._x[frame.ir_code], float(c) * self._rad_per_count + self._zero_rad,
+                self._current[frame.current_code])
 
 
 @dataclass(frozen=True)
@@ -338,8 +378,10 @@ class FrameParser:
     # -- buffer ------------------------------------------------------------------------
 
     def _take(self, p: int) -> Frame:
-        frame = dataclasses.replace(decode_frame(self._buf[p:p + FRAME_LENGTH], self._base + p),
-                                    arrival_s=self._times[p + FRAME_LENGTH - 1])
+        # (the checks before _take found its header; decode_frame's own checks are theirs)
+        _, ir_code, current_code, count = _FRAME.unpack_from(self._buf, p)
+        frame = Frame(ir_code, current_code, count, self._base + p,
+                      self._times[p + FRAME_LENGTH - 1])
         self._last_count = frame.count
         self._last_time = self._times[p]
         self._last_offset = frame.offset

@@ -5,12 +5,14 @@ from __future__ import annotations
 import math
 import struct
 
+import numpy as np
 import pytest
 
 from pisc_driver.protocol import (
     FRAME_LENGTH,
     Frame,
     FrameParser,
+    FrameToSi,
     NaiveParser,
     ProtocolError,
     command_voltage,
@@ -78,6 +80,41 @@ def test_si_conversion_is_the_cpp_programs():
     assert current == pytest.approx(5.0 * v_cur - 12.555, rel=1e-12)
     # the unwrapped count overrides the frame's 16-bit one
     assert frame_to_si(s, Frame(400, 520, 0), count=4000)[1] == pytest.approx(3 * math.pi)
+
+
+@pytest.mark.parametrize("s", [
+    SensorParams(),
+    # a low reference of 0 V: code 0 reads 0 V, whose position numpy gives as -inf
+    SensorParams(adc_ref_low_v=0.0, adc_span_v=5.0, encoder_counts_per_rev=1000,
+                 encoder_zero_rad=0.3),
+    SensorParams(adc_bits=8),  # codes 256..1023 are beyond the ADC: frame_to_si's arithmetic
+])
+def test_table_conversion_is_frame_to_si_bit_for_bit(s):
+    to_si = FrameToSi(s)
+    counts = [-40000, -32768, -2000, -1, 0, 1, 1999, 32767, 123457]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for code in range(1024):
+            frame = Frame(code, 1023 - code, counts[code % len(counts)])
+            for count in (None, 4000 + code):
+                fast = to_si(frame, count)
+                assert all(type(v) is float for v in fast)
+                np.testing.assert_array_equal(fast, frame_to_si(s, frame, count))
+
+
+def test_command_byte_is_the_actuators_magnitude_bit_for_bit():
+    """encode_command's scalar arithmetic against ActuatorParams.magnitude (numpy) over
+    every step boundary and beyond, for two quantisations."""
+    for actuator in (ActuatorParams(), ActuatorParams(full_scale_v=12.0, command_levels=100)):
+        step = actuator.step_v
+        edges = (np.arange(-actuator.command_levels - 3, actuator.command_levels + 4)
+                 + 0.5) * step
+        volts = np.concatenate([edges, np.nextafter(edges, np.inf),
+                                np.nextafter(edges, -np.inf), np.linspace(-40, 40, 20001),
+                                [0.0, -0.0, 1e300, -1e300, 5e-324]])
+        magnitudes = actuator.magnitude(volts)
+        for v, m in zip(volts.tolist(), magnitudes.tolist()):
+            byte = encode_command(v, actuator)
+            assert byte & 0x7F == m and byte >> 7 == (v < 0.0 and m > 0), v
 
 
 # -- command byte ------------------------------------------------------------------------
