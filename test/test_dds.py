@@ -54,15 +54,15 @@ def _seconds(duration):
 
 
 def test_the_profile_is_the_default_writers_with_a_heartbeat_every_100_ms():
-    """... and requests to send a message again ignored for 10 ms after it was sent
-    (nackSupressionDuration: one armed timer for several messages, fastdds.xml); the
+    """... and requests to send a message again ignored for 100 ms after it was sent
+    (nackSupressionDuration: one armed timer for the messages of 100 ms, fastdds.xml); the
     default participant's event thread and built-in flow controllers' thread at
     SCHED_BATCH."""
     root = ET.parse(FASTDDS_PROFILE).getroot()
     writers = root.findall("f:data_writer", NS)
     assert len(writers) == 1 and writers[0].get("is_default_profile") == "true"
     assert _seconds(writers[0].find("f:times/f:heartbeatPeriod", NS)) == 0.1
-    assert _seconds(writers[0].find("f:times/f:nackSupressionDuration", NS)) == 0.01
+    assert _seconds(writers[0].find("f:times/f:nackSupressionDuration", NS)) == 0.1
     participants = root.findall("f:participant", NS)
     assert len(participants) == 1 and participants[0].get("is_default_profile") == "true"
     for thread in ("timed_events_thread", "builtin_controllers_sender_thread"):
