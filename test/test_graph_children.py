@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 import time
 
 import pytest
@@ -151,3 +152,59 @@ def test_under_sched_fifo_the_recorder_still_runs_at_sched_batch():
     if done.stdout.strip() == "no SCHED_FIFO here":
         pytest.skip("SCHED_FIFO is not allowed here (CAP_SYS_NICE)")
     assert done.stdout.split() == [str(os.SCHED_BATCH), str(os.SCHED_FIFO)]
+
+
+@pytest.mark.parametrize("executor_name", ["events", "single"])
+def test_a_childs_exit_runs_the_check_in_the_executors_thread_and_nothing_wakes_before(
+        executor_name):
+    """The runner sees a child's exit as it happens (issue 16: timers looking every 20 and
+    50 ms woke its main thread 70 times a second): the check runs once the child is gone,
+    in the thread spinning the executor; until then the alarm's thread sleeps (its
+    context switches counted from /proc), and a child gone before the watch started is
+    seen at once."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from rclpy.task import Future
+
+    context = Context()
+    rclpy.init(context=context)
+    node = Node("alarm_probe", context=context)
+    executor = graph.EXECUTORS[executor_name](context=context)
+    executor.add_node(node)
+    early = graph.subprocess.Popen([sys.executable, "-c", "pass"])
+    early.wait()  # reaped: no pidfd for it any more
+    child = graph.subprocess.Popen([sys.executable, "-c", "import time; time.sleep(1.0)"])
+    seen: list[tuple[str, int | None, str]] = []
+    done = Future(executor=executor)
+
+    def on_exit(name: str, proc) -> None:
+        seen.append((name, proc.poll(), threading.current_thread().name))
+        if name == "late" and proc.poll() is not None:
+            done.set_result(None)
+
+    alarms = [graph._ExitAlarm(node, [early], lambda: on_exit("early", early)),
+              graph._ExitAlarm(node, [child], lambda: on_exit("late", child))]
+    try:
+        for alarm in alarms:
+            alarm.start(executor)
+        tid = alarms[1]._thread.native_id
+        switches = _context_switches(tid)
+        executor.spin_until_future_complete(done, 0.5)
+        assert seen == [("early", 0, "MainThread")]  # the early exit, and nothing else yet
+        assert _context_switches(tid) - switches <= 2  # asleep, not polling
+        executor.spin_until_future_complete(done, 10.0)
+        assert seen[1:] == [("late", 0, "MainThread")]
+    finally:
+        for alarm in alarms:
+            alarm.close()
+        child.kill()
+        child.wait()
+        executor.shutdown()
+        node.destroy_node()
+        context.try_shutdown()
+
+
+def _context_switches(tid: int) -> int:
+    with open(f"/proc/self/task/{tid}/status") as f:
+        return sum(int(line.split()[1]) for line in f if "ctxt_switches" in line)

@@ -63,6 +63,7 @@ import gc
 import importlib
 import math
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -508,14 +509,78 @@ class _VoltageTap:
         self._handle.destroy_when_not_in_use()
 
 
-# how often the one-process runner looks at the recorder between voltages (a stall)
-STALL_CHECK_S = 0.05
+# how often a runner without pidfds (:class:`_ExitAlarm`) looks at its children
+EXIT_POLL_S = 0.05
+
+
+class _ExitAlarm:
+    """Runs ``on_exit`` in the executor's thread as soon as one of ``children`` has
+    exited, and nothing while they run: a thread blocks on their pidfds (Linux 5.3) and
+    hands ``on_exit`` to the executor (``create_task``, which an EventsExecutor takes
+    from any thread) once one is readable. The runner had looked with timers, every
+    50 ms at the recorder and every 20 ms at a driver's process: 70 wake-ups a second of
+    its main thread and about 200 of rclpy's timer thread, in the process whose CPU is
+    the controllers' (issue 16, docs/soak.md). ``on_exit`` finds which child it was
+    itself (``Popen.poll``); it may run more than once. Where pidfds are missing it
+    looks every :data:`EXIT_POLL_S` on a timer of ``node`` instead."""
+
+    def __init__(self, node: Node, children: Sequence[subprocess.Popen],
+                 on_exit: Callable[[], None]) -> None:
+        self._on_exit = on_exit
+        self._fds: list[int] = []
+        self._thread: threading.Thread | None = None
+        self._stop_r = self._stop_w = -1
+        self._exited = False  # one was gone (reaped) before its pidfd could be opened
+        try:
+            for child in children:
+                try:
+                    self._fds.append(os.pidfd_open(child.pid))
+                except ProcessLookupError:
+                    self._exited = True
+        except (AttributeError, OSError):  # no pidfd_open: look on a timer
+            self.close()
+            node.create_timer(EXIT_POLL_S, on_exit)
+            return
+        self._stop_r, self._stop_w = os.pipe()
+
+    def start(self, executor: Any) -> None:
+        """Watch from now on (an exit before this is seen at once)."""
+        if self._stop_r < 0:
+            return
+        if self._exited:
+            executor.create_task(self._on_exit)
+        self._thread = threading.Thread(target=self._wait, args=(executor,), daemon=True,
+                                        name="pisc_graph_exit_alarm")
+        self._thread.start()
+
+    def _wait(self, executor: Any) -> None:
+        poller = select.poll()
+        for fd in (*self._fds, self._stop_r):
+            poller.register(fd, select.POLLIN)
+        while True:
+            ready = {fd for fd, _ in poller.poll()}
+            if self._stop_r in ready:
+                return
+            for fd in ready:  # (an exited child's pidfd stays readable: once each)
+                poller.unregister(fd)
+            executor.create_task(self._on_exit)
+
+    def close(self) -> None:
+        """Stop watching (before the executor is shut down) and close the descriptors."""
+        if self._stop_w >= 0:
+            os.write(self._stop_w, b"x")
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        for fd in (*self._fds, self._stop_r, self._stop_w):
+            if fd >= 0:
+                os.close(fd)
+        self._fds, self._stop_r, self._stop_w = [], -1, -1
 
 
 class _RecorderWatch:
-    """Notices that pisc_record died, at the next cycle's voltage or, while no voltage
-    comes, within :data:`STALL_CHECK_S` of wall time (a timer; with separate processes
-    only a timer, at each period, :class:`_VoltageTap`),
+    """Notices that pisc_record died, at once (:class:`_ExitAlarm`; with separate
+    processes at the next period, on the runner's timer, :class:`_VoltageTap`),
     in lockstep and on the wall clock alike, says so at once and ends the spin (the run
     stops; a driver is stopped, which commands 0 V)."""
 
@@ -821,13 +886,14 @@ def run_graph(options: RunOptions) -> RunResult:
     watcher = Node("pisc_graph", context=context)
 
     tap = _VoltageTap(watcher, progress) if options.processes else None
+    alarms: list[_ExitAlarm] = []  # started once the executor is there
     if tap is None:
         # The current loop is in this process: its voltages are followed as it publishes
         # them (_count_publications), not through a subscription of the runner's, which
-        # was one more delivery and callback each cycle. Also when no voltage comes (a
-        # stall); not each period: a timer of its own costs the process 2-4 % of a core
-        # on the wall clock (docs/soak.md)
-        watcher.create_timer(STALL_CHECK_S, watch.check)
+        # was one more delivery and callback each cycle; the recorder's exit is seen as
+        # it happens, not looked for (a timer each period cost the process 2-4 % of a
+        # core on the wall clock, docs/soak.md)
+        alarms.append(_ExitAlarm(watcher, [recorder], watch.check))
     else:
         def on_period() -> None:
             tap.drain()
@@ -853,7 +919,7 @@ def run_graph(options: RunOptions) -> RunResult:
                                           env, subprocess.DEVNULL))
             # a node process that dies ends the run at once; the plant's watchdog has
             # zeroed the motor, and _stop below names the process
-            _DeathWatch(watcher, children, progress)
+            alarms.append(_DeathWatch(watcher, children, progress).alarm)
             _wait(lambda: _recorder_matched(recorder, ready), 30.0,
                   "pisc_record to match every publisher")
             if lockstep:  # the plant's last awaited subscriber: it may start now
@@ -875,7 +941,7 @@ def run_graph(options: RunOptions) -> RunResult:
                 # the driver in a process of its own: a crash of this one (the
                 # controllers') leaves it to zero the motor (docs/safety.md)
                 children = [_spawn(source.command(), env, subprocess.DEVNULL)]
-                _DeathWatch(watcher, children, progress)
+                alarms.append(_DeathWatch(watcher, children, progress).alarm)
             else:
                 nodes.append(source.instantiate(context))
             # nothing is sent before the executor spins: by then the recorder takes it all
@@ -887,7 +953,6 @@ def run_graph(options: RunOptions) -> RunResult:
         if not options.processes:
             def on_voltage(data: bytes) -> None:
                 progress(VOLTAGE.name, data)
-                watch.check()  # each cycle
 
             published = _count_publications(nodes, on_voltage)
         elif lockstep and not driver:
@@ -905,6 +970,8 @@ def run_graph(options: RunOptions) -> RunResult:
         watcher.create_timer(min(1.0, timeout / 4), at_the_limit)
         for node in [*nodes, watcher]:
             executor.add_node(node)
+        for alarm in alarms:
+            alarm.start(executor)
         freeze_startup_objects()
         executor.spin_until_future_complete(progress.future, timeout)
         finished = progress.done.is_set()
@@ -919,6 +986,8 @@ def run_graph(options: RunOptions) -> RunResult:
         # graphs one after another, as the tests do, would otherwise keep every frozen
         # object, nodes left undestroyed in reference cycles with their DDS endpoints)
         gc.unfreeze()
+        for alarm in alarms:  # (the children's exits below are the run's end, not news)
+            alarm.close()
         # the plant first, so the controllers see no sample after their peers stopped
         failures = _stop_all(children)
         leave_realtime()  # before any node or participant is destroyed (base_node)
@@ -1007,7 +1076,15 @@ class _DeathWatch:
         self.named_at: float | None = None  # when a status naming a stage last came
         watcher.create_subscription(message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
                                     self._on_diagnostics, qos_profile(DIAGNOSTICS.qos))
-        watcher.create_timer(0.02, self.check)
+        # after a death, a look every 20 ms for the naming; nothing before it
+        self._timer = watcher.create_timer(0.02, self.check)
+        self._timer.cancel()
+        self.alarm = _ExitAlarm(watcher, children, self._on_exit)
+
+    def _on_exit(self) -> None:
+        self.check()
+        if self.died_at is not None and self._timer.is_canceled():
+            self._timer.reset()
 
     def _on_diagnostics(self, msg: Any) -> None:
         if any(kv.key == "silent" for s in msg.status for kv in s.values):
