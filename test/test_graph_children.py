@@ -208,3 +208,44 @@ def test_a_childs_exit_runs_the_check_in_the_executors_thread_and_nothing_wakes_
 def _context_switches(tid: int) -> int:
     with open(f"/proc/self/task/{tid}/status") as f:
         return sum(int(line.split()[1]) for line in f if "ctxt_switches" in line)
+
+
+def test_without_pidfds_the_alarm_looks_on_a_timer(monkeypatch):
+    """Where ``os.pidfd_open`` fails (a kernel before 5.3), the exit is looked for every
+    EXIT_POLL_S on a timer of the runner's node, and still seen."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from rclpy.task import Future
+
+    def no_pidfd(pid: int) -> int:
+        raise OSError(38, "Function not implemented")
+
+    monkeypatch.setattr(graph.os, "pidfd_open", no_pidfd)
+    context = Context()
+    rclpy.init(context=context)
+    node = Node("alarm_probe", context=context)
+    executor = graph.EXECUTORS["events"](context=context)
+    executor.add_node(node)
+    child = graph.subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.3)"])
+    done = Future(executor=executor)
+    looks = [0]
+
+    def on_exit() -> None:
+        looks[0] += 1
+        if child.poll() is not None and not done.done():
+            done.set_result(None)
+
+    alarm = graph._ExitAlarm(node, [child], on_exit)
+    try:
+        alarm.start(executor)
+        assert alarm._thread is None  # no thread: the timer looks
+        executor.spin_until_future_complete(done, 10.0)
+        assert done.done() and looks[0] >= 0.3 / graph.EXIT_POLL_S - 1
+    finally:
+        alarm.close()
+        child.kill()
+        child.wait()
+        executor.shutdown()
+        node.destroy_node()
+        context.try_shutdown()
