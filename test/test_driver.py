@@ -502,12 +502,7 @@ def test_parameter_change_sends_zero_and_a_vanished_port_is_reported_and_retried
         Parameter("driver.reopen_interval_s", value=0.05),
         Parameter("driver.command_node", value="probe")])  # the probe's commands drive
     probe = Node("probe", context=ros_context)
-    errors: list[str] = []
-    probe.create_subscription(
-        message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
-        lambda m: errors.extend(s.message for s in m.status  # level is a byte in rclpy
-                                if s.name == "pisc/driver" and s.level == b"\x02"),
-        qos_profile(DIAGNOSTICS.qos))
+    errors = _driver_statuses(probe, b"\x02")
     voltage = probe.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
                                      qos_profile(VOLTAGE.qos))
     executor = SingleThreadedExecutor(context=ros_context)
@@ -543,6 +538,36 @@ def test_parameter_change_sends_zero_and_a_vanished_port_is_reported_and_retried
         rig.stop()
 
 
+def _driver_statuses(node: Node, level: bytes) -> list[str]:
+    """The messages of the driver's /diagnostics statuses at ``level`` (a byte in
+    rclpy: b"\\x01" WARN, b"\\x02" ERROR), as ``node``'s subscription receives them."""
+    said: list[str] = []
+    node.create_subscription(
+        message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
+        lambda m: said.extend(s.message for s in m.status
+                              if s.name == "pisc/driver" and s.level == level),
+        qos_profile(DIAGNOSTICS.qos))
+    return said
+
+
+def _raw_pty() -> tuple[int, int, str]:
+    """A pseudo-terminal in raw mode: (master, non-blocking; slave; the slave's path)."""
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    return master, slave, os.ttyname(slave)
+
+
+def _written(master: int) -> bytes:
+    """What the driver wrote to the pseudo-terminal since the last call."""
+    try:
+        return os.read(master, 4096)
+    except BlockingIOError:
+        return b""
+
+
 def test_the_reader_looks_for_another_command_publisher_at_every_frame(ros_context):
     """Who publishes commands is looked at on every command, at every frame by the reader
     and every 0.1 s besides; a timer each period cost the driver's process 200 wake-ups a
@@ -550,12 +575,8 @@ def test_the_reader_looks_for_another_command_publisher_at_every_frame(ros_conte
     that joins while no command comes is found by the frames alone, and 0 V is written
     at once."""
     import struct
-    import tty
 
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    path = os.ttyname(slave)
-    os.set_blocking(master, False)
+    master, slave, path = _raw_pty()
     count = [0]
 
     def frames(n: int = 1) -> None:  # a frame every 5 ms, the count still
@@ -564,21 +585,13 @@ def test_the_reader_looks_for_another_command_publisher_at_every_frame(ros_conte
             time.sleep(0.005)
 
     def written() -> bytes:
-        try:
-            return os.read(master, 4096)
-        except BlockingIOError:
-            return b""
+        return _written(master)
 
     node = DriverNode(context=ros_context, parameter_overrides=[
         Parameter("driver.port", value=path)])
     loop = Node("current_loop", context=ros_context)
     visitor = None
-    errors: list[str] = []
-    loop.create_subscription(
-        message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
-        lambda m: errors.extend(s.message for s in m.status
-                                if s.name == "pisc/driver" and s.level == b"\x02"),
-        qos_profile(DIAGNOSTICS.qos))
+    errors = _driver_statuses(loop, b"\x02")
     listen = SingleThreadedExecutor(context=ros_context)
     listen.add_node(loop)  # (the probe's subscription only: the driver is not spun)
     try:
@@ -622,21 +635,12 @@ def test_a_command_the_driver_cannot_read_is_refused_with_its_reason_and_writes_
     voltage or without the motor joint is refused on /diagnostics, at WARN, naming what
     is wrong, and no byte is written for it; the next good command is written at once."""
     import struct
-    import tty
 
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    path = os.ttyname(slave)
-    os.set_blocking(master, False)
+    master, slave, path = _raw_pty()
     node = DriverNode(context=ros_context, parameter_overrides=[
         Parameter("driver.port", value=path)])
     loop = Node("current_loop", context=ros_context)
-    warnings: list[str] = []
-    loop.create_subscription(
-        message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
-        lambda m: warnings.extend(s.message for s in m.status
-                                  if s.name == "pisc/driver" and s.level == b"\x01"),
-        qos_profile(DIAGNOSTICS.qos))
+    warnings = _driver_statuses(loop, b"\x01")
     pub = loop.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
                                 qos_profile(VOLTAGE.qos))
     executor = SingleThreadedExecutor(context=ros_context)
@@ -644,10 +648,7 @@ def test_a_command_the_driver_cannot_read_is_refused_with_its_reason_and_writes_
     executor.add_node(loop)
 
     def written() -> bytes:
-        try:
-            return os.read(master, 4096)
-        except BlockingIOError:
-            return b""
+        return _written(master)
 
     def command(volts: float, joint: str = "motor") -> None:
         msg = motor_sample_to_msg(MotorSample(node._core.newest_stamp_ns, volts))

@@ -13,6 +13,7 @@ import time
 
 import pytest
 
+from conftest import spin_until
 from pisc_bringup import graph
 
 
@@ -154,31 +155,49 @@ def test_under_sched_fifo_the_recorder_still_runs_at_sched_batch():
     assert done.stdout.split() == [str(os.SCHED_BATCH), str(os.SCHED_FIFO)]
 
 
-@pytest.mark.parametrize("executor_name", ["events", "single"])
+def _until_stdin_closes() -> graph.subprocess.Popen:
+    """A child that runs until the test closes its standard input."""
+    return graph.subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"],
+                                  stdin=graph.subprocess.PIPE)
+
+
+@pytest.fixture
+def spun_node(request):
+    """(a node, an executor of the kind ``request.param`` names spinning it), torn down
+    after the test."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+
+    context = Context()
+    rclpy.init(context=context)
+    node = Node("alarm_probe", context=context)
+    executor = graph.EXECUTORS[getattr(request, "param", "events")](context=context)
+    executor.add_node(node)
+    yield node, executor
+    executor.shutdown()
+    node.destroy_node()
+    context.try_shutdown()
+
+
+@pytest.mark.parametrize("spun_node", ["events", "single"], indirect=True)
 def test_a_childs_exit_runs_the_check_in_the_executors_thread_and_nothing_wakes_before(
-        executor_name):
+        spun_node):
     """The runner sees a child's exit as it happens (issue 16: timers looking every 20 and
     50 ms woke its main thread 70 times a second): the check runs once the child is gone,
     in the thread spinning the executor; until then the alarm's thread sleeps (its
     context switches counted from /proc), and a child gone before the watch started is
     seen at once."""
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.node import Node
     from rclpy.task import Future
 
-    context = Context()
-    rclpy.init(context=context)
-    node = Node("alarm_probe", context=context)
-    executor = graph.EXECUTORS[executor_name](context=context)
-    executor.add_node(node)
+    node, executor = spun_node
     early = graph.subprocess.Popen([sys.executable, "-c", "pass"])
     early.wait()  # reaped: no pidfd for it any more
-    child = graph.subprocess.Popen([sys.executable, "-c", "import time; time.sleep(1.0)"])
+    child = _until_stdin_closes()
     seen: list[tuple[str, int | None, str]] = []
     done = Future(executor=executor)
 
-    def on_exit(name: str, proc) -> None:
+    def on_exit(name: str, proc: graph.subprocess.Popen) -> None:
         seen.append((name, proc.poll(), threading.current_thread().name))
         if name == "late" and proc.poll() is not None:
             done.set_result(None)
@@ -190,19 +209,18 @@ def test_a_childs_exit_runs_the_check_in_the_executors_thread_and_nothing_wakes_
             alarm.start(executor)
         tid = alarms[1]._thread.native_id
         switches = _context_switches(tid)
-        executor.spin_until_future_complete(done, 0.5)
+        assert spin_until(executor, lambda: seen, 30.0)
+        executor.spin_until_future_complete(done, 0.3)  # (the child runs on)
         assert seen == [("early", 0, "MainThread")]  # the early exit, and nothing else yet
         assert _context_switches(tid) - switches <= 2  # asleep, not polling
-        executor.spin_until_future_complete(done, 10.0)
+        child.stdin.close()
+        executor.spin_until_future_complete(done, 30.0)
         assert seen[1:] == [("late", 0, "MainThread")]
     finally:
         for alarm in alarms:
             alarm.close()
         child.kill()
         child.wait()
-        executor.shutdown()
-        node.destroy_node()
-        context.try_shutdown()
 
 
 def _context_switches(tid: int) -> int:
@@ -210,26 +228,19 @@ def _context_switches(tid: int) -> int:
         return sum(int(line.split()[1]) for line in f if "ctxt_switches" in line)
 
 
-def test_without_pidfds_the_alarm_looks_on_a_timer(monkeypatch):
+def test_without_pidfds_the_alarm_looks_on_a_timer(monkeypatch, spun_node):
     """Where ``os.pidfd_open`` fails (a kernel before 5.3), the exit is looked for every
     EXIT_POLL_S on a timer of the runner's node, and still seen."""
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.node import Node
     from rclpy.task import Future
 
     def no_pidfd(pid: int) -> int:
         raise OSError(38, "Function not implemented")
 
     monkeypatch.setattr(graph.os, "pidfd_open", no_pidfd)
-    context = Context()
-    rclpy.init(context=context)
-    node = Node("alarm_probe", context=context)
-    executor = graph.EXECUTORS["events"](context=context)
-    executor.add_node(node)
-    child = graph.subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.3)"])
-    done = Future(executor=executor)
+    node, executor = spun_node
+    child = _until_stdin_closes()
     looks = [0]
+    done = Future(executor=executor)
 
     def on_exit() -> None:
         looks[0] += 1
@@ -240,12 +251,12 @@ def test_without_pidfds_the_alarm_looks_on_a_timer(monkeypatch):
     try:
         alarm.start(executor)
         assert alarm._thread is None  # no thread: the timer looks
-        executor.spin_until_future_complete(done, 10.0)
-        assert done.done() and looks[0] >= 0.3 / graph.EXIT_POLL_S - 1
+        assert spin_until(executor, lambda: looks[0] >= 3, 30.0)  # looks while it runs
+        assert not done.done()
+        child.stdin.close()
+        executor.spin_until_future_complete(done, 30.0)
+        assert done.done()
     finally:
         alarm.close()
         child.kill()
         child.wait()
-        executor.shutdown()
-        node.destroy_node()
-        context.try_shutdown()
