@@ -61,20 +61,49 @@ def sensor_constants(sensors) -> tuple[np.ndarray, np.ndarray]:
     return m, np.ascontiguousarray(table, dtype=float)
 
 
-@numba.njit(cache=True, error_model="numpy")
+#: rigs a thread measures at a time (fewer rigs are measured in the caller's thread)
+CHUNK = 1024
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def _measure_many(y, applied, kind, armature, ii, vir, vcur, ker, resistance, force_per_amp,
+                  noisy, std, noise, noise_at, m, ir_table, out, true_current):
+    rigs = y.shape[0]
+    for c in numba.prange((rigs + CHUNK - 1) // CHUNK):
+        _measure_rows(y, applied, kind, armature, ii, vir, vcur, ker, resistance,
+                      force_per_amp, noisy, std, noise, noise_at, m, ir_table, out,
+                      true_current, c * CHUNK, min(rigs, (c + 1) * CHUNK))
+
+
 def measure(y, applied, kind, armature, ii, vir, vcur, ker, resistance, force_per_amp,
-            noisy, std, draws, m, ir_table, out, true_current):
+            noisy, std, noise, noise_at, m, ir_table, out, true_current):
     """Every rig's measurement of its state ``y`` (rigs, size) into ``out`` (rigs, 3):
     x [m], theta [rad], i [A]; the true armature current into ``true_current``.
 
     ``applied``: the input held at the sample, through the actuator (it sets the current
     of a quasi-static armature, (2.81) with L di/dt = 0, and of an ideal force source,
     (4.2)); ``ker``, ``resistance``, ``force_per_amp``: each rig's k_e / r, R and
-    k_m / r. ``noisy[r]``: rig r draws noise, ``draws[r]`` its three standard normal
-    values, scaled by ``std[r]``. A state that is not finite reads NaN.
+    k_m / r. ``noisy[r]``: rig r draws noise, its three standard normal values
+    ``noise[r, noise_at[r]]`` (a block of its stream; ``noise_at[r]`` then moves on),
+    scaled by ``std[r]``. A state that is not finite reads NaN.
     """
+    args = (y, applied, kind, armature, ii, vir, vcur, ker, resistance, force_per_amp, noisy,
+            std, noise, noise_at, m, ir_table, out, true_current)
+    if y.shape[0] > CHUNK:
+        _measure_many(*args)
+    else:
+        _measure_rows(*args, 0, y.shape[0])
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _measure_rows(y, applied, kind, armature, ii, vir, vcur, ker, resistance, force_per_amp,
+                  noisy, std, noise, noise_at, m, ir_table, out, true_current, lo, hi):
+    """:func:`measure` of rigs lo..hi."""
     lsb, low, top = m[M_LSB], m[M_LOW], m[M_TOP]
-    for r in range(y.shape[0]):
+    for r in range(lo, hi):
+        draws = noise[r, noise_at[r]]
+        if noisy[r]:
+            noise_at[r] += 1
         if armature == ARM_FULL:
             current = y[r, ii]
         elif armature == ARM_FORCE:
@@ -86,18 +115,18 @@ def measure(y, applied, kind, armature, ii, vir, vcur, ker, resistance, force_pe
         if kind == SENSORS_IDEAL:  # Plant._noisy
             x = y[r, 0]
             if noisy[r]:
-                x = x + std[r, 0] * draws[r, 0]
-                theta = theta + std[r, 1] * draws[r, 1]
-                current = current + std[r, 2] * draws[r, 2]
+                x = x + std[r, 0] * draws[0]
+                theta = theta + std[r, 1] * draws[1]
+                current = current + std[r, 2] * draws[2]
             out[r, 0], out[r, 1], out[r, 2] = x, theta, current
             continue
         v_ir = y[r, vir]
         v_cur = y[r, vcur]
         if noisy[r]:  # Plant.measurement_one: the noise at the ADC's input
-            theta = theta + std[r, 1] * draws[r, 1]
+            theta = theta + std[r, 1] * draws[1]
             distance = max(m[M_IR_ORIGIN] - y[r, 0], 1e-3)
-            v_ir = v_ir + v_ir / (m[M_IR_EXPONENT] * distance) * std[r, 0] * draws[r, 0]
-            v_cur = v_cur + std[r, 2] * draws[r, 2] / m[M_CURRENT_SCALE]
+            v_ir = v_ir + v_ir / (m[M_IR_EXPONENT] * distance) * std[r, 0] * draws[0]
+            v_cur = v_cur + std[r, 2] * draws[2] / m[M_CURRENT_SCALE]
         turns = (theta - m[M_ENCODER_ZERO]) / m[M_RAD_PER_COUNT] + 0.5
         if not (math.isfinite(v_ir) and math.isfinite(v_cur) and abs(turns) < 2.0 ** 62):
             out[r, 0] = out[r, 1] = out[r, 2] = np.nan

@@ -62,6 +62,11 @@ class PiscEnv(gym.Env):
         self._rigs = Rigs(self.task, 1)
         self._started = False
 
+    @property
+    def rigs(self) -> Rigs:
+        """The rig (its state, constants and latest sample)."""
+        return self._rigs
+
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)

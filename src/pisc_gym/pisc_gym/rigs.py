@@ -18,7 +18,7 @@ differ step in separate calls), so a rig here gives the pure closed loop's bits.
 
 Measurement noise: each rig has its own generator, seeded by its draw
 (:attr:`pisc_gym.task.RigDraw.noise_seed`), three standard normal values a sample as
-:class:`~pisc_plant.sampled.SampledPlant` draws them, taken in blocks of
+:class:`~pisc_plant.sampled.SampledPlant` draws them, taken in blocks of up to
 :data:`NOISE_BLOCK` samples (the same stream).
 """
 
@@ -38,7 +38,8 @@ from pisc_plant.plant import Plant, pack_constants, plant_set
 
 __all__ = ["NOISE_BLOCK", "Rigs"]
 
-NOISE_BLOCK = 64
+#: samples of noise drawn at once per rig (fewer for many rigs: at most ~32 MB in all)
+NOISE_BLOCK = 256
 
 
 class Rigs:
@@ -67,8 +68,11 @@ class Rigs:
         filters = base.models.sensor_filters
         self._w = (p0[layout.P_WIR] if filters else 0.0, p0[layout.P_WCUR] if filters else 0.0,
                    p0[layout.P_WCUR] / p0[layout.P_CURSCALE])
-        # operator tables by (part, substeps): the steps and rates they were made for
-        self._tables: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # operator tables by (part, substeps); the durations' groups of the two parts of a
+        # period (None: to be made); the blocks whose rigs were reset since the last step
+        self._tables: dict[tuple[int, int], np.ndarray] = {}
+        self._parts: tuple[dict[int, np.ndarray], dict[int, np.ndarray]] | None = None
+        self._stale: set[int] = set()
         self.latency_s = np.full(n, base.actuator.command_delay_s)
         self.y = np.ascontiguousarray(self.plant.initial_state(np.zeros(n)))
         self.applied = np.zeros(n)  # the input held, through the actuator
@@ -82,7 +86,8 @@ class Rigs:
         self.noise_std = np.zeros((n, 3))
         self.noisy = np.zeros(n, dtype=np.bool_)
         self._generators: list[np.random.Generator | None] = [None] * n
-        self._noise = np.zeros((n, NOISE_BLOCK, 3))
+        self._block = int(min(NOISE_BLOCK, max(16, 1_400_000 // n)))
+        self._noise = np.zeros((n, self._block, 3))
         self._noise_at = np.zeros(n, dtype=np.int64)
         self.measured = np.zeros((n, 3))  # x, theta, i of the last sample
         self.true_current = np.zeros(n)
@@ -126,7 +131,11 @@ class Rigs:
             rates = np.zeros(m)
             kernel.armature_rates(np.ascontiguousarray(columns), rates)
             self._rates[idx] = rates
-        self.latency_s[idx] = [d.latency_s for d in draws]
+        latency = np.array([d.latency_s for d in draws], dtype=float)
+        if not np.array_equal(latency, self.latency_s[idx]):
+            self.latency_s[idx] = latency
+            self._parts = None
+        self._stale.update((idx // kernel.BLOCK).tolist())
         std = np.array([d.noise_std for d in draws], dtype=float).reshape(m, 3)
         self.noise_std[idx] = std
         self.noisy[idx] = (std > 0.0).any(axis=1)
@@ -171,53 +180,56 @@ class Rigs:
 
     def advance(self, applied: np.ndarray) -> None:
         """One period: the held input until each rig's latency, then ``applied``."""
-        period = self.period_s
-        late = self.latency_s >= period  # the command missed this period
-        first = np.where(late, period, self.latency_s)
-        rest = np.where(late, 0.0, period - self.latency_s)
-        self._advance(0, first, np.ascontiguousarray(self.applied))
-        self._advance(1, rest, np.ascontiguousarray(applied, dtype=float))
+        if self._parts is None:
+            period = self.period_s
+            late = self.latency_s >= period  # the command misses the period
+            self._parts = (self._groups(np.where(late, period, self.latency_s)),
+                           self._groups(np.where(late, 0.0, period - self.latency_s)))
+        stale, self._stale = self._stale, set()
+        for part, inputs in enumerate((self.applied, applied)):
+            groups = self._parts[part]
+            for key in [k for k in self._tables if k[0] == part and k[1] not in groups]:
+                del self._tables[key]
+            for count, steps in groups.items():
+                tables = self._operator_tables(part, count, steps, stale)
+                inputs = np.ascontiguousarray(inputs, dtype=float)
+                if self.n <= kernel.CHUNK:
+                    self._kernels.advance_set(self.y, inputs, 0, self.n, self._lanes,
+                                              self._stops, self._method, count, steps, tables)
+                else:
+                    self._kernels.advance_set_many(self.y, inputs, self._lanes, self._stops,
+                                                   self._method, count, steps, tables)
         self.applied = np.array(applied, dtype=float)
         self.steps += 1
 
-    def _advance(self, part: int, durations: np.ndarray, inputs: np.ndarray) -> None:
-        if not durations.any():
-            return
-        # each rig's substeps as a plant of its own takes them (Plant.advance)
+    def _groups(self, durations: np.ndarray) -> dict[int, np.ndarray]:
+        """Substeps -> each rig's step (0 for the rigs that take another number): the
+        substeps a plant of its own takes for each rig's duration (Plant.advance)."""
         substeps = np.maximum(1, np.ceil(durations / self._nominal - 1e-9)).astype(np.int64)
+        groups = {}
         for count in np.unique(substeps).tolist():
             steps = np.where(substeps == count, durations / count, 0.0)
-            if not steps.any():
-                continue
-            tables = self._operator_tables(part, count, steps)
-            if self.n <= kernel.CHUNK:
-                self._kernels.advance_set(self.y, inputs, 0, self.n, self._lanes, self._stops,
-                                          self._method, count, steps, tables)
-            else:
-                self._kernels.advance_set_many(self.y, inputs, self._lanes, self._stops,
-                                               self._method, count, steps, tables)
-        counts = set(substeps.tolist())
-        for key in [k for k in self._tables if k[0] == part and k[1] not in counts]:
-            del self._tables[key]
+            if steps.any():
+                groups[count] = steps
+        return groups
 
-    def _operator_tables(self, part: int, count: int, steps: np.ndarray) -> np.ndarray:
+    def _operator_tables(self, part: int, count: int, steps: np.ndarray,
+                         stale: set[int]) -> np.ndarray:
         """The exponential scheme's operators of every rig for its step, in the kernel's
-        blocks (:meth:`pisc_plant.plant.Plant.rig_coefficients`), made again only for the
-        blocks whose steps or armature rates changed."""
+        blocks (:meth:`pisc_plant.plant.Plant.rig_coefficients`), made again only for
+        the blocks ``stale`` (whose rigs were reset since the last step)."""
         blocks = self._lanes.shape[0]
         if self._method != layout.EXPRK4:
             return np.empty((blocks, 0))
         key = (part, count)
-        kept = self._tables.get(key)
-        if kept is None:
-            tables = np.empty((blocks, kernel.N_TABLE * kernel.BLOCK))
+        tables = self._tables.get(key)
+        if tables is None:
+            tables = self._tables[key] = np.empty((blocks, kernel.N_TABLE * kernel.BLOCK))
             changed = np.arange(blocks)
+        elif stale:
+            changed = np.array(sorted(stale))
         else:
-            old_steps, old_rates, tables = kept
-            differ = (old_steps != steps) | (old_rates != self._rates)
-            if not differ.any():
-                return tables
-            changed = np.unique(np.flatnonzero(differ) // kernel.BLOCK)
+            return tables
         lanes = (changed[:, None] * kernel.BLOCK + np.arange(kernel.BLOCK)).ravel()
         inside = lanes < self.n
         rates = np.zeros(len(lanes))
@@ -227,7 +239,6 @@ class Rigs:
         part_tables = np.empty((len(changed), kernel.N_TABLE * kernel.BLOCK))
         kernel.exp_tables(*self._w, rates, rig_steps, part_tables)
         tables[changed] = part_tables
-        self._tables[key] = (steps.copy(), self._rates.copy(), tables)
         return tables
 
     # -- sampling ------------------------------------------------------------------------
@@ -235,16 +246,14 @@ class Rigs:
     def observe(self) -> None:
         """Every rig's sample: :attr:`measured`, :attr:`true_current` and (with the
         task's ``velocities``) the estimator's :attr:`velocity`."""
-        n = self.n
-        draws = self._noise[np.arange(n), self._noise_at]
         compiled.measure(self.y, self.applied, self._sensors, self._armature,
                          self.plant.layout.current_index, self.plant.layout.ir_index,
                          self.plant.layout.current_sensor_index,
                          self.constants[layout.P_KER], self.constants[layout.P_R],
-                         self.constants[layout.P_KF], self.noisy, self.noise_std, draws,
-                         self._sensor_m, self._ir_table, self.measured, self.true_current)
-        self._noise_at += self.noisy
-        for k in np.flatnonzero(self._noise_at >= NOISE_BLOCK).tolist():
+                         self.constants[layout.P_KF], self.noisy, self.noise_std, self._noise,
+                         self._noise_at, self._sensor_m, self._ir_table, self.measured,
+                         self.true_current)
+        for k in np.flatnonzero(self._noise_at >= self._block).tolist():
             self._generators[k].standard_normal(out=self._noise[k])  # type: ignore[union-attr]
             self._noise_at[k] = 0
         if self.task.velocities:
