@@ -29,7 +29,8 @@ KEYS = {
     "distributed": "python3-distributed", "tqdm": "python3-tqdm", "PIL": "python3-pil",
     "imageio_ffmpeg": "python3-imageio-ffmpeg", "llvmlite": "python3-llvmlite",
     "sqlalchemy": "python3-sqlalchemy", "gymnasium": "python3-gymnasium",
-    "cmaes": "python3-cmaes", "foxglove": "python3-foxglove-sdk",
+    "cmaes": "python3-cmaes", "foxglove": "python3-foxglove-sdk", "websockets": "python3-websockets",
+    "google": "python3-protobuf",
 }
 
 #: Dependencies the architecture forbids: (package, package it must not use, why).

@@ -277,13 +277,14 @@ class Rigs:
         """(reward, terminated, truncated) of the last step (:mod:`pisc_gym.task`)."""
         task = self.task
         x = self.y[:, 0]
+        off = x - task.middle_m
         theta = self.y[:, 2]
         if task.plant.models.force_input:
             share = self.setpoint / task.current_limit_a
         else:
             share = self.voltage / task.voltage_limit_v
         with np.errstate(invalid="ignore", over="ignore"):
-            reward = (0.5 * (1.0 + np.cos(theta)) - task.x_weight * x * x
+            reward = (0.5 * (1.0 + np.cos(theta)) - task.x_weight * off * off
                       - task.voltage_weight * share * share)
             low, high = task.safe_range
             terminated = ~((x >= low) & (x <= high)) | ~np.isfinite(self.y).all(axis=1)

@@ -17,17 +17,20 @@ Tasks:
     Start where the distribution's ``initial.*`` put it (hanging, by default at rest);
     the episode lasts ``episode_s`` (default 10 s).
 ``catch``
-    Start at rest at the configuration's initial x, the pendulum within
+    Start at rest in the middle of the safe range, the pendulum within
     ``start_angle_rad`` (default 0.3 rad) of upright, uniformly; the episode lasts
     ``episode_s`` (default 3 s) and also ends when the pendulum falls past
     ``fall_rad`` (default pi / 2) from upright.
 
 Reward (every step, of the true state after it and the voltage commanded for it)::
 
-    r = (1 + cos theta) / 2 - w_x x^2 - w_u (u / u_max)^2
+    r = (1 + cos theta) / 2 - w_x (x - x_mid)^2 - w_u (u / u_max)^2
 
-with theta from upright (SPEC section 1), x in metres, u the armature voltage and
-u_max the actuator's full scale; ``w_x`` = 10 1/m^2 and ``w_u`` = 0.01 by default. An
+with theta from upright (SPEC section 1), x in metres, x_mid the middle of the
+supervisor's safe range (-0.05 m on the thesis rig, whose track is uneven about the IR
+sensor's zero), u the armature voltage and u_max the actuator's full scale (with an
+ideal force source, i_d / i_max instead); ``w_x`` = 10 1/m^2 and ``w_u`` = 0.01 by
+default. An
 episode terminates when the true cart position leaves the supervisor's safe range
 (``safety.x_min_m`` .. ``safety.x_max_m``) or the state is no longer finite.
 """
@@ -104,6 +107,12 @@ class Task:
         return s.x_min_m, s.x_max_m
 
     @property
+    def middle_m(self) -> float:
+        """The middle of the safe range."""
+        low, high = self.safe_range
+        return 0.5 * (low + high)
+
+    @property
     def voltage_limit_v(self) -> float:
         return self.plant.actuator.full_scale_v
 
@@ -125,7 +134,7 @@ class Task:
         nominal = (i0.x_m, i0.x_dot_mps, i0.theta_rad, i0.theta_dot_radps)
         if self.task == "catch":
             angle = float(rng.uniform(-self.start_angle_rad, self.start_angle_rad))
-            start = (nominal[0], 0.0, angle, 0.0)
+            start = (self.middle_m, 0.0, angle, 0.0)
         else:
             start = tuple(values.get(name, v) for name, v in zip(INITIAL, nominal))
         noise = self.plant.noise
