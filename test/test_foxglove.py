@@ -164,3 +164,20 @@ def test_the_bridge_alone_refuses_a_port_in_use(tmp_path):
                                str(port), "--params", str(params)], capture_output=True,
                               text=True, timeout=60)
     assert done.returncode == 2 and f"port {port}" in done.stderr
+
+
+def test_bag_play_serves_the_bag_and_refuses_a_port_in_use(tmp_path, env_for_domain):
+    bag = Path(__file__).resolve().parents[1] / "bags" / "default-swingup"
+    port = free_port()
+    command = [*console_command("pisc_bag", "pisc_bringup.bag_cli"), "play", str(bag),
+               "--rate", "0", "--wait-subscribers", "0", "--topic", "/pisc/joint_states"]
+    done = subprocess.run([*command, "--foxglove", str(port)], env=env_for_domain,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert f"serving ws://127.0.0.1:{port}" in done.stdout
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", port))
+        taken.listen()
+        done = subprocess.run([*command, "--foxglove", str(port)], env=env_for_domain,
+                              capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and f"port {port} on 127.0.0.1 is in use" in done.stderr
