@@ -12,8 +12,9 @@ loop, the observation the sensors' x, theta, i and the estimator's differences.
 The policy is linear in what it observes, ``i_d = g . (x - x_mid, x_dot, theta_wrapped,
 theta_dot)`` (x_mid the middle of the safe range, theta wrapped to the nearest upright,
 :func:`pisc_model.dynamics.wrap_to_upright`): four numbers, learnt from zero (on the
-features over :data:`SCALE`). Each generation of CMA-ES (the ``cmaes`` package, Hansen's CMA-ES with its default step-size adaptation) asks for
-``--population`` candidates; every candidate runs ``--starts`` episodes, all of them in
+features over :data:`SCALE`). Each generation of CMA-ES (the ``cmaes`` package,
+Hansen's CMA-ES with its default step-size adaptation) asks for ``--population``
+candidates; every candidate runs ``--starts`` episodes, all of them in
 one vector environment (each rig its candidate's gains), and is scored by its mean
 return (:mod:`pisc_gym.task`'s reward). The generation's mean is the policy.
 
