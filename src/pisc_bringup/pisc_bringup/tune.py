@@ -217,12 +217,22 @@ class Tuning:
     seed: int
     sampler: str = "tpe"
     criteria: Criteria = Criteria()
+    #: the caught draws' median set-point RMS in the hold window must stay below this
+    #: (a hold that chatters); 0: no limit
+    hold_rms_a: float = 0.0
+    #: starts at rest from hanging, evenly over x0 in [-0.1, 0.1] m, on the configuration's
+    #: own plant, that must all be fast (caught and held by the fast tier's rule); 0: none
+    nominal_starts: int = 0
 
     def __post_init__(self) -> None:
         if self.sampler not in SAMPLERS:
             raise ConfigError(f"sampler {self.sampler!r}: one of {', '.join(SAMPLERS)}")
         if self.draws < 1:
             raise ConfigError(f"draws = {self.draws}: at least one draw")
+        if not (math.isfinite(self.hold_rms_a) and self.hold_rms_a >= 0.0):
+            raise ConfigError(f"hold RMS limit {self.hold_rms_a} A: 0 (none) or positive")
+        if self.nominal_starts < 0:
+            raise ConfigError(f"nominal starts {self.nominal_starts}: 0 (none) or more")
 
     def key(self) -> dict[str, Any]:
         from pisc_sim.configuration import config_path
@@ -239,6 +249,8 @@ class Tuning:
             "space": self.space.name,
             "space_digest": self.space.digest,
             "criteria": yaml.safe_dump(asdict(self.criteria), sort_keys=True).strip(),
+            "hold_rms_a": self.hold_rms_a,
+            "nominal_starts": self.nominal_starts,
             "sampler": self.sampler,
         }
 
@@ -334,9 +346,23 @@ def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None
             Supervisor(config.supervisor)  # the gain condition and the catch design
         except ConfigError as exc:
             return 0.0, dict.fromkeys(TIERS, 0.0), str(exc)
+        nominal = nominal_fast(config, tuning.criteria, tuning.nominal_starts)
         config, _ = prepare(config, tuning.distribution)
         outcomes = evaluate(config, plant, draws, tuning.criteria, tuning.seed, map_chunks)
-        return outcomes.score(), outcomes.rates(), ""
+        rms = outcomes.hold_setpoint_rms_a[outcomes.caught]
+        median = float(np.median(rms)) if rms.size else math.inf
+        rates = outcomes.rates()
+        rates["hold_rms_a"] = median if math.isfinite(median) else -1.0
+        # the constraints cost catches: a hold that chatters the limit's worth over it, or a
+        # nominal rig caught late from every start, as much as all the draws' catches
+        penalty = 0.0
+        if tuning.hold_rms_a > 0.0:
+            penalty += 2.0 * len(outcomes) * min(
+                max(median - tuning.hold_rms_a, 0.0) / tuning.hold_rms_a, 1.0)
+        if nominal is not None:
+            rates["nominal_fast"] = nominal
+            penalty += 2.0 * len(outcomes) * (1.0 - nominal)
+        return outcomes.score(penalty), rates, ""
 
     def objective(trial: Any) -> float:
         values = {d.name: trial.suggest_float(d.name, d.low, d.high, log=d.log)
@@ -388,6 +414,24 @@ def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None
                       len(done), sum(1 for t in done if "refused" in t.user_attrs))
 
 
+def nominal_fast(config: Any, criteria: Criteria, starts: int) -> float | None:
+    """The fraction of ``starts`` starts at rest from the configuration's initial angle,
+    x0 evenly in [-0.1, 0.1] m, on its own plant, that the fast tier passes (None for no
+    starts)."""
+    if starts == 0:
+        return None
+    from pisc_sim.closed_loop import simulate_batch
+
+    x0 = np.linspace(-0.1, 0.1, starts) if starts > 1 else np.zeros(1)
+    hold = criteria.fast_hold_from_s
+    out = simulate_batch(config, x0, criteria.run_s, hold, hold_box=(criteria.theta_rad,
+                                                                    criteria.x_m))
+    safety = config.supervisor.safety
+    safe = ~out.faulted & (out.x_min_m >= safety.x_min_m) & (out.x_max_m <= safety.x_max_m)
+    fast = safe & (out.caught_at_s <= criteria.fast_by_s) & (out.unheld_at_s < hold)
+    return float(np.mean(fast))
+
+
 def provenance(result: TuneResult, tuning: Tuning, command: str, date: str,
                storage: str) -> list[str]:
     """The lines that say where a tuned file comes from."""
@@ -403,6 +447,9 @@ def provenance(result: TuneResult, tuning: Tuning, command: str, date: str,
         + ", ".join(d.name for d in tuning.space.dimensions),
         f"draws {tuning.draws}, seed {tuning.seed}, sampler {tuning.sampler}, trials "
         f"{result.trials} ({result.refused} refused by the configuration), study in {storage}",
+        f"constraints: hold's median set-point RMS below "
+        f"{tuning.hold_rms_a:g} A, {tuning.nominal_starts} nominal starts fast"
+        if tuning.hold_rms_a or tuning.nominal_starts else "constraints: none",
         f"tiers on the same draws: start {_rates(result.start_rates)}; best "
         f"{_rates(result.best_rates)} (trial {result.best_trial})",
         "best: " + ", ".join(f"{k} = {v:.6g}" for k, v in result.best_values.items()),
@@ -422,7 +469,12 @@ def tuned_file_text(result: TuneResult, tuning: Tuning, command: str, date: str,
 
 
 def _rates(rates: Mapping[str, float]) -> str:
-    return ", ".join(f"{tier} {100 * rates[tier]:.2f} %" for tier in TIERS)
+    text = ", ".join(f"{tier} {100 * rates[tier]:.2f} %" for tier in TIERS)
+    if rates.get("hold_rms_a", -1.0) >= 0.0:
+        text += f", hold's median set-point RMS {rates['hold_rms_a']:.4f} A"
+    if "nominal_fast" in rates:
+        text += f", nominal starts fast {100 * rates['nominal_fast']:.1f} %"
+    return text
 
 
 def _plain(value: Any) -> Any:

@@ -34,12 +34,13 @@ supervisor node or many in a batch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_control.adaptation import AdaptationParams
+from pisc_control.estimator import EstimatorParams
 from pisc_control.catch import CatchParams, catch_force, catch_gain, governor_rows
 from pisc_control.excitation import ExperimentParams, experiment_force
 from pisc_control.swing_up import (
@@ -50,7 +51,7 @@ from pisc_control.swing_up import (
     swing_up_force,
 )
 from pisc_model.dynamics import wrap_to_upright
-from pisc_model.params import LoopParams, MotorParams, RigParams
+from pisc_model.params import LoopParams, MotorParams, RigParams, SensorParams
 from pisc_msgs_py.config import ConfigError, nonnegative, param, positive
 from pisc_msgs_py.types import Mode
 
@@ -127,6 +128,9 @@ class SupervisorConfig:
     experiment: ExperimentParams = field(default_factory=ExperimentParams)
     motor: MotorParams = field(default_factory=MotorParams)
     adaptation: AdaptationParams = field(default_factory=AdaptationParams)
+    # what lies between the rig and the supervisor, for the governor's prediction
+    estimator: EstimatorParams = field(default_factory=EstimatorParams)
+    sensors: SensorParams = field(default_factory=SensorParams)
 
 
 @dataclass(frozen=True)
@@ -164,6 +168,11 @@ class Supervisor:
         self.config = config
         self.gain = catch_gain(config.rig, config.catch)
         c = config.catch
+        #: the gain that balances once the catch has held (catch.hold_poles)
+        self.hold_gain = (catch_gain(config.rig, replace(c, poles=tuple(c.hold_poles),
+                                                          poles_imag=(0.0,) * 4,
+                                                          recorded_gain=()))
+                          if c.hold_poles else self.gain)
         margin = 2.0 * c.governor_margin_m
         if c.governor and not margin < config.safety.x_max_m - config.safety.x_min_m:
             raise ConfigError(
@@ -171,14 +180,16 @@ class Supervisor:
                 f"range [{config.safety.x_min_m}, {config.safety.x_max_m}] m")
         #: the governor's prediction (:func:`pisc_control.catch.governor_rows`); none
         #: without the governor
-        self.governor_rows = (governor_rows(config.rig, self.gain, config.loop.period_s,
-                                            c.governor_horizon_s, config.motor.force_per_amp)
-                              if c.governor else np.zeros((0, 8)))
+        self.governor_rows = (governor_rows(
+            config.rig, self.gain, config.loop.period_s, c.governor_horizon_s,
+            config.motor.force_per_amp, config.estimator.difference_periods,
+            config.estimator.velocity_filter_hz, config.sensors.ir_filter_hz)
+            if c.governor else np.zeros((0, 8)))
         if c.guard and (config.swing_up.law != "energy_pump"
                         or config.swing_up.guard_accel_mps2 <= 0.0):
-            raise ConfigError("catch.guard: the catch's guard is the energy pump's track guard; "
-                              "it needs swing_up.law: energy_pump and swing_up.guard_accel_mps2 "
-                              "> 0")
+            raise ConfigError("catch.guard: when it lets the catch go, the energy pump's track "
+                              "guard brakes; it needs swing_up.law: energy_pump and "
+                              "swing_up.guard_accel_mps2 > 0")
         if config.adaptation.enabled and config.swing_up.law != "energy_pump":
             raise ConfigError("adaptation.enabled: the online estimates serve the energy pump "
                               "(swing_up.law: energy_pump), not (3.30)")

@@ -19,16 +19,21 @@ from pisc_sim.batch_controllers import BatchControllers, supported
 from pisc_sim.closed_loop import simulate_batch
 from pisc_sim.scene import load_scene
 
-# the default configuration has every option on (energy pump with its guard, N = 7
-# differences low-passed, settling catch reference, energy band, start-up distance); the
-# others switch them off one by one or take the thesis's law (3.30)
+# the default configuration has every option on (energy pump with its guard, online
+# estimates, N = 7 differences low-passed, governed and guarded catch with a settling
+# reference, energy band, start-up distance); the others switch them off one by one or
+# take the thesis's law (3.30)
 CONFIGS = {
     "default": {},
-    "thesis law": {"swing_up.law": "lyapunov", "switching.energy_band_j": 0.0},
+    "fixed pump": {"adaptation.enabled": False, "catch.governor": False,
+                   "catch.guard": False},
+    "thesis law": {"swing_up.law": "lyapunov", "switching.energy_band_j": 0.0,
+                   "adaptation.enabled": False, "catch.guard": False},
     "thesis scene": None,
     "plain differences": {"estimator.velocity_filter_hz": 0.0,
                           "estimator.difference_periods": 1},
     "no guard, no settling, no start-up": {"swing_up.guard_accel_mps2": 0.0,
+                                            "catch.guard": False,
                                             "catch.settle_rate_mps": 0.0,
                                             "startup.distance_m": 0.0},
 }
