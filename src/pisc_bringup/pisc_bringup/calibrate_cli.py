@@ -1,0 +1,218 @@
+"""pisc_calibrate: the rigs of a distribution that reproduce the thesis's experiment
+(rejection ABC on the batch closed loop, :mod:`pisc_bringup.calibrate`;
+docs/thesis-experiment.md).
+
+    pisc_calibrate --experiment thesis-6.6 --distribution thesis-rig --draws 40000 --seed 1
+
+Prints the experiment, the prior, the acceptance rate (with its 95 % interval) and the
+sample size, and each parameter's posterior (median, 90 % interval, against its prior
+range); writes to ``--out`` (default ``calibration/``) the posterior's histograms
+(``posterior.png``), the accepted draws with their events (``posterior.csv``), a
+distribution file of the posterior (``thesis-calibrated.yaml``: the accepted rigs drawn
+jointly, with the prior's uneven starts) and the calibrated nominal plant
+(``thesis-calibrated-plant.yaml``: the accepted rig that reproduces the experiment under
+the most other noise draws, at its start). The same seed gives the same numbers. Exit
+status 0 with at least one accepted draw, 1 with none, 2 on bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from pisc_bringup.calibrate import Calibration
+
+PROG = "pisc_calibrate"
+PLOT = "posterior.png"
+DISTRIBUTION = "thesis-calibrated.yaml"
+PLANT = "thesis-calibrated-plant.yaml"
+#: other noise draws each accepted rig is run with, to pick the nominal one
+NOISE_SEEDS = 16
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--experiment", default="thesis-6.6", metavar="NAME|FILE",
+                        help="a shipped experiment or an experiment file (default: "
+                        "%(default)s)")
+    parser.add_argument("--distribution", default="thesis-rig", metavar="NAME|FILE",
+                        help="the prior: a shipped distribution or a distribution file "
+                        "(default: %(default)s)")
+    parser.add_argument("--draws", type=int, default=40000, metavar="N",
+                        help="draws from the prior (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=1, metavar="S",
+                        help="seed of the draws and the noise (default: %(default)s)")
+    parser.add_argument("--noises", type=int, default=NOISE_SEEDS, metavar="K",
+                        help="other noise draws each accepted rig is run with to pick the "
+                        "nominal plant (default: %(default)s)")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N",
+                       help="0: in this process, without Dask; N: a local Dask cluster of N "
+                       "workers (default: one per core from 5 chunks on)")
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="an existing Dask scheduler (tcp://host:8786)")
+    parser.add_argument("--out", type=Path, default=Path("calibration"), metavar="DIR",
+                        help="directory of the plot, the CSV and the two files "
+                        "(default: %(default)s)")
+    args = parser.parse_args(argv)
+    if args.draws < 1 or args.noises < 1:
+        parser.error("--draws and --noises take a positive number")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    from pisc_bringup.robustness_cli import quiet_threads
+
+    quiet_threads()
+    from pisc_bringup.calibrate import (
+        CHUNK_DRAWS,
+        calibrate,
+        experiment_prior,
+        nominal_index,
+        pass_rates,
+    )
+    from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
+    from pisc_bringup.experiment import load_experiment
+    from pisc_bringup.robustness import binomial_interval, prepare
+    from pisc_bringup.uncertainty import load_distribution
+    from pisc_msgs_py.config import ConfigError
+    from pisc_msgs_py.progress import progress_bar
+    from pisc_sim.configuration import load_graph_config
+
+    try:
+        experiment = load_experiment(args.experiment)
+        config, flat = load_graph_config(experiment.configuration)
+        distribution = load_distribution(args.distribution, config)
+        config, base = prepare(config, distribution)
+        prior = experiment_prior(distribution, config, experiment)
+        args.out.mkdir(parents=True, exist_ok=True)
+    except (ConfigError, OSError) as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
+    chunks = -(-args.draws // CHUNK_DRAWS)
+    workers = args.workers
+    if workers is None and args.scheduler is None:
+        workers = default_workers(chunks)
+    print(f"experiment {experiment.name}: {experiment.description}")
+    for event in experiment.events:
+        print(f"  {event.describe()}")
+    print(f"configuration {experiment.configuration}; prior {distribution.name} (digest "
+          f"{distribution.digest}) with the experiment's start")
+    print(*(f"  {r.describe()}" for r in prior.ranges), sep="\n")
+    start = time.perf_counter()
+    with progress_bar(chunks, "chunk") as bar, \
+            chunk_runner(workers, args.scheduler, bar) as map_chunks:
+        result = calibrate(config, base, prior, experiment, args.draws, args.seed, map_chunks)
+    wall = time.perf_counter() - start
+    accepted = int(result.accepted.sum())
+    low, high = binomial_interval(accepted, args.draws)
+    print(f"draws {args.draws}, seed {args.seed}: accepted {accepted} (sample size), "
+          f"acceptance rate {100 * result.rate:.3f} % (95 % interval {100 * low:.3f} .. "
+          f"{100 * high:.3f} %); {wall:.0f} s ({describe_runner(workers, args.scheduler)})")
+    print(*format_posterior(result), sep="\n")
+    write_csv(args.out / "posterior.csv", result)
+    if not accepted:
+        print(f"no draw reproduces {experiment.name}: no posterior, no files "
+              "(docs/thesis-experiment.md says what the model lacks)")
+        return 1
+    plot_posterior(args.out / PLOT, result)
+    post = result.posterior
+    with progress_bar(-(-post.n * args.noises // CHUNK_DRAWS), "chunk") as bar, \
+            chunk_runner(workers if post.n * args.noises >= 5 * CHUNK_DRAWS else 0,
+                         args.scheduler, bar) as map_chunks:
+        rates = pass_rates(config, base, post, experiment, args.noises, args.seed + 1,
+                           map_chunks)
+    k = nominal_index(result, rates)
+    print(f"under {args.noises} other noise draws each, the accepted rigs reproduce the "
+          f"experiment {100 * float(np.mean(rates)):.1f} % of the time (median rig "
+          f"{100 * float(np.median(rates)):.0f} %); the nominal rig: accepted draw {k}, "
+          f"{100 * rates[k]:.0f} %")
+    from pisc_bringup.calibrate_files import write_distribution, write_plant
+
+    write_distribution(args.out / DISTRIBUTION, result, distribution, args)
+    seed, tried = write_plant(args.out / PLANT, result, k, flat, distribution, config)
+    print(f"nominal plant: noise seed {seed} (the first of {tried} single-rig runs from "
+          f"noise seed 0 that reproduces the experiment)" if seed is not None else
+          f"nominal plant: none of {tried} single-rig noise seeds reproduces the experiment")
+    print(f"wrote {args.out / PLOT}, {args.out / 'posterior.csv'}, "
+          f"{args.out / DISTRIBUTION}, {args.out / PLANT}")
+    return 0
+
+
+def format_posterior(result: Calibration) -> list[str]:
+    from pisc_bringup.uncertainty import unit_of
+
+    lines = ["posterior (median, 90 % interval) against the prior's range:"]
+    for r, median, p5, p95 in result.summary():
+        unit = unit_of(r.name)
+        lo, hi = r.value_range
+        lines.append(f"  {r.name:32s} {median:11.4g}  [{p5:10.4g}, {p95:10.4g}]   prior "
+                     f"[{lo:.4g}, {hi:.4g}]{' ' + unit if unit else ''}")
+    return lines
+
+
+def write_csv(path: Path, result: Calibration) -> None:
+    post = result.posterior
+    picked = np.flatnonzero(result.accepted)
+    names = list(post.values)
+    with path.open("w", newline="") as stream:
+        out = csv.writer(stream)
+        out.writerow(["draw", *names, *result.measured])
+        for j, k in enumerate(picked.tolist()):
+            out.writerow([k, *(repr(float(post.values[n][j])) for n in names),
+                          *(repr(float(v[k])) for v in result.measured.values())])
+
+
+def plot_posterior(path: Path, result: Calibration) -> None:
+    """One panel a parameter: the posterior's histogram over the prior's range, its
+    median and 90 % interval; the prior's density dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pisc_bringup.uncertainty import unit_of
+
+    rows = result.summary()
+    post = result.posterior
+    columns = 4
+    lines = -(-len(rows) // columns)
+    fig, axes = plt.subplots(lines, columns, figsize=(3.3 * columns, 2.2 * lines + 0.8),
+                             squeeze=False)
+    for ax, (r, median, p5, p95) in zip(axes.flat, rows, strict=False):
+        lo, hi = r.value_range
+        log = r.kind == "factor"
+        edges = np.geomspace(lo, hi, 16) if log else np.linspace(lo, hi, 16)
+        values = post.values[r.name]
+        ax.hist(values, bins=edges, density=False, color="C0", alpha=0.6)
+        expected = post.n * (np.diff(np.log(edges)) / math.log(hi / lo) if log
+                             else np.diff(edges) / (hi - lo))
+        ax.stairs(expected, edges, color="k", ls="--", lw=0.8)
+        for q, style in ((median, "-"), (p5, ":"), (p95, ":")):
+            ax.axvline(q, color="C3", ls=style, lw=1.0)
+        if log:
+            ax.set_xscale("log")
+        unit = unit_of(r.name)
+        ax.set_xlabel(r.name + (f" [{unit}]" if unit else ""), fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[len(rows):]:
+        ax.set_visible(False)
+    fig.suptitle(f"{result.experiment.name}: posterior of {post.n} accepted of "
+                 f"{result.draws.n} draws ({result.prior.name}, seed {result.seed}); red: "
+                 "median and 90 % interval, dashed: the prior", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
