@@ -1,18 +1,20 @@
 """pisc_calibrate: the rigs of a distribution that reproduce the thesis's experiment
-(rejection ABC on the batch closed loop, :mod:`pisc_bringup.calibrate`;
+(SMC-ABC on the batch closed loop, :mod:`pisc_bringup.calibrate`;
 docs/thesis-experiment.md).
 
-    pisc_calibrate --experiment thesis-6.6 --distribution thesis-rig --draws 40000 --seed 1
+    pisc_calibrate --experiment thesis-6.6 --distribution thesis-rig --particles 200 --seed 1
 
-Prints the experiment, the prior, the acceptance rate (with its 95 % interval) and the
-sample size, and each parameter's posterior (median, 90 % interval, against its prior
+Prints the experiment, the prior, each generation (its tolerance factor, the draws
+simulated, the acceptance rate with its 95 % interval, the sample size and its effective
+size) and each parameter's posterior (weighted median, 90 % interval, against its prior
 range); writes to ``--out`` (default ``calibration/``) the posterior's histograms
-(``posterior.png``), the accepted draws with their events (``posterior.csv``), a
-distribution file of the posterior (``thesis-calibrated.yaml``: the accepted rigs drawn
-jointly, with the prior's uneven starts) and the calibrated nominal plant
-(``thesis-calibrated-plant.yaml``: the accepted rig that reproduces the experiment under
-the most other noise draws, at its start). The same seed gives the same numbers. Exit
-status 0 with at least one accepted draw, 1 with none, 2 on bad input.
+(``posterior.png``), its particles with their weights and events (``posterior.csv``), a
+distribution file of the posterior (``thesis-calibrated.yaml``: its rigs, resampled by
+weight, drawn jointly, with the prior's uneven starts) and the calibrated nominal plant
+(``thesis-calibrated-plant.yaml``: the particle that reproduces the experiment under the
+most other noise draws, at its start). ``--epsilons 1`` is rejection ABC. The same seed
+gives the same numbers. Exit status 0 with a complete posterior, 1 when the budget ran
+out first, 2 on bad input.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from pisc_bringup.calibrate import Calibration
+    from pisc_bringup.calibrate import Calibration, Generation
 
 PROG = "pisc_calibrate"
 PLOT = "posterior.png"
@@ -46,8 +48,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--distribution", default="thesis-rig", metavar="NAME|FILE",
                         help="the prior: a shipped distribution or a distribution file "
                         "(default: %(default)s)")
-    parser.add_argument("--draws", type=int, default=40000, metavar="N",
-                        help="draws from the prior (default: %(default)s)")
+    parser.add_argument("--particles", type=int, default=200, metavar="N",
+                        help="posterior sample size (default: %(default)s)")
+    parser.add_argument("--epsilons", default="4,2,1.5,1", metavar="E,E,...",
+                        help="the generations' tolerance factors, decreasing to 1 "
+                        "(default: %(default)s; 1: rejection ABC)")
+    parser.add_argument("--budget", type=int, default=200_000, metavar="N",
+                        help="most draws simulated in all (default: %(default)s)")
+    parser.add_argument("--batch", type=int, default=2000, metavar="N",
+                        help="draws simulated at a time; the numbers depend on it "
+                        "(default: %(default)s)")
     parser.add_argument("--seed", type=int, default=1, metavar="S",
                         help="seed of the draws and the noise (default: %(default)s)")
     parser.add_argument("--noises", type=int, default=NOISE_SEEDS, metavar="K",
@@ -63,8 +73,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="directory of the plot, the CSV and the two files "
                         "(default: %(default)s)")
     args = parser.parse_args(argv)
-    if args.draws < 1 or args.noises < 1:
-        parser.error("--draws and --noises take a positive number")
+    if args.particles < 2 or min(args.noises, args.budget, args.batch) < 1:
+        parser.error("--particles takes 2 or more, --noises, --budget and --batch a "
+                     "positive number")
+    try:
+        args.epsilons = [float(e) for e in args.epsilons.split(",")]
+    except ValueError:
+        parser.error(f"--epsilons {args.epsilons}: numbers separated by commas")
+    if (args.epsilons != sorted(args.epsilons, reverse=True) or args.epsilons[-1] != 1.0
+            or len(set(args.epsilons)) != len(args.epsilons)):
+        parser.error(f"--epsilons {args.epsilons}: decreasing, ending at 1 (the thesis's "
+                     "tolerances)")
     return args
 
 
@@ -80,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         nominal_index,
         pass_rates,
     )
-    from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
+    from pisc_bringup.cluster import chunk_runner, core_count, describe_runner
     from pisc_bringup.experiment import load_experiment
     from pisc_bringup.robustness import binomial_interval, prepare
     from pisc_bringup.uncertainty import load_distribution
@@ -98,47 +117,54 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, OSError) as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
-    chunks = -(-args.draws // CHUNK_DRAWS)
     workers = args.workers
-    if workers is None and args.scheduler is None:
-        workers = default_workers(chunks)
+    if workers is None and args.scheduler is None:  # a worker a chunk of a batch, a core each
+        chunks = -(-args.batch // CHUNK_DRAWS)
+        workers = min(core_count(), chunks) if core_count() > 1 and chunks > 1 else 0
     print(f"experiment {experiment.name}: {experiment.description}")
     for event in experiment.events:
         print(f"  {event.describe()}")
     print(f"configuration {experiment.configuration}; prior {distribution.name} (digest "
           f"{distribution.digest}) with the experiment's start")
     print(*(f"  {r.describe()}" for r in prior.ranges), sep="\n")
+    print(f"SMC-ABC: {args.particles} particles a generation, tolerance factors "
+          f"{', '.join(f'{e:g}' for e in args.epsilons)}, seed {args.seed}, budget "
+          f"{args.budget} draws; {describe_runner(workers, args.scheduler)}")
     start = time.perf_counter()
-    with progress_bar(chunks, "chunk") as bar, \
-            chunk_runner(workers, args.scheduler, bar) as map_chunks:
-        result = calibrate(config, base, prior, experiment, args.draws, args.seed, map_chunks)
-    wall = time.perf_counter() - start
-    accepted = int(result.accepted.sum())
-    low, high = binomial_interval(accepted, args.draws)
-    print(f"draws {args.draws}, seed {args.seed}: accepted {accepted} (sample size), "
-          f"acceptance rate {100 * result.rate:.3f} % (95 % interval {100 * low:.3f} .. "
-          f"{100 * high:.3f} %); {wall:.0f} s ({describe_runner(workers, args.scheduler)})")
+
+    def report(g: Generation) -> None:
+        low, high = binomial_interval(g.accepted, g.simulated)
+        print(f"  generation at {g.epsilon:g} x tolerance: {g.simulated} draws simulated, "
+              f"{g.accepted} within it, acceptance rate {100 * g.rate:.3f} % (95 % interval "
+              f"{100 * low:.3f} .. {100 * high:.3f} %); sample size {g.particles.n}, "
+              f"effective {g.effective_size:.0f}; {time.perf_counter() - start:.0f} s",
+              flush=True)
+
+    with chunk_runner(workers, args.scheduler) as map_chunks:
+        result = calibrate(config, base, prior, experiment, args.particles, args.seed,
+                           args.epsilons, args.budget, map_chunks, args.batch, report)
+    print(f"{result.simulated} draws simulated in {time.perf_counter() - start:.0f} s")
     print(*format_posterior(result), sep="\n")
     write_csv(args.out / "posterior.csv", result)
-    if not accepted:
-        print(f"no draw reproduces {experiment.name}: no posterior, no files "
-              "(docs/thesis-experiment.md says what the model lacks)")
+    if not result.complete:
+        print(f"the budget ran out before {args.particles} particles at the thesis's "
+              f"tolerances: no distribution or plant file (docs/thesis-experiment.md)")
         return 1
     plot_posterior(args.out / PLOT, result)
     post = result.posterior
     with progress_bar(-(-post.n * args.noises // CHUNK_DRAWS), "chunk") as bar, \
-            chunk_runner(workers if post.n * args.noises >= 5 * CHUNK_DRAWS else 0,
+            chunk_runner(workers if post.n * args.noises >= 2 * CHUNK_DRAWS else 0,
                          args.scheduler, bar) as map_chunks:
         rates = pass_rates(config, base, post, experiment, args.noises, args.seed + 1,
                            map_chunks)
     k = nominal_index(result, rates)
-    print(f"under {args.noises} other noise draws each, the accepted rigs reproduce the "
-          f"experiment {100 * float(np.mean(rates)):.1f} % of the time (median rig "
-          f"{100 * float(np.median(rates)):.0f} %); the nominal rig: accepted draw {k}, "
-          f"{100 * rates[k]:.0f} %")
+    print(f"under {args.noises} other noise draws each, the posterior's rigs reproduce the "
+          f"experiment {100 * float(np.sum(rates * result.final.weights)):.1f} % of the time "
+          f"(weighted; median rig {100 * float(np.median(rates)):.0f} %); the nominal rig: "
+          f"particle {k}, {100 * rates[k]:.0f} %")
     from pisc_bringup.calibrate_files import write_distribution, write_plant
 
-    write_distribution(args.out / DISTRIBUTION, result, distribution, args)
+    write_distribution(args.out / DISTRIBUTION, result, distribution)
     seed, tried = write_plant(args.out / PLANT, result, k, flat, distribution, config)
     print(f"nominal plant: noise seed {seed} (the first of {tried} single-rig runs from "
           f"noise seed 0 that reproduces the experiment)" if seed is not None else
@@ -151,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
 def format_posterior(result: Calibration) -> list[str]:
     from pisc_bringup.uncertainty import unit_of
 
-    lines = ["posterior (median, 90 % interval) against the prior's range:"]
+    lines = ["posterior (weighted median, 90 % interval) against the prior's range:"]
     for r, median, p5, p95 in result.summary():
         unit = unit_of(r.name)
         lo, hi = r.value_range
@@ -161,15 +187,15 @@ def format_posterior(result: Calibration) -> list[str]:
 
 
 def write_csv(path: Path, result: Calibration) -> None:
-    post = result.posterior
-    picked = np.flatnonzero(result.accepted)
-    names = list(post.values)
+    g = result.final
+    names = list(g.particles.values)
     with path.open("w", newline="") as stream:
         out = csv.writer(stream)
-        out.writerow(["draw", *names, *result.measured])
-        for j, k in enumerate(picked.tolist()):
-            out.writerow([k, *(repr(float(post.values[n][j])) for n in names),
-                          *(repr(float(v[k])) for v in result.measured.values())])
+        out.writerow(["particle", "weight", *names, *g.measured])
+        for j in range(g.particles.n):
+            out.writerow([j, repr(float(g.weights[j])),
+                          *(repr(float(g.particles.values[n][j])) for n in names),
+                          *(repr(float(v[j])) for v in g.measured.values())])
 
 
 def plot_posterior(path: Path, result: Calibration) -> None:
@@ -193,9 +219,9 @@ def plot_posterior(path: Path, result: Calibration) -> None:
         log = r.kind == "factor"
         edges = np.geomspace(lo, hi, 16) if log else np.linspace(lo, hi, 16)
         values = post.values[r.name]
-        ax.hist(values, bins=edges, density=False, color="C0", alpha=0.6)
-        expected = post.n * (np.diff(np.log(edges)) / math.log(hi / lo) if log
-                             else np.diff(edges) / (hi - lo))
+        ax.hist(values, bins=edges, weights=result.final.weights, color="C0", alpha=0.6)
+        expected = (np.diff(np.log(edges)) / math.log(hi / lo) if log
+                    else np.diff(edges) / (hi - lo))
         ax.stairs(expected, edges, color="k", ls="--", lw=0.8)
         for q, style in ((median, "-"), (p5, ":"), (p95, ":")):
             ax.axvline(q, color="C3", ls=style, lw=1.0)
@@ -206,9 +232,10 @@ def plot_posterior(path: Path, result: Calibration) -> None:
         ax.tick_params(labelsize=7)
     for ax in list(axes.flat)[len(rows):]:
         ax.set_visible(False)
-    fig.suptitle(f"{result.experiment.name}: posterior of {post.n} accepted of "
-                 f"{result.draws.n} draws ({result.prior.name}, seed {result.seed}); red: "
-                 "median and 90 % interval, dashed: the prior", fontsize=9)
+    fig.suptitle(f"{result.experiment.name}: posterior of {post.n} particles (SMC-ABC, "
+                 f"{result.simulated} draws simulated; {result.prior.name}, seed "
+                 f"{result.seed}); weight per bin; red: median and 90 % interval; dashed: "
+                 "the prior", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

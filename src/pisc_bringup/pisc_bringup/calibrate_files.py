@@ -42,30 +42,32 @@ def _nested(flat: Mapping[str, Any]) -> dict[str, Any]:
     return tree
 
 
-def _provenance(result: Calibration, args: Any) -> str:
+def _provenance(result: Calibration) -> str:
+    epsilons = ",".join(f"{g.epsilon:g}" for g in result.generations)
     return (f"# Written by pisc_calibrate --experiment {result.experiment.name} "
-            f"--distribution {result.prior.name} --draws {result.draws.n} --seed {result.seed}"
-            f"\n# (prior digest {result.prior.digest}): {int(result.accepted.sum())} of "
-            f"{result.draws.n} draws reproduce the experiment (docs/thesis-experiment.md).\n")
+            f"--distribution {result.prior.name} --particles {result.particles} "
+            f"--epsilons {epsilons} --seed {result.seed}\n# (prior digest "
+            f"{result.prior.digest}; {result.simulated} draws simulated; "
+            "docs/thesis-experiment.md).\n")
 
 
-def write_distribution(path: Path, result: Calibration, prior: Distribution,
-                       args: Any) -> None:
-    """The posterior's rigs (``joint``), the prior's starts and fixed plant overrides."""
-    post = result.posterior
+def write_distribution(path: Path, result: Calibration, prior: Distribution) -> None:
+    """The posterior's rigs resampled by weight (``joint``), the prior's starts and fixed
+    plant overrides."""
+    post = result.resampled(result.posterior.n)
     names = [n for n in post.values if n != X0]
     starts = {r.name: {r.kind: [float(r.low), float(r.high)]} for r in prior.ranges
               if r.name.startswith("initial.")}
     rows = [[float(f"{post.values[n][j]:.9g}") for n in names] for j in range(post.n)]
     body = {"distribution": {
         "description": f"the rigs of {prior.name} that reproduce {result.experiment.name} "
-                       f"({post.n} of {result.draws.n} draws), with {prior.name}'s starts",
+                       f"(SMC-ABC posterior, {post.n} rows), with {prior.name}'s starts",
         "plant": _nested(prior.plant),
         "parameters": starts,
         "joint": {"names": names, "rows": rows},
     }}
     text = yaml.safe_dump(body, sort_keys=False, default_flow_style=None, width=100)
-    path.write_text(_provenance(result, args) + text)
+    path.write_text(_provenance(result) + text)
 
 
 def reproduces(config_name: str, plant_file: Path, result: Calibration) -> bool:
@@ -93,8 +95,8 @@ def write_plant(path: Path, result: Calibration, index: int, flat: Mapping[str, 
     start = experiment_config(config, result.experiment).initial
     plant.update({f"initial.{k}": float(getattr(start, k)) for k in
                   ("x_dot_mps", "theta_rad", "theta_dot_radps")})
-    header = (_provenance(result, None)
-              + f"# The calibrated nominal plant: accepted draw {index} of the posterior, at "
+    header = (_provenance(result)
+              + f"# The calibrated nominal plant: particle {index} of the posterior, at "
               "the experiment's start.\n# ./pisc run --config "
               f"{result.experiment.configuration} --plant-config {path.name}\n")
     for seed in range(SEEDS_TRIED):

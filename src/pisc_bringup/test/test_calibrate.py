@@ -12,12 +12,13 @@ import pytest
 
 from pisc_bringup.calibrate import (
     calibrate,
+    distance,
     experiment_config,
     experiment_prior,
     simulate_traces,
 )
 from pisc_bringup.calibrate_cli import main as calibrate_main
-from pisc_bringup.experiment import load_experiment, measure
+from pisc_bringup.experiment import judge, load_experiment, measure
 from pisc_bringup.robustness import prepare
 from pisc_bringup.uncertainty import load_distribution
 from pisc_msgs_py.config import ConfigError
@@ -79,13 +80,15 @@ def files(tmp_path_factory):
     return where
 
 
-def small_run(files, seed):
+def small_run(files, seed, epsilons=(1.0,)):
+    """Six particles a generation, proposed twelve at a time."""
     experiment = load_experiment(str(files / "experiment.yaml"))
     config, _ = load_graph_config("thesis")
     distribution = load_distribution(str(files / "narrow.yaml"), config)
     config, base = prepare(config, distribution)
     prior = experiment_prior(distribution, config, experiment)
-    return calibrate(config, base, prior, experiment, 24, seed)
+    return calibrate(config, base, prior, experiment, 6, seed, epsilons, budget=120,
+                     batch=12)
 
 
 def test_the_prior_is_the_distribution_with_the_experiments_start(files):
@@ -100,33 +103,61 @@ def test_the_prior_is_the_distribution_with_the_experiments_start(files):
 
 
 def test_the_same_seed_gives_the_same_posterior(files):
-    first, again, other = small_run(files, 3), small_run(files, 3), small_run(files, 4)
-    assert first.accepted.sum() >= 3, first.measured  # the small run accepts some
-    for name in first.measured:
-        np.testing.assert_array_equal(first.measured[name], again.measured[name])
-    np.testing.assert_array_equal(first.accepted, again.accepted)
+    first, again = small_run(files, 3, (2.0, 1.0)), small_run(files, 3, (2.0, 1.0))
+    assert first.complete and [g.epsilon for g in first.generations] == [2.0, 1.0]
+    for a, b in zip(first.generations, again.generations, strict=True):
+        assert (a.simulated, a.accepted) == (b.simulated, b.accepted)
+        for name in a.particles.values:
+            np.testing.assert_array_equal(a.particles.values[name], b.particles.values[name])
+        np.testing.assert_array_equal(a.weights, b.weights)
     assert [row[1:] for row in first.summary()] == [row[1:] for row in again.summary()]
-    assert not np.array_equal(first.draws.values["initial.x_m"],
-                              other.draws.values["initial.x_m"])
+    other = small_run(files, 4, (2.0, 1.0))
+    assert not np.array_equal(first.posterior.values["initial.x_m"],
+                              other.posterior.values["initial.x_m"])
+
+
+def test_every_particle_meets_the_experiment_and_the_weights_are_importance_weights(files):
+    """The last generation's particles all lie within the thesis's tolerances; the first
+    generation (from the prior) weighs each alike, a later one by prior / kernel mixture,
+    recomputed here from the previous generation (Beaumont et al. 2009)."""
+    from scipy.stats import multivariate_normal
+
+    from pisc_bringup.calibrate import to_unit
+
+    result = small_run(files, 3, (2.0, 1.0))
+    experiment = result.experiment
+    assert judge(experiment, result.final.measured).all()
+    assert (distance(experiment, result.generations[0].measured) <= 2.0).all()
+    np.testing.assert_allclose(result.generations[0].weights, 1 / 6)
+    previous, final = result.generations
+    before, after = (np.column_stack([to_unit(r, g.particles.values[r.name])
+                                      for r in result.prior.ranges]) for g in (previous, final))
+    cov = 2.0 * np.cov(before, rowvar=False, aweights=previous.weights)
+    density = sum(w * multivariate_normal(u, cov, allow_singular=True).pdf(after)
+                  for u, w in zip(before, previous.weights, strict=True))
+    np.testing.assert_allclose(final.weights, (1 / density) / np.sum(1 / density),
+                               rtol=1e-6)
 
 
 def test_the_command_prints_the_posterior_and_writes_the_two_files(files, tmp_path, capsys):
     out = tmp_path / "out"
     status = calibrate_main(["--experiment", str(files / "experiment.yaml"), "--distribution",
-                             str(files / "narrow.yaml"), "--draws", "24", "--seed", "3",
+                             str(files / "narrow.yaml"), "--particles", "6", "--epsilons",
+                             "1", "--batch", "12", "--budget", "120", "--seed", "3",
                              "--noises", "2", "--workers", "0", "--out", str(out)])
     text = capsys.readouterr().out
     assert status == 0, text
-    accepted = small_run(files, 3).accepted.sum()
-    assert f"draws 24, seed 3: accepted {accepted} (sample size), acceptance rate " \
-           f"{100 * accepted / 24:.3f} %" in text
+    g = small_run(files, 3).final
+    assert (f"generation at 1 x tolerance: {g.simulated} draws simulated, {g.accepted} within "
+            f"it, acceptance rate {100 * g.accepted / g.simulated:.3f} %") in text
+    assert "sample size 6, effective 6" in text
     assert "motor.rotor_inertia_kgm2" in text and "90 % interval" in text
     for name in ("posterior.png", "posterior.csv", "thesis-calibrated.yaml",
                  "thesis-calibrated-plant.yaml"):
         assert (out / name).stat().st_size > 0
     config, _ = load_graph_config("thesis")
     posterior = load_distribution(str(out / "thesis-calibrated.yaml"), config)
-    assert posterior.rows is not None and len(posterior.rows) == accepted
+    assert posterior.rows is not None and len(posterior.rows) == 6
     draws = posterior.draw(50, 1)
     rows = {tuple(r) for r in posterior.rows.tolist()}
     joint = [r.name for r in posterior.ranges if r.kind == "joint"]
