@@ -2,7 +2,7 @@
 (SMC-ABC on the batch closed loop, :mod:`pisc_bringup.calibrate`;
 docs/thesis-experiment.md).
 
-    pisc_calibrate --experiment thesis-6.6 --distribution thesis-rig --particles 200 --seed 1
+    pisc_calibrate --experiment thesis-6.6 --distribution thesis-rig --seed 1
 
 Prints the experiment, the prior, each generation (its tolerance factor, the draws
 simulated, the acceptance rate with its 95 % interval, the sample size and its effective
@@ -48,12 +48,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--distribution", default="thesis-rig", metavar="NAME|FILE",
                         help="the prior: a shipped distribution or a distribution file "
                         "(default: %(default)s)")
-    parser.add_argument("--particles", type=int, default=200, metavar="N",
+    parser.add_argument("--particles", type=int, default=100, metavar="N",
                         help="posterior sample size (default: %(default)s)")
-    parser.add_argument("--epsilons", default="4,2,1.5,1", metavar="E,E,...",
+    parser.add_argument("--epsilons", default="4,2,1", metavar="E,E,...",
                         help="the generations' tolerance factors, decreasing to 1 "
                         "(default: %(default)s; 1: rejection ABC)")
-    parser.add_argument("--budget", type=int, default=200_000, metavar="N",
+    parser.add_argument("--budget", type=int, default=600_000, metavar="N",
                         help="most draws simulated in all (default: %(default)s)")
     parser.add_argument("--batch", type=int, default=2000, metavar="N",
                         help="draws simulated at a time; the numbers depend on it "
@@ -206,8 +206,11 @@ def plot_posterior(path: Path, result: Calibration) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from matplotlib.ticker import FixedLocator, FuncFormatter, MaxNLocator, NullFormatter
+
     from pisc_bringup.uncertainty import unit_of
 
+    short = FuncFormatter(lambda v, _: f"{v:.3g}")
     rows = result.summary()
     post = result.posterior
     columns = 4
@@ -225,11 +228,19 @@ def plot_posterior(path: Path, result: Calibration) -> None:
         ax.stairs(expected, edges, color="k", ls="--", lw=0.8)
         for q, style in ((median, "-"), (p5, ":"), (p95, ":")):
             ax.axvline(q, color="C3", ls=style, lw=1.0)
-        if log:
+        if log:  # ticks at the ends and the nominal value, as pisc_robustness draws them
             ax.set_xscale("log")
+            ax.xaxis.set_major_locator(FixedLocator([lo, hi, r.nominal]))
+            ax.xaxis.set_minor_formatter(NullFormatter())
+        else:
+            ax.xaxis.set_major_locator(MaxNLocator(4))
+        ax.xaxis.set_major_formatter(short)
+        ax.set_xlim(lo, hi)
         unit = unit_of(r.name)
         ax.set_xlabel(r.name + (f" [{unit}]" if unit else ""), fontsize=8)
         ax.tick_params(labelsize=7)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("weight", fontsize=8)
     for ax in list(axes.flat)[len(rows):]:
         ax.set_visible(False)
     fig.suptitle(f"{result.experiment.name}: posterior of {post.n} particles (SMC-ABC, "

@@ -98,7 +98,8 @@ def write_plant(path: Path, result: Calibration, index: int, flat: Mapping[str, 
     header = (_provenance(result)
               + f"# The calibrated nominal plant: particle {index} of the posterior, at "
               "the experiment's start.\n# ./pisc run --config "
-              f"{result.experiment.configuration} --plant-config {path.name}\n")
+              f"{result.experiment.configuration} --plant-config {path.stem} (shipped in "
+              "src/pisc_sim/config/)\n")
     for seed in range(SEEDS_TRIED):
         plant["noise.seed"] = seed
         path.write_text(header + params_file_text(plant))

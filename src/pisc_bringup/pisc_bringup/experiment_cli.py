@@ -118,14 +118,17 @@ def draw(path: Path, experiment: Any, analysis: Any, measured: dict[str, np.ndar
         ax.set_ylabel(unit, fontsize=8)
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
-    axes[1, 0].legend(fontsize=6.5, loc="lower right")
-    axes[2, 0].legend(fontsize=6.5, loc="upper right")
+    handles, labels = axes[2, 0].get_legend_handles_labels()
+    more, more_labels = axes[1, 0].get_legend_handles_labels()
+    fig.legend(handles + more[:1], labels + more_labels[:1], loc="lower center", ncol=4,
+               fontsize=8)
     for ax in axes[2]:
         ax.set_xlabel("t [s]", fontsize=8)
     osc = float(measured["oscillations"][0])
-    fig.suptitle(f"{analysis.trace.label} against {experiment.name}: {osc:g} oscillations "
-                 "before the hand-over (thesis: 3)", fontsize=10)
-    fig.tight_layout()
+    fig.suptitle(f"{analysis.trace.label} against {experiment.name}: {2 * osc:g} passes "
+                 f"through hanging before the hand-over ({osc:g} oscillations; thesis: "
+                 "three)", fontsize=10)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
