@@ -235,3 +235,38 @@ def test_a_bad_joint_block_is_refused_naming_it(tmp_path, old, new, says):
                           load_graph_config("thesis")[0])
     for word in says:
         assert word in str(info.value)
+
+
+def test_the_shipped_calibrated_distribution_is_the_posterior_of_thesis_rig():
+    """Its rows lie inside thesis-rig's ranges; it keeps thesis-rig's starts; pivot friction
+    and R moved as the experiment says (docs/thesis-experiment.md)."""
+    config, _ = load_graph_config("thesis")
+    rig = load_distribution("thesis-rig", config)
+    calibrated = load_distribution("thesis-calibrated", config)
+    assert len(calibrated.rows) == 100
+    for r in calibrated.ranges:
+        prior = rig.range(r.name)
+        if r.kind == "joint":
+            lo, hi = prior.value_range
+            assert lo - 1e-12 <= r.low <= r.high <= hi + 1e-12, r.name
+        else:
+            assert (r.kind, r.low, r.high) == (prior.kind, prior.low, prior.high)
+    pivot = calibrated.rows[:, [r.name for r in calibrated.ranges if r.kind == "joint"].index(
+        "friction.pivot_viscous_nms")]
+    assert np.median(pivot) < 0.5 * rig.range("friction.pivot_viscous_nms").high / 2
+
+
+def test_pisc_robustness_and_pisc_tune_take_the_calibrated_distribution(tmp_path, capsys):
+    from pisc_bringup.robustness_cli import main as robustness_main
+    from pisc_bringup.tune_cli import main as tune_main
+
+    assert robustness_main(["thesis", "--distribution", "thesis-calibrated", "--draws", "20",
+                            "--workers", "0", "--worst", "1", "--out",
+                            str(tmp_path / "robustness")]) == 0
+    out = capsys.readouterr().out
+    assert "distribution thesis-calibrated" in out
+    assert "motor.resistance_ohm in [" in out and "(joint rows)" in out
+    tuned = tmp_path / "tuned.yaml"
+    assert tune_main(["thesis", "--distribution", "thesis-calibrated", "--trials", "2",
+                      "--draws", "10", "--workers", "0", "--out", str(tuned)]) == 0
+    assert "# command: pisc_tune thesis --distribution thesis-calibrated" in tuned.read_text()
