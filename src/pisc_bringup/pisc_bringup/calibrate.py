@@ -48,7 +48,7 @@ __all__ = ["CHUNK_DRAWS", "Calibration", "Generation", "calibrate", "distance",
 
 CHUNK_DRAWS = 1000
 X0 = "initial.x_m"
-FIXED_START = ("initial.x_dot_mps", "initial.theta_rad", "initial.theta_dot_radps")
+SWING = ("oscillations", "hand_over_s")  # the events a run's first stage judges
 
 
 def experiment_prior(distribution: Distribution, config: GraphConfig,
@@ -135,17 +135,17 @@ def simulate_events(config: GraphConfig, base: PlantConfig, values: Mapping[str,
     cycles = int(round(experiment.duration_s / period)) + 1
     plant = plant_set(base, physical) if physical else base
     noise = (np.random.default_rng(noise_seed).standard_normal((cycles, n, 3))
-             if Plant(plant).config.noise.any else None)
+             if plant.noise.any else None)
     screen = _screen_s(experiment, epsilon)
     if screen is None:
         return measure(simulate_traces(config, plant, x0, delay, cycles, noise))
     early = measure(simulate_traces(config, plant, x0, delay,
                                     int(math.floor(screen / period + 1e-9)) + 2, noise))
-    swing = [e for e in experiment.events if e.name in ("oscillations", "hand_over_s")]
     go_on = np.ones(n, dtype=bool)
-    for event in swing:
-        go_on &= np.abs(early[event.name] - event.value) <= epsilon * event.tolerance + 1e-9
-    out = {name: np.where(name in ("oscillations", "hand_over_s"), v, np.inf)
+    for event in experiment.events:
+        if event.name in SWING:
+            go_on &= event.miss(early[event.name]) <= epsilon
+    out = {name: v.copy() if name in SWING else np.full(n, np.inf)
            for name, v in early.items()}
     picked = np.flatnonzero(go_on)
     if picked.size:
@@ -175,9 +175,7 @@ def distance(experiment: Experiment, measured: Mapping[str, np.ndarray]) -> np.n
     tolerance (a draw with distance <= 1 meets every event; inf if one is never seen)."""
     worst = np.zeros(len(next(iter(measured.values()))))
     for event in experiment.events:
-        miss = np.abs(np.asarray(measured[event.name], dtype=float) - event.value)
-        miss = np.where(np.isnan(miss), np.inf, miss)
-        worst = np.maximum(worst, miss / event.tolerance)
+        worst = np.maximum(worst, event.miss(measured[event.name]))
     return worst
 
 
