@@ -39,6 +39,7 @@ import numpy as np
 from pisc_bringup.experiment import Experiment, Traces, judge, measure
 from pisc_bringup.uncertainty import LATENCY, Distribution, Draws, Range
 from pisc_control.supervisor import Supervisor
+from pisc_msgs_py.config import ConfigError
 from pisc_plant.plant import Plant, PlantConfig, plant_set
 from pisc_sim.configuration import GraphConfig
 
@@ -54,7 +55,12 @@ SWING = ("oscillations", "hand_over_s")  # the events a run's first stage judges
 def experiment_prior(distribution: Distribution, config: GraphConfig,
                      experiment: Experiment) -> Distribution:
     """``distribution`` with the experiment's start in place of its ``initial.*`` ranges:
-    the cart's start uniform over the experiment's range, the rest fixed."""
+    the cart's start uniform over the experiment's range, the rest fixed. A distribution
+    with a joint block (a posterior already) is refused: the prior's ranges are
+    independent."""
+    if distribution.rows is not None:
+        raise ConfigError(f"{distribution.name}: a distribution with a joint block cannot "
+                          "be the prior (calibrate from independent ranges, e.g. thesis-rig)")
     low, high = experiment.x_range_m
     ranges = [r for r in distribution.ranges if not r.name.startswith("initial.")]
     ranges.append(Range(X0, "uniform", low, high, float(config.initial.x_m)))

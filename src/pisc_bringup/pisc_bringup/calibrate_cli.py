@@ -104,7 +104,6 @@ def main(argv: list[str] | None = None) -> int:
     from pisc_bringup.robustness import binomial_interval, prepare
     from pisc_bringup.uncertainty import load_distribution
     from pisc_msgs_py.config import ConfigError
-    from pisc_msgs_py.progress import progress_bar
     from pisc_sim.configuration import load_graph_config
 
     try:
@@ -143,18 +142,15 @@ def main(argv: list[str] | None = None) -> int:
     with chunk_runner(workers, args.scheduler) as map_chunks:
         result = calibrate(config, base, prior, experiment, args.particles, args.seed,
                            args.epsilons, args.budget, map_chunks, args.batch, report)
-    print(f"{result.simulated} draws simulated in {time.perf_counter() - start:.0f} s")
-    print(*format_posterior(result), sep="\n")
-    write_csv(args.out / "posterior.csv", result)
-    if not result.complete:
-        print(f"the budget ran out before {args.particles} particles at the thesis's "
-              f"tolerances: no distribution or plant file (docs/thesis-experiment.md)")
-        return 1
-    plot_posterior(args.out / PLOT, result)
-    post = result.posterior
-    with progress_bar(-(-post.n * args.noises // CHUNK_DRAWS), "chunk") as bar, \
-            chunk_runner(workers if post.n * args.noises >= 2 * CHUNK_DRAWS else 0,
-                         args.scheduler, bar) as map_chunks:
+        print(f"{result.simulated} draws simulated in {time.perf_counter() - start:.0f} s")
+        print(*format_posterior(result), sep="\n")
+        write_csv(args.out / "posterior.csv", result)
+        if not result.complete:
+            print(f"the budget ran out before {args.particles} particles at the thesis's "
+                  f"tolerances: no distribution or plant file (docs/thesis-experiment.md)")
+            return 1
+        plot_posterior(args.out / PLOT, result)
+        post = result.posterior
         rates = pass_rates(config, base, post, experiment, args.noises, args.seed + 1,
                            map_chunks)
     k = nominal_index(result, rates)
@@ -166,9 +162,10 @@ def main(argv: list[str] | None = None) -> int:
 
     write_distribution(args.out / DISTRIBUTION, result, distribution)
     seed, tried = write_plant(args.out / PLANT, result, k, flat, distribution, config)
-    print(f"nominal plant: noise seed {seed} (the first of {tried} single-rig runs from "
-          f"noise seed 0 that reproduces the experiment)" if seed is not None else
-          f"nominal plant: none of {tried} single-rig noise seeds reproduces the experiment")
+    print(f"nominal plant: noise seed {seed}, the first from 0 whose one-rig run reproduces "
+          "the experiment" if seed is not None else
+          f"nominal plant: no noise seed of 0 .. {tried - 1} gives a one-rig run that "
+          "reproduces the experiment (the file has seed 0)")
     print(f"wrote {args.out / PLOT}, {args.out / 'posterior.csv'}, "
           f"{args.out / DISTRIBUTION}, {args.out / PLANT}")
     return 0

@@ -176,6 +176,12 @@ def test_bad_input_exits_2_naming_it(tmp_path, capsys):
     bad.write_text(EXPERIMENT.replace("tolerance: 0.2", "tolerance: 0"))
     assert calibrate_main(["--experiment", str(bad), "--workers", "0"]) == 2
     assert "hand_over_s.tolerance = 0: must be above 0" in capsys.readouterr().err
+    assert calibrate_main(["--distribution", "thesis-calibrated", "--workers", "0"]) == 2
+    assert "thesis-calibrated: a distribution with a joint block cannot be the prior" in (
+        capsys.readouterr().err)
+    with pytest.raises(SystemExit):
+        calibrate_main(["--epsilons", "1,2"])
+    assert "decreasing, ending at 1" in capsys.readouterr().err
 
 
 def write(tmp_path, text):
