@@ -37,7 +37,8 @@ from pisc_msgs_py.config import ConfigError, find_file, load_keyed_yaml, package
 from pisc_msgs_py.types import Mode
 
 __all__ = ["EVENTS", "EXPERIMENT_DIR", "Event", "Experiment", "Traces", "experiment_names",
-           "judge", "load_experiment", "measure", "traces_from_log", "traces_from_run"]
+           "format_score", "judge", "load_experiment", "measure", "traces_from_log",
+           "traces_from_run"]
 
 EXPERIMENT_DIR = package_dir("pisc_bringup", "experiments")
 KEYS = ("description", "configuration", "duration_s", "start", "events")
