@@ -56,7 +56,8 @@ def test_every_node_executable_lands_where_ros2_run_looks(install, package):
 def test_installed_configuration_and_node_run_from_the_install(install, env_for_domain):
     config = install / "pisc_sim" / "share" / "pisc_sim" / "config"
     assert sorted(p.name for p in config.glob("*.yaml")) == [
-        "default.yaml", "lyapunov-tuned.yaml", "thesis-calibrated-plant.yaml", "thesis.yaml"]
+        "default.yaml", "fixed-pump.yaml", "lyapunov-tuned.yaml", "thesis-calibrated-plant.yaml",
+        "thesis.yaml"]
     bringup = install / "pisc_bringup" / "share" / "pisc_bringup"
     distributions = bringup / "distributions"
     assert {"thesis-rig.yaml", "thesis-calibrated.yaml"} <= {
