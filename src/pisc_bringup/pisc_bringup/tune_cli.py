@@ -38,14 +38,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="Optuna's sampler, seeded by --seed (default: %(default)s)")
     parser.add_argument("--storage", metavar="URL",
                         help="Optuna storage (default: sqlite:///<--out without .yaml>.db)")
-    parser.add_argument("--hold-rms", type=float, default=0.0, metavar="A",
-                        help="the caught draws' median set-point RMS from --hold-from on "
-                        "must stay below this; the limit's worth over it costs as much as "
-                        "every draw's catches (default: no limit)")
     parser.add_argument("--nominal-starts", type=int, default=0, metavar="N",
                         help="N starts at rest, x0 evenly in [-0.1, 0.1] m, on the "
                         "configuration's own plant, must all be fast; each one that is not "
                         "costs 1/N of every draw's catches (default: none)")
+    parser.add_argument("--hold-rms", type=float, default=0.0, metavar="A",
+                        help="with --nominal-starts: a start whose set-point RMS from "
+                        "--fast-hold-from on is over this is not fast (default: no limit)")
     parser.add_argument("--out", type=Path, default=Path("tuned.yaml"), metavar="FILE",
                         help="the tuned parameter file (default: %(default)s)")
     quiet_threads()
@@ -73,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         distribution = load_distribution(args.distribution, config)
         space = load_space(args.space, flat)
         tuning = Tuning(args.config, overrides, distribution, space, args.draws, args.seed,
-                        args.sampler, criteria, args.hold_rms, args.nominal_starts)
+                        args.sampler, criteria, args.nominal_starts, args.hold_rms)
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
