@@ -101,3 +101,31 @@ def test_the_writer_refuses_a_header_a_reader_could_not_use(tmp_path):
     with pytest.raises(ValueError, match=r"rows lack the column 'feasible'"):
         write_witness_csv(tmp_path / "w.csv", META, [{"draw": 1}])
     assert not (tmp_path / "w.csv").exists()
+
+
+@pytest.mark.parametrize("name, rules", [
+    ("thesis-rig-300-seed1-3s.csv", (3.0, 6.0, 10.0)),
+    ("thesis-rig-300-seed1-8s.csv", (8.0, 9.0, 12.0)),
+])
+def test_the_shipped_tables_are_the_draws_of_the_distribution_they_name(name, rules):
+    """The tables under distributions/witnesses/ read back complete, with their rules,
+    and each row's drawn values are the values pisc_robustness draws today for that
+    draw (same digest, seed and N): a table left behind by a change of the distribution
+    fails here. A witness is caught by the deadline; a draw without one says why (unless
+    the bound proved it infeasible)."""
+    from pisc_bringup.robustness import load_benchmark
+    from pisc_bringup.uncertainty import DISTRIBUTION_DIR
+
+    meta, rows = read_witness_csv(DISTRIBUTION_DIR / "witnesses" / name)
+    assert (meta["catch_by_s"], meta["hold_from_s"], meta["run_s"]) == rules
+    assert (meta["seed"], meta["draws"], meta["searched"]) == (1, 300, 300)
+    _, distribution, draws, _ = load_benchmark("default", [], meta["distribution"],
+                                               meta["draws"], meta["seed"])
+    assert meta["distribution_digest"] == distribution.digest
+    assert [r["draw"] for r in rows] == list(range(300))
+    for row in rows:
+        assert {k: row[k] for k in draws.one(row["draw"])} == draws.one(row["draw"])
+        if row["feasible"]:
+            assert row["caught_at_s"] <= rules[0] and row["reason"] == ""
+        elif row["how"] != "bound":  # proved infeasible: no candidate to say why
+            assert row["reason"] and not math.isnan(row["caught_at_s"])
