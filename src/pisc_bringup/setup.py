@@ -13,6 +13,8 @@ setup(
         ('share/pisc_bringup', ['package.xml']),
         ('share/' + package_name + '/distributions', glob('distributions/*.yaml')),
         ('share/' + package_name + '/experiments', glob('experiments/*.yaml')),
+        ('share/' + package_name + '/distributions/witnesses',
+         glob('distributions/witnesses/*.csv')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.xml')),
         ('share/' + package_name + '/config', glob('config/*.xml')),
     ],
