@@ -153,15 +153,18 @@ class Outcomes:
         """Each tier's fraction of the draws."""
         return {tier: float(np.mean(self.passed(tier))) for tier in TIERS}
 
-    def score(self, penalty: float = 0.0) -> float:
+    def score(self, penalty: float = 0.0, safe_target: float = 1.0) -> float:
         """One number that orders configurations safe first: one more safe draw outweighs
-        any number of catches; then each caught draw counts one and each fast draw one
-        more (a fast draw is caught), less ``penalty`` counted in the same draws. At most
-        1, when every draw is fast and there is no penalty."""
+        any number of catches, up to ``safe_target`` of the draws (beyond it, safety is
+        met and the catches decide); then each caught draw counts one and each fast draw
+        one more (a fast draw is caught), less ``penalty`` counted in the same draws. At
+        most 1, when every draw is fast and there is no penalty."""
         n = len(self)
         safe, caught, fast = (int(np.sum(self.passed(t))) for t in TIERS)
+        enough = math.ceil(safe_target * n - 1e-9)
         weight = 2.0 * n + 1.0
-        return (safe * weight + caught + fast - penalty) / (n * weight + 2.0 * n)
+        return (min(safe, enough) * weight + caught + fast - penalty) / (
+            enough * weight + 2.0 * n)
 
     def kinds(self, criteria: Criteria, tier: str = "fast") -> np.ndarray:
         """Each draw's failure of ``tier`` as an index into :data:`FAILURES`; -1 where it

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--nominal-starts", type=int, default=0, metavar="N",
                         help="N starts at rest, x0 evenly in [-0.1, 0.1] m, on the "
                         "configuration's own plant, must all be fast; each one that is not "
-                        "costs 1/N of every draw's catches (default: none)")
+                        "costs as much as 1/N of half the draws' catches (default: none)")
     parser.add_argument("--hold-rms", type=float, default=0.0, metavar="A",
                         help="with --nominal-starts: a start whose set-point RMS from "
                         "--fast-hold-from on is over this is not fast (default: no limit)")

@@ -81,6 +81,16 @@ def test_the_score_puts_safe_first_then_counts_the_catches():
     assert score(5, 3, 1) > score(5, 3, 0)
     assert score(5, 2, 2) > score(5, 3, 0)  # two fast catches count more than three late
     assert score(5, 3, 1) == score(5, 2, 2)
+    # with a target, safety beyond it no longer decides
+    n = 2000
+
+    def targeted(safe: int, caught: int) -> float:
+        return outcomes(safe=np.arange(n) < safe, caught=np.arange(n) < caught,
+                        fast=np.zeros(n, bool)).score(safe_target=0.999)
+
+    # 99.9 % of 2000 draws: 1998 safe meet the target
+    assert targeted(1998, 1500) == targeted(2000, 1500) < targeted(1998, 1501)
+    assert targeted(1997, 1999) < targeted(1998, 1)
     assert score(0, 0, 0) == 0.0
 
 
