@@ -36,6 +36,7 @@ progress and a recorder woken for every message took 40 % of a core of the two a
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import time
@@ -106,6 +107,8 @@ def main(argv: list[str] | None = None) -> int:
             if expected is not None and all(
                     node.publisher_count(name) >= n for name, n in expected.items()):
                 args.ready_file.touch()
+                if args.expect:  # the run's publishers: more are marked in the bag
+                    node.expect_publishers(expected)
                 expected = None
         # drain: take what has arrived but not been taken, until the graph is quiet
         quiet_since = time.monotonic()
@@ -113,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
             if node.take(0.01):
                 quiet_since = time.monotonic()
     finally:
+        node.close_marks()
         node.destroy_node()
         rclpy.try_shutdown()
         failed = None
@@ -120,14 +124,25 @@ def main(argv: list[str] | None = None) -> int:
             node.close()  # finish the bag: seconds for a long one, after DDS is done
         except BagError as exc:
             failed = exc
-    if failed is not None:
-        print(f"pisc_record: {failed}", file=sys.stderr)
-        return 1
-    for name, count in writer.counts.items():
-        print(f"{name} {count}")
-    print(f"pisc_record: finished {args.bag} in {writer.finish_s:.2f} s (indexed, in "
-          "log-time order)", file=sys.stderr)
-    return 0
+    try:
+        if failed is not None:
+            print(f"pisc_record: {failed}", file=sys.stderr)
+            return 1
+        for name, count in writer.counts.items():
+            print(f"{name} {count}")
+        sys.stdout.flush()
+        for foreign in node.foreign:
+            print(f"pisc_record: marked in the bag: another publisher on {foreign}",
+                  file=sys.stderr)
+        print(f"pisc_record: finished {args.bag} in {writer.finish_s:.2f} s (indexed, in "
+              "log-time order)", file=sys.stderr)
+    except BrokenPipeError:
+        # the runner that reads this is gone (killed): the bag is whole all the same, and
+        # Python would raise again flushing at exit: what is left goes nowhere
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.dup2(devnull, sys.stderr.fileno())
+    return 0 if failed is None else 1
 
 
 def _expected_publishers(expect: list[str], recorded: list[str],

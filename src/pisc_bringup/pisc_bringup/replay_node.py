@@ -59,6 +59,7 @@ from pisc_msgs_py.topics import (
     Topic,
 )
 from pisc_msgs_py.types import JointSample, MotorSample
+from pisc_msgs_py.watchdog import format_publishers
 
 __all__ = ["ReplayFeeder", "replay_nodes"]
 
@@ -142,7 +143,11 @@ def replay_nodes(bag: str | Path, config: str | None = None,
     rclpy.init(context=context, domain_id=domain_id)
     nodes: list[Node] = []
     try:
-        params = [*ros_parameters(flat), Parameter("use_sim_time", value=False)]
+        # the samples come from the feeder: its publishers are the pinned ones
+        fed = format_publishers({JOINT_STATES.name: ("pisc_replay",),
+                                 MOTOR_CURRENT.name: ("pisc_replay",)})
+        params = [*ros_parameters(flat), Parameter("use_sim_time", value=False),
+                  Parameter("start.publishers", value=fed)]
         for spec in CONTROLLERS:
             cls = getattr(importlib.import_module(spec.module), spec.cls)
             nodes.append(cls(context=context, parameter_overrides=params))
