@@ -892,6 +892,9 @@ def run_graph(options: RunOptions) -> RunResult:
                        and expected_publishers(t, publishers, lockstep)
                        for arg in ("--progress", t.name)]
         topic_args += ["--gather", str(RECORDER_GATHER_S)]
+    marks = Path(ready_dir.name) / "foreign"  # the runner's word to the recorder (run_guard)
+    topic_args += [*(arg for n in graph.nodes for arg in ("--own", n.name)),
+                   "--marks-file", str(marks)]
     topic_args += ["--ready-file", str(ready), *(
         arg for t in recorded
         for arg in ("--expect", f"{t.name}={expected_publishers(t, publishers, lockstep)}"))]
@@ -916,7 +919,13 @@ def run_graph(options: RunOptions) -> RunResult:
         if not progress.future.done():
             progress.future.set_result(None)
 
-    guard = RunGuard(watcher, graph, recorded, lockstep, interrupt, end_run, watch.run_time,
+    def run_time() -> str:
+        first, last = progress.first_ns, progress.last_ns
+        if first is None or last is None:
+            return "before the first cycle"
+        return f"at t = {(last - first) * 1e-9:.3f} s"
+
+    guard = RunGuard(watcher, graph, recorded, lockstep, interrupt, end_run, run_time,
                      options.port_retry_s, options.duration_s,
                      lambda: progress.first_wall if not options.processes else None)
 
@@ -1046,6 +1055,7 @@ def run_graph(options: RunOptions) -> RunResult:
         for node in [*reversed(nodes), watcher]:  # the plant or driver first: 0 V
             node.destroy_node()
         context.try_shutdown()
+        guard.tell(marks)  # before the recorder finishes the bag
         recorder_problem, recorder_output = _stop(recorder)
         ready_dir.cleanup()
         interrupt.restore()
@@ -1057,7 +1067,7 @@ def run_graph(options: RunOptions) -> RunResult:
             f"run; the run was stopped there"
             f"{' and the rig left at 0 V' if driver else ''}",
             bag_dir, config.loop.period_s, said)
-    stopped = _stopped_by(guard, interrupt, watch.run_time(), bag_dir, config.loop.period_s,
+    stopped = _stopped_by(guard, interrupt, run_time(), bag_dir, config.loop.period_s,
                           recorder_problem)
     if stopped is not None:
         raise stopped

@@ -67,6 +67,8 @@ from pisc_msgs_py.topics import FOREIGN, RECORDER_PROGRESS, Topic
 
 __all__ = ["RecorderNode", "header_stamp_ns", "recording_qos"]
 
+UNNAMED = "a publisher the ROS graph does not name yet"
+
 
 def recording_qos(topic: Topic) -> Any:
     """The topic's QoS with all history kept: the recorder never drops a sample it got."""
@@ -124,13 +126,31 @@ class RecorderNode(Node):
         self._takes = [(name, sub.handle, sub.msg_type) for name, sub in self._subs.items()]
         self._wait_set = _rclpy.WaitSet(len(self._takes), 0, 0, 0, 0, 0, self.context.handle)
         self._expected: dict[str, int] = {}  # publishers of each topic in the run
-        self._contested: dict[str, int] = {}  # topic -> messages taken while contested
+        self._own: frozenset[str] = frozenset()  # the run's node names
+        # topic -> [messages taken while contested, the publishers marked]
+        self._contested: dict[str, list[Any]] = {}
+        self._matched: dict[str, int] = {}  # publishers matched when last looked
         self.foreign: list[str] = []  # "TOPIC: publishers" marked in the bag
 
-    def expect_publishers(self, counts: dict[str, int]) -> None:
-        """The run's publishers of each recorded topic (a count): from now on more on a
-        topic are marked in the bag (module docstring)."""
+    def expect_publishers(self, counts: dict[str, int], own: Sequence[str] = ()) -> None:
+        """The run's publishers of each recorded topic (a count), and the names of its
+        nodes (``own``, not named as foreign): from now on more on a topic are marked in
+        the bag (module docstring)."""
         self._expected = {t: n for t, n in counts.items() if t in self._subs}
+        self._own = frozenset(own)
+
+    def _others(self, topic: str, matched: int) -> str:
+        """The publishers on ``topic`` not of the run's nodes, as the graph names them
+        ('' for none: then only more matched than the run has is one, unnamed)."""
+        names = set()
+        for i in self.get_publishers_info_by_topic(topic):
+            if i.node_name in self._own:
+                continue
+            names.add(UNNAMED if i.node_name.startswith("_NODE_NAME_UNKNOWN")
+                      else f"{i.node_namespace.rstrip('/')}/{i.node_name}")
+        if not names and matched > self._expected[topic]:
+            names.add(UNNAMED)
+        return ", ".join(sorted(names))
 
     def take(self, timeout_s: float) -> int:
         """Wait up to ``timeout_s`` for a message, then take and write every message that
@@ -201,23 +221,29 @@ class RecorderNode(Node):
                 continue
             matched = self._subs[name].get_publisher_count()
             first_log = next(item[0] for item in batch if item[1] == name)
-            if matched > expected:
-                if name not in self._contested:
-                    who = ", ".join(sorted({
-                        f"{i.node_namespace.rstrip('/')}/{i.node_name}"
-                        for i in self.get_publishers_info_by_topic(name)})) or "unknown"
-                    self._contested[name] = 0
-                    self.foreign.append(f"{name}: {who}")
-                    self._write_mark(first_log, 2, f"another publisher on {name} ({matched} "
-                                     f"matched, the run has {expected}): the messages of "
-                                     f"{name} from here on are contested", topic=name,
-                                     publishers=who)
-                self._contested[name] += count
+            # the graph is asked only when the count moved or while the topic is contested
+            who = (self._others(name, matched)
+                   if matched != self._matched.get(name) or name in self._contested else "")
+            self._matched[name] = matched
+            if who:
+                state = self._contested.setdefault(name, [0, None])
+                if state[1] is None or state[1] == UNNAMED:  # (named once the graph can)
+                    if who != state[1]:
+                        state[1] = who
+                        self._mark(first_log, name, who, matched,
+                                   f": the messages of {name} from here on are contested")
+                state[0] += count
             elif name in self._contested:
-                taken = self._contested.pop(name)
+                taken = self._contested.pop(name)[0]
                 self._write_mark(first_log, 0, f"{name} has the run's publishers alone again "
                                  f"({taken} messages taken while it had more)", topic=name,
                                  contested_messages=taken)
+
+    def _mark(self, log_time: int, name: str, who: str, matched: int, rest: str) -> None:
+        self.foreign.append(f"{name}: {who}")
+        self._write_mark(log_time, 2, f"another publisher on {name}: {who} ({matched} "
+                         f"matched, the run has {self._expected[name]}){rest}", topic=name,
+                         publishers=who)
 
     def _write_mark(self, log_time: int, level: int, message: str, **values: Any) -> None:
         if FOREIGN.name not in self._writer.counts:
@@ -231,14 +257,22 @@ class RecorderNode(Node):
         self._writer.write(FOREIGN.name, serialize_message(msg), log_time, log_time,
                            flush=False)
 
-    def close_marks(self) -> None:
-        """Before the bag is finished: a topic still contested gets its count."""
-        for name, taken in list(self._contested.items()):
+    def close_marks(self, told: Sequence[tuple[str, str]] = ()) -> None:
+        """Before the bag is finished: a topic still contested gets its count, and one
+        with another publisher of which nothing came since is marked too (a run stopped
+        as that publisher appeared), as is each (topic, publishers) the runner ``told``
+        of (it may have seen a publisher this process has not yet discovered)."""
+        found = [(name, self._others(name, self._subs[name].get_publisher_count()))
+                 for name in self._expected]
+        for name, who in [*found, *told]:
+            if name in self._subs and name not in self._contested and who:
+                self._contested[name] = [0, who]
+                self._mark(time.time_ns(), name, who,
+                           self._subs[name].get_publisher_count(), "")
+        for name, (taken, who) in list(self._contested.items()):
             self._write_mark(time.time_ns(), 2, f"{name} still had another publisher when "
                              f"the recording ended ({taken} messages taken while it had "
-                             "more)", topic=name, contested_messages=taken,
-                             publishers=", ".join(f.partition(": ")[2] for f in self.foreign
-                                                  if f.startswith(name + ": ")))
+                             "more)", topic=name, contested_messages=taken, publishers=who)
 
     def publisher_count(self, topic: str) -> int:
         """Publishers this recorder's subscription of ``topic`` has matched."""

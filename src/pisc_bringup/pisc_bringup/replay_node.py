@@ -22,6 +22,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from pisc_bringup.bag import bag_topics, read_bag
+from pisc_bringup.summary import foreign_in_bag
 from pisc_sim.configuration import load_graph_config
 from pisc_bringup.graph import (
     CONTROLLERS,
@@ -170,6 +171,7 @@ def replay_nodes(bag: str | Path, config: str | None = None,
             node.destroy_node()
         context.try_shutdown()
     report = compare(run, feeder.outputs, tolerance, str(bag), "nodes", bag_topics(bag))
+    report.foreign.extend(foreign_in_bag(bag))
     changed = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items())
     report.notes.append(f"configuration: {source}" + (f" with {changed}" if changed else ""))
     return report

@@ -197,6 +197,13 @@ class RunGuard:
                           f"(--port-retry {self.port_retry_s:g}): the run is stopped")
                 self._stop()
 
+    def tell(self, path: Path) -> None:
+        """Write what was found for the recorder (``pisc_record --marks-file``): it may
+        not have discovered a publisher the runner saw before the run stopped."""
+        if self.foreign:
+            path.write_text("".join(f"{entry.replace(': ', chr(9), 1)}\n"
+                                    for entry in self.foreign))
+
     def _on_diagnostics(self, msg: Any) -> None:
         for status in msg.status:
             level = status.level[0] if isinstance(status.level, bytes) else int(status.level)

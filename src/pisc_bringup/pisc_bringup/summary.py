@@ -44,7 +44,7 @@ from pisc_msgs_py.topics import (
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
 
-__all__ = ["HoldCriteria", "RunSummary", "RunTables", "Table", "member", "summarise",
+__all__ = ["foreign_in_bag", "HoldCriteria", "RunSummary", "RunTables", "Table", "member", "summarise",
            "summarise_bag", "summarise_tables", "tables_of", "tables_of_bag"]
 
 
@@ -245,9 +245,23 @@ def _note_foreign(foreign: list[str], message: Any) -> None:
         values = {kv.key: kv.value for kv in status.values}
         level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
         if level == 2 and "topic" in values:
-            entry = f"{values['topic']}: {values.get('publishers', 'unknown')}"
-            if entry not in foreign:
+            topic, who = values["topic"], values.get("publishers", "unknown")
+            entry = f"{topic}: {who}"
+            unnamed = f"{topic}: a publisher the ROS graph does not name yet"
+            if unnamed in foreign:  # named now
+                foreign.remove(unnamed)
+            if entry not in foreign and not (entry == unnamed and any(
+                    f.startswith(f"{topic}: ") for f in foreign)):
                 foreign.append(entry)
+
+
+def foreign_in_bag(directory: str | Path) -> list[str]:
+    """``TOPIC: publishers`` for each foreign publisher the bag's recorder marked
+    (:data:`pisc_msgs_py.topics.FOREIGN`); empty for a bag without marks."""
+    foreign: list[str] = []
+    for m in read_bag(directory, [FOREIGN.name]):
+        _note_foreign(foreign, m.message)
+    return foreign
 
 
 def tables_of_bag(directory: str | Path) -> RunTables:
