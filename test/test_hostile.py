@@ -421,3 +421,115 @@ def test_the_recorder_outlives_its_runner_without_a_traceback(tmp_path, domain_i
     assert recorder.returncode == 0, err
     assert "Traceback" not in err and "BrokenPipe" not in err, err
     assert (bag / "metadata.yaml").is_file()
+
+
+# -- through the driver and the virtual rig (the wall clock: realtime) -------------------
+
+def _driver_graph(tmp_path, domain_id, *args: str):
+    from test_driver import start_rig
+
+    rig = start_rig(tmp_path)
+    bag = tmp_path / "bag"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
+    graph = subprocess.Popen(
+        [sys.executable, "-m", "pisc_bringup.graph", "--driver", rig.device, "--bag", str(bag),
+         "--realtime", "40", *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    return rig, bag, graph
+
+
+@pytest.mark.realtime
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_to_a_driver_run_zeroes_the_rig_and_ends_cleanly(tmp_path, domain_id,
+                                                                  signum):
+    rig, bag, graph = _driver_graph(tmp_path, domain_id, "--duration", "30")
+    try:
+        _started(graph, bag)
+        graph.send_signal(signum)
+        out, err = graph.communicate(timeout=120)
+        status = rig.status()
+    finally:
+        if graph.poll() is None:
+            graph.kill()
+        rig.stop()
+    assert graph.returncode == 128 + signum, (out, err)
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
+    assert "interrupted at t = " in out, out
+    assert status["last_byte"] == 0 and status["applied_v"] == 0.0, status  # 0 V last
+    assert index_problems(next(bag.glob("*.mcap"))) == []
+    assert summarise_bag(bag, 0.005).cycles > 50
+
+
+@pytest.mark.realtime
+def test_a_port_that_goes_away_ends_the_run_within_its_retry_naming_it(tmp_path, domain_id):
+    """The issue: the virtual rig killed mid-run (--duration 30): pisc_graph ran on past
+    120 s, printing nothing. Now it says so at once, waits --port-retry, names the port,
+    keeps the bag, exit status 4."""
+    rig, bag, graph = _driver_graph(tmp_path, domain_id, "--duration", "30",
+                                    "--port-retry", "2")
+    try:
+        _started(graph, bag)
+        device = rig.device
+        rig.process.kill()
+        killed = time.monotonic()
+        out, err = graph.communicate(timeout=60)
+        took = time.monotonic() - killed
+    finally:
+        if graph.poll() is None:
+            graph.kill()
+        rig.stop()
+    assert graph.returncode == 4, (out, err)
+    assert f"{device} went away" in err and f"{device} did not come back" in err, err
+    assert took < 2.0 + 10.0, took  # the retry, then the stop and the bag's finish
+    assert "Traceback" not in err, err
+    assert index_problems(next(bag.glob("*.mcap"))) == []
+    assert summarise_bag(bag, 0.005).cycles > 50
+
+
+# -- the smaller cases: each refused with a message naming it ----------------------------
+
+def test_a_domain_id_fast_dds_cannot_map_is_refused_before_anything_starts(tmp_path, capsys):
+    from pisc_bringup.graph import main
+
+    bag = tmp_path / "refused"
+    assert main(["--domain-id", "300", "--bag", str(bag), "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err == ("pisc_graph: invalid configuration: --domain-id 300: must be 0 .. 232 "
+                   "(Fast DDS's ports for a larger id are past 65535)\n")
+    assert not bag.exists()
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--seed", "-1"], "--seed -1: must be an integer 0 .. 9223372036854775807"),
+    (["--draws", "1000000000000000"],
+     "--draws 1000000000000000: at most 10,000,000 (each draw is held in memory; run more "
+     "as several seeds)"),
+])
+def test_robustness_refuses_a_seed_or_a_draw_count_it_cannot_take(capsys, args, message):
+    from pisc_bringup.robustness_cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["default", *args])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.rstrip().endswith(message), err
+    assert "Traceback" not in err
+
+
+def test_a_number_in_e_notation_is_a_number_as_ros_reads_it():
+    from pisc_msgs_py.config import parse_overrides
+    from pisc_sim.configuration import load_run_config
+
+    assert parse_overrides(["rig.cart_mass_kg=5e-1", "a=-2E+2", "b=.5e1", "c=5",
+                            "d=e5"]) == {"rig.cart_mass_kg": 0.5, "a": -200.0, "b": 5.0,
+                                         "c": 5, "d": "e5"}
+    config, flat, _ = load_run_config("default", parse_overrides(["rig.cart_mass_kg=5e-1"]))
+    assert flat["rig.cart_mass_kg"] == 0.5
+
+
+def test_the_virtual_rig_refuses_a_silence_longer_than_an_hour():
+    from pisc_plant.virtual_rig import RequestError, check_request
+
+    assert check_request({"silence_s": 3600})["silence_s"] == 3600.0
+    with pytest.raises(RequestError, match=r"silence_s = 1e\+308 is too long \(seconds "
+                                           r"without frames, 0 \.\. 3600\)"):
+        check_request({"silence_s": 1e308})
