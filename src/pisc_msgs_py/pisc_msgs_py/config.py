@@ -288,14 +288,20 @@ def load_yaml(text: Any) -> Any:
 def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
     """``NAME=VALUE`` command-line overrides to flat parameters, values read as YAML.
 
-    Raises :class:`ConfigError` for an item without ``=`` or without a name.
+    Raises :class:`ConfigError` for an item without ``=`` or without a name, or whose
+    value is not YAML.
     """
     out: dict[str, Any] = {}
     for item in items:
         name, sep, value = item.partition("=")
         if not sep or not name.strip():
             raise ConfigError(f"--set {item!r}: expected NAME=VALUE")
-        out[name.strip()] = load_yaml(value)
+        try:
+            out[name.strip()] = load_yaml(value)
+        except yaml.YAMLError as exc:
+            problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML ({problem})"
+                              ) from None
     return out
 
 
