@@ -907,7 +907,6 @@ def run_graph(options: RunOptions) -> RunResult:
                       subprocess.PIPE, batch_scheduling=True)
     children: list[subprocess.Popen] = []
     interrupt = Interrupt()  # SIGINT, SIGTERM: a clean end (run_guard)
-    interrupt.install()
     context = Context()
     rclpy.init(context=context, domain_id=options.domain_id,
                signal_handler_options=SignalHandlerOptions.NO)
@@ -948,6 +947,7 @@ def run_graph(options: RunOptions) -> RunResult:
     executor: Any = None
     published: dict[str, int] = {}
     finished = False
+    interrupt.install()
     try:
         interrupt.armed = True  # a signal from now until the spin raises KeyboardInterrupt
         if interrupt.signum is not None:
