@@ -533,3 +533,41 @@ def test_the_virtual_rig_refuses_a_silence_longer_than_an_hour():
     with pytest.raises(RequestError, match=r"silence_s = 1e\+308 is too long \(seconds "
                                            r"without frames, 0 \.\. 3600\)"):
         check_request({"silence_s": 1e308})
+
+
+def test_the_summary_flags_a_voltage_before_its_sample_and_a_foreign_publisher():
+    """The issue: a summary printed a negative sample-to-voltage median (-0.904 ms) and
+    nothing flagged it; a bag with a foreign publisher was CAUGHT."""
+    import numpy as np
+
+    from pisc_bringup.summary import HoldCriteria, RunTables, Table, summarise_tables
+
+    n = 10
+    stamps = np.arange(n, dtype=np.int64) * PERIOD_NS
+    published = stamps + 10**12
+
+    def table(publish, values) -> Table:
+        return Table(stamps.copy(), publish, np.asarray(values, dtype=np.float64))
+
+    tables = RunTables(
+        joints=table(published, np.zeros((n, 2))),
+        state=table(published, np.zeros((n, 2))),
+        current=table(published, np.zeros((n, 1))),
+        setpoint=table(published, np.zeros((n, 1))),
+        # three voltages published 0.9 ms before their sample
+        voltage=table(published + np.array([-900_000] * 3 + [200_000] * (n - 3)),
+                      np.zeros((n, 1))),
+        true=table(published, np.zeros((n, 2))),
+        modes=[(0, Mode.CATCH, "")])
+    hold = HoldCriteria(start_s=0.0)
+    summary = summarise_tables(tables, 0.005, hold)
+    assert summary.negative_latencies == 3 and summary.caught
+    assert ("TIMES                  3 cycles whose voltage was published before their "
+            "sample: not the graph's own timing (another publisher, or a clock that "
+            "stepped back)") in summary.format().splitlines()
+    tables.foreign.append("/pisc/motor/current_setpoint: /visitor")
+    summary = summarise_tables(tables, 0.005, hold)
+    assert not summary.caught
+    lines = summary.format().splitlines()
+    assert "FOREIGN PUBLISHER      /pisc/motor/current_setpoint: /visitor" in lines
+    assert lines[-1] == "result                 NOT CAUGHT"
