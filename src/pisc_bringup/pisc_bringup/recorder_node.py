@@ -144,7 +144,7 @@ class RecorderNode(Node):
         ('' for none: then only more matched than the run has is one, unnamed)."""
         names = set()
         for i in self.get_publishers_info_by_topic(topic):
-            if i.node_name in self._own:
+            if i.node_name in self._own or not self._own:  # (no names: by the count alone)
                 continue
             names.add(UNNAMED if i.node_name.startswith("_NODE_NAME_UNKNOWN")
                       else f"{i.node_namespace.rstrip('/')}/{i.node_name}")
@@ -265,8 +265,11 @@ class RecorderNode(Node):
         found = [(name, self._others(name, self._subs[name].get_publisher_count()))
                  for name in self._expected]
         for name, who in [*found, *told]:
-            if name in self._subs and name not in self._contested and who:
-                self._contested[name] = [0, who]
+            if name not in self._subs or not who or f"{name}: {who}" in self.foreign:
+                continue
+            marked = self._contested.get(name)
+            if marked is None or (marked[1] == UNNAMED and who != UNNAMED):
+                self._contested[name] = [0 if marked is None else marked[0], who]
                 self._mark(time.time_ns(), name, who,
                            self._subs[name].get_publisher_count(), "")
         for name, (taken, who) in list(self._contested.items()):
