@@ -28,7 +28,9 @@ KEYS = {
     "rosbags": "python3-rosbags", "optuna": "python3-optuna", "dask": "python3-dask",
     "distributed": "python3-distributed", "tqdm": "python3-tqdm", "PIL": "python3-pil",
     "imageio_ffmpeg": "python3-imageio-ffmpeg", "llvmlite": "python3-llvmlite",
-    "sqlalchemy": "python3-sqlalchemy",
+    "sqlalchemy": "python3-sqlalchemy", "gymnasium": "python3-gymnasium",
+    "cmaes": "python3-cmaes", "foxglove": "python3-foxglove-sdk", "websockets": "python3-websockets",
+    "google": "python3-protobuf",
 }
 
 #: Dependencies the architecture forbids: (package, package it must not use, why).
@@ -37,6 +39,7 @@ FORBIDDEN = [
     ("pisc_driver", "pisc_plant", "the driver runs on a rig computer without the simulator"),
     ("pisc_model", "pisc_plant", "the model is what the simulator builds on"),
     ("pisc_analysis", "pisc_bringup", "the analysis needs no launch package"),
+    ("pisc_gym", "rclpy", "the environments run where learning libraries do, without ROS"),
 ]
 
 

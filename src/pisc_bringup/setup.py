@@ -24,6 +24,7 @@ setup(
     entry_points={
         'console_scripts': [
             'markers_node = pisc_bringup.markers_node:main',
+            'pisc_foxglove = pisc_bringup.foxglove_node:main',
             'pisc_graph = pisc_bringup.graph:main',
             'pisc_record = pisc_bringup.record:main',
             'pisc_integrators = pisc_bringup.integrators_cli:main',

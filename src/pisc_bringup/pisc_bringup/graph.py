@@ -378,6 +378,7 @@ class RunOptions:
     plant_config: str | None = None
     plant_overrides: dict[str, Any] = field(default_factory=dict)
     markers: bool = False  # also run the markers node and record /pisc/markers
+    foxglove_port: int | None = None  # serve the run live to Foxglove on this port
     # the launch file declaring the graph (a path); None: sim.launch.xml, or
     # rig.launch.xml with driver_port
     launch: str | None = None
@@ -886,6 +887,20 @@ def run_graph(options: RunOptions) -> RunResult:
     # the recorder announces in this file that it has matched every publisher of the run
     ready_dir = tempfile.TemporaryDirectory(prefix="pisc_graph-")
     ready = Path(ready_dir.name) / "recorder-ready"
+    bridge = None
+    if options.foxglove_port is not None:  # refused (a port in use) before the bag exists
+        from pisc_bringup import foxglove_node
+
+        write_params_file(Path(ready_dir.name) / "foxglove.yaml", flat)
+        bridge = _spawn(foxglove_node.command(options.foxglove_port,
+                                              Path(ready_dir.name) / "foxglove.yaml"),
+                        env, subprocess.PIPE)
+        try:
+            foxglove_node.wait_serving(bridge, options.foxglove_port,
+                                       lambda: _stderr_of(bridge))
+        except ConfigError:
+            ready_dir.cleanup()
+            raise
     publishers = list(graph.nodes)
     if lockstep and not driver:  # the plant waits on its progress (RECORDER_LAG_SAMPLES)
         topic_args += [arg for t in recorded if t in SAMPLE_TOPICS
@@ -1057,6 +1072,8 @@ def run_graph(options: RunOptions) -> RunResult:
         context.try_shutdown()
         guard.tell(marks)  # before the recorder finishes the bag
         recorder_problem, recorder_output = _stop(recorder)
+        if bridge is not None:
+            _stop(bridge, hang_is_failure=False)
         ready_dir.cleanup()
         interrupt.restore()
     failed = [f for f in failures if f]
@@ -1474,6 +1491,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--markers", action="store_true",
                         help="also run the markers node (the rig on /pisc/markers for RViz "
                         "and Foxglove, docs/markers.md) and record its topic")
+    parser.add_argument("--foxglove", type=int, nargs="?", const=8765, metavar="PORT",
+                        help="serve the run live to Foxglove on ws://127.0.0.1:PORT "
+                        "(default 8765; docs/foxglove.md)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="override a parameter, e.g. --set swing_up.k_v=0.1")
     parser.add_argument("--plant-config", metavar="CONFIG",
@@ -1534,7 +1554,7 @@ def main(argv: list[str] | None = None) -> int:
                          domain_id=args.domain_id, driver_port=args.driver, record=record,
                          plant_config=args.plant_config, plant_overrides=plant_overrides,
                          markers=args.markers, launch=args.launch,
-                         port_retry_s=args.port_retry)
+                         port_retry_s=args.port_retry, foxglove_port=args.foxglove)
     try:
         result = run_graph(options)
     except ConfigError as exc:

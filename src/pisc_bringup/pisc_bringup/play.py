@@ -49,8 +49,12 @@ def playback_plan(messages: Iterable[RawMessage], clock_topic: str = "/clock") -
 
 
 def play_bag(bag: str | Path, rate: float = 1.0, topics: Sequence[str] | None = None,
-             wait_subscribers_s: float = 0.0, domain_id: int | None = None) -> dict[str, int]:
-    """Publish the bag; returns the messages published per topic (``/clock`` included)."""
+             wait_subscribers_s: float = 0.0, domain_id: int | None = None,
+             foxglove_port: int | None = None) -> dict[str, int]:
+    """Publish the bag; returns the messages published per topic (``/clock`` included).
+    ``foxglove_port``: also serve each message to Foxglove as it is played
+    (:class:`pisc_bringup.foxglove_live.LiveServer`, the rig drawn from the bag's
+    parameter file)."""
     import rclpy
     from rclpy.context import Context
     from rclpy.duration import Duration
@@ -69,6 +73,17 @@ def play_bag(bag: str | Path, rate: float = 1.0, topics: Sequence[str] | None = 
         raise BagError(f"{bag}: no stamped message to play"
                        + (f" on {', '.join(topics)}" if topics else ""))
     qos = {t.name: t.qos for t in GRAPH_TOPICS}
+    live = None
+    if foxglove_port is not None:  # refused (a port in use) before anything is played
+        from pisc_bringup.foxglove_live import LiveServer
+        from pisc_bringup.foxglove_node import scene_of
+
+        params = sorted(Path(bag).glob("*.yaml"))
+        params = [p for p in params if p.name != "metadata.yaml"]
+        if not params:
+            raise BagError(f"{bag}: no parameter file to draw the rig from (--foxglove)")
+        live = LiveServer(foxglove_port, scene_of(params[0]))
+        print(f"serving ws://127.0.0.1:{live.port}", flush=True)
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     node = Node("pisc_play", context=context)
@@ -104,11 +119,15 @@ def play_bag(bag: str | Path, rate: float = 1.0, topics: Sequence[str] | None = 
                 published[CLOCK.name] += 1
             publishers[item.topic].publish(item.data)
             published[item.topic] += 1
+            if live is not None:
+                live.publish(item.topic, item.data)
         for publisher in publishers.values():  # reliable subscribers get everything
             publisher.wait_for_all_acked(Duration(seconds=5.0))
     finally:
         node.destroy_node()
         context.try_shutdown()
+        if live is not None:
+            live.close()
     return published
 
 
@@ -123,11 +142,15 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--wait-subscribers", type=float, default=2.0, metavar="S",
                         help="wait up to S seconds for a subscriber on every played topic")
     parser.add_argument("--domain-id", type=int, help="ROS domain id (default: environment)")
+    parser.add_argument("--foxglove", type=int, nargs="?", const=8765, metavar="PORT",
+                        help="also serve the played messages to Foxglove on "
+                        "ws://127.0.0.1:PORT (default 8765; docs/foxglove.md)")
 
 
 def run(args: Any) -> int:
     started = time.monotonic()
-    counts = play_bag(args.bag, args.rate, args.topic, args.wait_subscribers, args.domain_id)
+    counts = play_bag(args.bag, args.rate, args.topic, args.wait_subscribers, args.domain_id,
+                      args.foxglove)
     print(f"played {args.bag} in {time.monotonic() - started:.1f} s of wall time:")
     for topic, count in counts.items():
         print(f"  {topic} {count}")

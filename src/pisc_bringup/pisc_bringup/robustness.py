@@ -29,45 +29,106 @@ from pisc_msgs_py.config import from_flat, to_flat
 from pisc_model.params import InitialParams
 from pisc_plant.plant import PlantConfig, plant_set
 
-__all__ = ["CHUNK_DRAWS", "FAILURES", "Criteria", "Outcomes", "base_plant", "load_benchmark",
+__all__ = ["CHUNK_DRAWS", "FAILURES", "TIERS", "Criteria", "Outcomes", "base_plant", "load_benchmark",
            "binomial_interval", "evaluate", "evaluate_chunk", "prepare", "rerun_command",
            "success_by_value"]
 
 CHUNK_DRAWS = 1000
-#: The kinds of failure, in the order :meth:`Outcomes.kinds` checks them: a draw that
-#: both faulted and was never caught counts as a fault.
-FAILURES = ("fault: cart left the safe range", "fault", "never caught", "caught, then lost",
+#: The benchmark's tiers, each within the one before it: a fast draw is caught, a caught
+#: draw is safe.
+TIERS = ("safe", "caught", "fast")
+#: The kinds of failure, in the order :meth:`Outcomes.kinds` checks them. The first two
+#: fail every tier; the others fail "caught" or "fast" by that tier's deadline and window.
+FAILURES = ("cart left the safe range", "fault", "never caught", "caught, then lost",
             "caught for good too late", "not held")
 INITIAL = ("initial.x_m", "initial.x_dot_mps", "initial.theta_rad", "initial.theta_dot_radps")
 
 
 @dataclass(frozen=True)
 class Criteria:
-    """What a successful run is (issue 13): caught by ``catch_by_s`` in the catch that
-    lasts, held with |theta| < ``theta_rad`` and |x| < ``x_m`` from ``hold_start_s`` to
-    the end of ``duration_s``, never outside the safe range, no fault."""
+    """The benchmark's three tiers, judged on each draw's true state over a run of
+    ``run_s``:
 
-    duration_s: float = 10.0
-    catch_by_s: float = 3.0
-    hold_start_s: float = 6.0
+    * **safe**: the cart inside the safe range at every sample and no fault, over the
+      whole run (on the rig, the cart never meets an end stop);
+    * **caught**: safe, caught for good (in the catch that lasts to the end of the run)
+      by ``catch_by_s``, and held, |theta| < ``theta_rad`` and |x| < ``x_m`` at every
+      sample from ``hold_from_s`` to the end;
+    * **fast**: the same with ``fast_by_s`` and ``fast_hold_from_s``.
+
+    Each argument that makes no sense is refused with a :class:`ValueError` naming it
+    (with its command-line option).
+    """
+
+    run_s: float = 12.0
+    catch_by_s: float = 8.0
+    hold_from_s: float = 9.0
+    fast_by_s: float = 3.0
+    fast_hold_from_s: float = 6.0
     theta_rad: float = 0.05
     x_m: float = 0.02
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.duration_s) and self.duration_s > self.hold_start_s > 0):
-            raise ValueError(f"duration {self.duration_s} s must exceed the hold's start "
-                             f"{self.hold_start_s} s")
+        names = {"run_s": "--run-s", "catch_by_s": "--catch-by", "hold_from_s": "--hold-from",
+                 "fast_by_s": "--fast-by", "fast_hold_from_s": "--fast-hold-from",
+                 "theta_rad": "the hold's |theta|", "x_m": "the hold's |x|"}
+        for name, option in names.items():
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{option} {value}: a positive number of "
+                                 f"{'s' if name.endswith('_s') else 'rad' if 'theta' in name else 'm'}")
+        for by, hold, tier in (("catch_by_s", "hold_from_s", "caught"),
+                               ("fast_by_s", "fast_hold_from_s", "fast")):
+            deadline, window = getattr(self, by), getattr(self, hold)
+            if deadline > self.run_s:
+                raise ValueError(f"{names[by]} {deadline:g} s is past {names['run_s']} "
+                                 f"{self.run_s:g} s: the {tier} tier's catch could never "
+                                 "be seen")
+            if not window < self.run_s:
+                raise ValueError(f"{names[hold]} {window:g} s is not inside the run "
+                                 f"({names['run_s']} {self.run_s:g} s): the {tier} tier's "
+                                 "hold window would be empty")
+            if window < deadline:
+                raise ValueError(f"{names[hold]} {window:g} s is before {names[by]} "
+                                 f"{deadline:g} s: the {tier} tier would ask for a hold "
+                                 "before its catch")
+        if self.fast_by_s > self.catch_by_s or self.fast_hold_from_s > self.hold_from_s:
+            raise ValueError(f"the fast tier ({names['fast_by_s']} {self.fast_by_s:g} s, "
+                             f"{names['fast_hold_from_s']} {self.fast_hold_from_s:g} s) must "
+                             f"be within the caught tier ({names['catch_by_s']} "
+                             f"{self.catch_by_s:g} s, {names['hold_from_s']} "
+                             f"{self.hold_from_s:g} s)")
+
+    def rule(self, tier: str) -> tuple[float, float]:
+        """(catch deadline, start of the hold window) of the tier "caught" or "fast"."""
+        if tier == "caught":
+            return self.catch_by_s, self.hold_from_s
+        if tier == "fast":
+            return self.fast_by_s, self.fast_hold_from_s
+        raise ValueError(f"tier {tier!r}: 'caught' or 'fast'")
+
+    def describe(self) -> list[str]:
+        """The tiers' rules in words, a line each."""
+        box = f"|theta| < {self.theta_rad:g} rad and |x| < {self.x_m:g} m"
+        return [f"safe: inside the safe range at every sample, no fault, for the whole "
+                f"{self.run_s:g} s run"]+ [
+                f"{tier}: safe, caught for good by {by:g} s, held ({box}) from {hold:g} s "
+                f"to {self.run_s:g} s" for tier, (by, hold) in
+                (("caught", self.rule("caught")), ("fast", self.rule("fast")))]
 
 
 @dataclass(frozen=True)
 class Outcomes:
-    """Per-draw results, in draw order."""
+    """Per-draw results, in draw order; the tiers' verdicts as the criteria judged them."""
 
-    success: np.ndarray
+    safe: np.ndarray
+    caught: np.ndarray
+    fast: np.ndarray
     caught_at_s: np.ndarray  # start of the catch that lasts; inf if none
     first_catch_s: np.ndarray
     largest_x_m: np.ndarray  # largest |x| over the run (true state)
-    hold_theta_rad: np.ndarray
+    unheld_at_s: np.ndarray  # the last sample outside the hold box; -inf if none
+    hold_theta_rad: np.ndarray  # largest |theta| from the caught tier's hold window on
     hold_x_m: np.ndarray
     hold_setpoint_rms_a: np.ndarray
     faulted: np.ndarray
@@ -79,43 +140,66 @@ class Outcomes:
                           for f in Outcomes.__dataclass_fields__))
 
     def __len__(self) -> int:
-        return len(self.success)
+        return len(self.safe)
 
-    @property
-    def rate(self) -> float:
-        return float(np.mean(self.success))
+    def passed(self, tier: str) -> np.ndarray:
+        """The draws that pass ``tier`` (one of :data:`TIERS`)."""
+        if tier not in TIERS:
+            raise ValueError(f"tier {tier!r}: one of {', '.join(TIERS)}")
+        return getattr(self, tier)
 
-    def kinds(self, criteria: Criteria) -> np.ndarray:
-        """Each draw's failure as an index into :data:`FAILURES`; -1 for a success."""
+    def rates(self) -> dict[str, float]:
+        """Each tier's fraction of the draws."""
+        return {tier: float(np.mean(self.passed(tier))) for tier in TIERS}
+
+    def score(self) -> float:
+        """One number that orders configurations by safe first, then caught, then fast:
+        one more safe draw outweighs any number of caught ones, one more caught draw any
+        number of fast ones. In [0, 1]; 1 when every draw is fast."""
+        n = len(self)
+        counts = [int(np.sum(self.passed(t))) for t in TIERS]
+        base = float(n + 1)
+        return (counts[0] * base * base + counts[1] * base + counts[2]) / (
+            n * (base * base + base + 1.0))
+
+    def kinds(self, criteria: Criteria, tier: str = "fast") -> np.ndarray:
+        """Each draw's failure of ``tier`` as an index into :data:`FAILURES`; -1 where it
+        passes. A draw that both faulted and was never caught counts as a fault."""
         never = ~np.isfinite(self.caught_at_s)
+        if tier == "safe":
+            return np.select([self.safe, self.left_range], [-1, 0], 1)
+        by, hold = criteria.rule(tier)
         return np.select(
-            [self.success, self.left_range, self.faulted,
-             never & ~np.isfinite(self.first_catch_s), never,
-             self.caught_at_s > criteria.catch_by_s],
+            [self.passed(tier), self.left_range, self.faulted,
+             never & ~np.isfinite(self.first_catch_s), never, self.caught_at_s > by],
             [-1, 0, 1, 2, 3, 4], 5)
 
-    def why(self, k: int, criteria: Criteria) -> str:
-        """In words, why draw ``k`` failed (empty for a success)."""
-        kind = int(self.kinds(criteria)[k])
+    def why(self, k: int, criteria: Criteria, tier: str = "fast") -> str:
+        """In words, why draw ``k`` failed ``tier`` (empty where it passed)."""
+        kind = int(self.kinds(criteria, tier)[k])
         if kind < 0:
             return ""
+        if kind == 0:
+            return f"cart left the safe range (|x| up to {self.largest_x_m[k]:.3f} m)"
         if kind == 3:
             return f"caught at {self.first_catch_s[k]:.2f} s, lost"
         if kind == 4:
             return f"caught for good only at {self.caught_at_s[k]:.2f} s"
         if kind == 5:
-            return (f"not held: |theta| up to {self.hold_theta_rad[k]:.3f} rad, |x| up to "
-                    f"{self.hold_x_m[k]:.3f} m")
+            return f"not held: outside the hold box until {self.unheld_at_s[k]:.2f} s"
         return FAILURES[kind]
 
-    def badness(self, criteria: Criteria) -> np.ndarray:
-        """A ranking of failures, worst first when sorted in descending order."""
+    def badness(self, criteria: Criteria, tier: str = "fast") -> np.ndarray:
+        """A ranking of ``tier``'s failures, worst first when sorted in descending order;
+        0 where the draw passes."""
         never = ~np.isfinite(self.caught_at_s)
-        late = np.where(never, 0.0, np.maximum(self.caught_at_s - criteria.catch_by_s, 0.0))
-        hold = np.where(never, 0.0, self.hold_theta_rad / criteria.theta_rad
-                        + self.hold_x_m / criteria.x_m)
-        return (~self.success) * (4.0 * (self.faulted | self.left_range) + 2.0 * never
-                                  + np.minimum(late, 1.0) + np.minimum(hold, 1.0))
+        if tier == "safe":
+            return (~self.safe) * (1.0 + self.largest_x_m)
+        by, hold = criteria.rule(tier)
+        late = np.where(never, 0.0, np.maximum(self.caught_at_s - by, 0.0))
+        unheld = np.where(never, 0.0, np.maximum(self.unheld_at_s - hold, 0.0))
+        return (~self.passed(tier)) * (4.0 * (self.faulted | self.left_range) + 2.0 * never
+                                       + np.minimum(late, 1.0) + np.minimum(unheld, 1.0))
 
 
 def _chunk_seed(seed: int, chunk: int) -> int:
@@ -133,17 +217,22 @@ def evaluate_chunk(config: GraphConfig, base_plant: PlantConfig, draws: Draws,
     start = [values.get(name, np.full(n, float(getattr(i0, name.split(".")[1]))))
              for name in INITIAL]
     delay = values.get(LATENCY, 0.0)
-    out = simulate_batch(config, start[0], criteria.duration_s, criteria.hold_start_s,
+    out = simulate_batch(config, start[0], criteria.run_s, criteria.hold_from_s,
                          delay, x_dot0_mps=start[1], theta0_rad=start[2],
-                         theta_dot0_radps=start[3], plant=plant, noise_seed=noise_seed)
+                         theta_dot0_radps=start[3], plant=plant, noise_seed=noise_seed,
+                         hold_box=(criteria.theta_rad, criteria.x_m))
     safety = config.supervisor.safety
     left = (out.x_min_m < safety.x_min_m) | (out.x_max_m > safety.x_max_m)
-    success = ((out.caught_at_s <= criteria.catch_by_s)
-               & (out.hold_theta_rad < criteria.theta_rad) & (out.hold_x_m < criteria.x_m)
-               & ~out.faulted & ~left)
+    safe = ~out.faulted & ~left
+
+    def tier(name: str) -> np.ndarray:
+        by, hold = criteria.rule(name)
+        return safe & (out.caught_at_s <= by) & (out.unheld_at_s < hold)
+
     largest = np.maximum(np.abs(out.x_min_m), np.abs(out.x_max_m))
-    return Outcomes(success, out.caught_at_s, out.first_catch_s, largest, out.hold_theta_rad,
-                    out.hold_x_m, out.hold_setpoint_rms_a, out.faulted, left)
+    return Outcomes(safe, tier("caught"), tier("fast"), out.caught_at_s, out.first_catch_s,
+                    largest, out.unheld_at_s, out.hold_theta_rad, out.hold_x_m,
+                    out.hold_setpoint_rms_a, out.faulted, left)
 
 
 MapChunks = Callable[[Callable[..., Outcomes], Sequence[tuple[Any, ...]]], list[Outcomes]]

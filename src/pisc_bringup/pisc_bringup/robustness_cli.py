@@ -1,11 +1,13 @@
-"""pisc_robustness: how often a configuration swings up and holds rigs drawn from a
-distribution of what is not known about the rig (docs/robustness.md).
+"""pisc_robustness: how often a configuration keeps rigs drawn from a distribution of
+what is not known about the rig safe, catches them and catches them fast
+(docs/robustness.md).
 
     pisc_robustness default --distribution thesis-rig --draws 10000 --seed 1
 
-Prints the success rate with its 95 % interval, the failures by kind, the catch time,
-the largest |x|, the hold's current set-point RMS, the wall time, and the worst draws
-with the command that reruns each through the ROS graph; writes
+Prints the three tiers (safe, caught, fast) each with its 95 % interval and its failures
+by kind, the fast tier over the draws a feasibility study found a witness for, the catch
+time, the largest |x|, the hold's current set-point RMS, the wall time, and each tier's
+worst draws with the command that reruns each through the ROS graph; writes
 ``DIR/success_by_parameter.png``. The same seed gives the same numbers.
 """
 
@@ -55,6 +57,17 @@ def add_run_arguments(parser: argparse.ArgumentParser, draws: int) -> None:
                         "(default: %(default)s)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="override a parameter of the configuration (repeatable)")
+    rules = parser.add_argument_group("the tiers' rules")
+    rules.add_argument("--run-s", type=float, default=12.0, metavar="S",
+                       help="length of each run (default: %(default)s)")
+    rules.add_argument("--catch-by", type=float, default=8.0, metavar="S",
+                       help="caught: caught for good by this time (default: %(default)s)")
+    rules.add_argument("--hold-from", type=float, default=9.0, metavar="S",
+                       help="caught: held from this time to the end (default: %(default)s)")
+    rules.add_argument("--fast-by", type=float, default=3.0, metavar="S",
+                       help="fast: caught for good by this time (default: %(default)s)")
+    rules.add_argument("--fast-hold-from", type=float, default=6.0, metavar="S",
+                       help="fast: held from this time to the end (default: %(default)s)")
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, metavar="N",
                        help="0: in this process, without Dask; N: a local Dask cluster of N "
@@ -70,7 +83,11 @@ MAX_DRAWS = 10_000_000
 MAX_SEED = 2**63 - 1  # numpy's seeds are non-negative integers
 
 
-def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace
+                        ) -> Criteria:
+    """Refuse what makes no sense, naming it; the tiers' rules as :class:`Criteria`."""
+    from pisc_bringup.robustness import Criteria
+
     if args.draws < 1:
         parser.error(f"--draws {args.draws}: at least 1")
     if args.draws > MAX_DRAWS:
@@ -80,6 +97,12 @@ def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespac
         parser.error(f"--seed {args.seed}: must be an integer 0 .. {MAX_SEED}")
     if args.workers is not None and args.workers < 0:
         parser.error(f"--workers {args.workers}: 0 (in this process) or more")
+    try:
+        return Criteria(run_s=args.run_s, catch_by_s=args.catch_by,
+                        hold_from_s=args.hold_from, fast_by_s=args.fast_by,
+                        fast_hold_from_s=args.fast_hold_from)
+    except ValueError as exc:
+        parser.error(str(exc))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,13 +114,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="show the K worst draws (default: %(default)s)")
     quiet_threads()
     args = parser.parse_args(argv)
-    check_run_arguments(parser, args)
+    criteria = check_run_arguments(parser, args)
     if args.worst < 0:
         parser.error(f"--worst {args.worst}: 0 or more")
 
     from pisc_bringup.cluster import chunk_runner, default_workers, describe_runner
     from pisc_sim.configuration import config_path
-    from pisc_bringup.robustness import CHUNK_DRAWS, Criteria, evaluate, load_benchmark
+    from pisc_bringup.robustness import CHUNK_DRAWS, evaluate, load_benchmark
     from pisc_control.supervisor import Supervisor
     from pisc_msgs_py.config import ConfigError, parse_overrides
     from pisc_msgs_py.progress import progress_bar
@@ -110,14 +133,14 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
-    criteria = Criteria()
     chunks = -(-args.draws // CHUNK_DRAWS)
     workers = (default_workers(chunks) if args.workers is None and not args.scheduler
                else args.workers)
     print(f"configuration {args.config} ({config_path(args.config)})"
           + "".join(f"\n  --set {item}" for item in args.set))
     print(describe_distribution(distribution))
-    print(f"draws {args.draws}, seed {args.seed}; {describe_criteria(criteria)}")
+    print(f"draws {args.draws}, seed {args.seed}; the tiers:")
+    print("\n".join(f"  {line}" for line in criteria.describe()))
     start = time.perf_counter()
     try:
         with progress_bar(chunks, "chunk") as bar, \
@@ -130,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(report(outcomes, criteria)))
     print(f"wall time {wall:.1f} s ({describe_runner(workers, args.scheduler)}, {chunks} "
           f"chunk{'s' if chunks != 1 else ''}), "
-          f"{args.draws * criteria.duration_s / wall:.0f} simulated s per wall s")
+          f"{args.draws * criteria.run_s / wall:.0f} simulated s per wall s")
     print("\n".join(worst(outcomes, criteria, draws, distribution, args.config, overrides,
                           args.worst)))
     args.out.mkdir(parents=True, exist_ok=True)
@@ -149,13 +172,6 @@ def describe_distribution(distribution: Distribution) -> str:
     return "\n".join(lines)
 
 
-def describe_criteria(criteria: Criteria) -> str:
-    return (f"success: caught by {criteria.catch_by_s:g} s, held with |theta| < "
-            f"{criteria.theta_rad:g} rad and |x| < {criteria.x_m:g} m from "
-            f"{criteria.hold_start_s:g} s to {criteria.duration_s:g} s, inside the safe range, "
-            "no fault")
-
-
 def percentiles(values: np.ndarray, unit: str, digits: int = 3) -> str:
     if values.size == 0:
         return "none"
@@ -166,44 +182,70 @@ def percentiles(values: np.ndarray, unit: str, digits: int = 3) -> str:
 
 def report(outcomes: Outcomes, criteria: Criteria) -> list[str]:
     """The summary lines (everything but the wall time and the worst draws)."""
-    from pisc_bringup.robustness import FAILURES, binomial_interval
+    from pisc_bringup.robustness import FAILURES, TIERS, binomial_interval
 
     n = len(outcomes)
-    wins = int(np.sum(outcomes.success))
-    low, high = binomial_interval(wins, n)
-    lines = [f"success {wins} of {n} = {100 * wins / n:.2f} % (95 % interval "
-             f"{100 * low:.2f} .. {100 * high:.2f} %)"]
-    kinds = outcomes.kinds(criteria)
-    counts = [(int(np.sum(kinds == k)), name) for k, name in enumerate(FAILURES)]
-    failures = [f"{name} {count}" for count, name in counts if count]
-    lines.append("failures: " + (", ".join(failures) if failures else "none"))
+    lines = []
+    for tier in TIERS:
+        wins = int(np.sum(outcomes.passed(tier)))
+        low, high = binomial_interval(wins, n)
+        kinds = outcomes.kinds(criteria, tier)
+        counts = [(int(np.sum(kinds == k)), name) for k, name in enumerate(FAILURES)]
+        failures = ", ".join(f"{name} {count}" for count, name in counts if count)
+        lines.append(f"{tier:6s} {wins} of {n} = {100 * wins / n:.2f} % (95 % interval "
+                     f"{100 * low:.2f} .. {100 * high:.2f} %); failures: "
+                     + (failures or "none"))
     caught = outcomes.caught_at_s[np.isfinite(outcomes.caught_at_s)]
-    lines.append(f"catch time ({caught.size} caught): {percentiles(caught, 's', 2)}")
+    lines.append(f"catch time ({caught.size} caught for good): {percentiles(caught, 's', 2)}")
     lines.append(f"largest |x| (all draws): {percentiles(outcomes.largest_x_m, 'm')}")
-    rms = outcomes.hold_setpoint_rms_a[outcomes.success]
-    lines.append("hold's current set-point RMS (successes): " + (
+    rms = outcomes.hold_setpoint_rms_a[outcomes.caught]
+    lines.append(f"hold's current set-point RMS from {criteria.hold_from_s:g} s (caught): " + (
         "none" if rms.size == 0 else
         f"median {np.median(rms):.4f} A, p95 {np.percentile(rms, 95):.4f} A"))
     return lines
 
 
+def witnessed_report(outcomes: Outcomes, witnessed: np.ndarray, source: str) -> list[str]:
+    """The fast tier over the draws a feasibility study found a witness for."""
+    from pisc_bringup.robustness import binomial_interval
+
+    n = int(np.sum(witnessed))
+    wins = int(np.sum(outcomes.fast & witnessed))
+    if n == 0:
+        return [f"fast over witnessed draws: {source} has no witness"]
+    low, high = binomial_interval(wins, n)
+    return [f"fast over the {n} witnessed of {len(outcomes)} draws ({source}): {wins} = "
+            f"{100 * wins / n:.2f} % (95 % interval {100 * low:.2f} .. {100 * high:.2f} %); "
+            f"safe {int(np.sum(outcomes.safe))} of {len(outcomes)}, fast over all "
+            f"{int(np.sum(outcomes.fast))}"]
+
+
 def worst(outcomes: Outcomes, criteria: Criteria, draws: Draws, distribution: Distribution,
           config: str, overrides: dict[str, Any], k: int) -> list[str]:
-    """The ``k`` worst failures, each with its values and the command that reruns it."""
-    from pisc_bringup.robustness import rerun_command
+    """Each tier's ``k`` worst failures among the draws that pass the tiers before it,
+    each with its values and the command that reruns it."""
+    from pisc_bringup.robustness import TIERS, rerun_command
 
-    badness = outcomes.badness(criteria)
-    order = [int(i) for i in np.argsort(-badness, kind="stable")[:k] if badness[i] > 0]
-    if not order:
-        return ["worst draws: no failure"] if k else []
-    lines = [f"worst {len(order)} draws (the graph draws its own measurement noise):"]
-    for i in order:
-        values = {name: float(f"{v:.6g}") for name, v in draws.one(i).items()}
-        lines.append(f"  draw {i}: {outcomes.why(i, criteria)}")
-        lines += textwrap.wrap(", ".join(f"{name}={v:g}" for name, v in values.items()),
-                               width=100, initial_indent="    ", subsequent_indent="    ",
-                               break_on_hyphens=False)
-        lines.append("    " + rerun_command(config, overrides, distribution.plant, values))
+    lines = []
+    below = np.ones(len(outcomes), dtype=bool)
+    for tier in TIERS:
+        badness = outcomes.badness(criteria, tier) * below
+        order = [int(i) for i in np.argsort(-badness, kind="stable")[:k] if badness[i] > 0]
+        below = below & outcomes.passed(tier)
+        if not k:
+            continue
+        if not order:
+            lines.append(f"worst draws, {tier}: no failure")
+            continue
+        lines.append(f"worst {len(order)} draws, {tier} (the graph draws its own "
+                     "measurement noise):")
+        for i in order:
+            values = {name: float(f"{v:.6g}") for name, v in draws.one(i).items()}
+            lines.append(f"  draw {i}: {outcomes.why(i, criteria, tier)}")
+            lines += textwrap.wrap(", ".join(f"{name}={v:g}" for name, v in values.items()),
+                                   width=100, initial_indent="    ", subsequent_indent="    ",
+                                   break_on_hyphens=False)
+            lines.append("    " + rerun_command(config, overrides, distribution.plant, values))
     return lines
 
 
@@ -219,21 +261,22 @@ def plot_success(path: Path, distribution: Distribution, draws: Draws, outcomes:
     from pisc_bringup.robustness import success_by_value
     from pisc_bringup.uncertainty import unit_of
 
+    from pisc_bringup.robustness import TIERS
+
     ranges = distribution.ranges
     columns = 4
     rows = -(-len(ranges) // columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(3.3 * columns, 2.2 * rows + 0.7),
+    fig, axes = plt.subplots(rows, columns, figsize=(3.3 * columns, 2.2 * rows + 0.9),
                              sharey=True, squeeze=False)
-    overall = 100 * outcomes.rate
+    rates = outcomes.rates()
     short = FuncFormatter(lambda v, _: f"{v:.3g}")
     for ax, r in zip(axes.flat, ranges, strict=False):
         log = r.kind == "factor"
-        edges, rate, count = success_by_value(draws.values[r.name], outcomes.success,
-                                              log=log, span=r.value_range)
-        percent = 100 * np.nan_to_num(rate)
-        ax.stairs(percent, edges, fill=True, alpha=0.3, color="C0")
-        ax.stairs(percent, edges, color="C0", lw=1.2)
-        ax.axhline(overall, color="C3", lw=0.9, ls="--")
+        for color, tier in zip(("C2", "C0", "C1"), TIERS, strict=True):
+            edges, rate, count = success_by_value(draws.values[r.name], outcomes.passed(tier),
+                                                  log=log, span=r.value_range)
+            percent = 100 * np.nan_to_num(rate)
+            ax.stairs(percent, edges, color=color, lw=1.2, label=tier)
         if log:  # factor ranges: log axis, ticks at the ends and the nominal value
             ax.set_xscale("log")
             ax.xaxis.set_major_locator(FixedLocator([*r.value_range, r.nominal]))
@@ -248,12 +291,14 @@ def plot_success(path: Path, distribution: Distribution, draws: Draws, outcomes:
         ax.set_ylim(0, 102)
         ax.set_yticks([0, 25, 50, 75, 100])
         ax.grid(alpha=0.3)
+    axes.flat[0].legend(fontsize=7, loc="lower left")
     for ax in axes[:, 0]:
-        ax.set_ylabel("success [%]", fontsize=8)
+        ax.set_ylabel("draws passing [%]", fontsize=8)
     for ax in list(axes.flat)[len(ranges):]:
         ax.set_visible(False)
-    fig.suptitle(f"{title}\nsuccess in 10 bins of each parameter's value; dashed: all draws, "
-                 f"{overall:.1f} %", fontsize=9)
+    overall = ", ".join(f"{tier} {100 * rates[tier]:.1f} %" for tier in TIERS)
+    fig.suptitle(f"{title}\neach tier in 10 bins of each parameter's value; all draws: "
+                 f"{overall}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

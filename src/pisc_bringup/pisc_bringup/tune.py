@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from pisc_sim.configuration import SECTIONS, load_graph_config
-from pisc_bringup.robustness import Criteria, MapChunks, evaluate, prepare
+from pisc_bringup.robustness import TIERS, Criteria, MapChunks, evaluate, prepare
 from pisc_bringup.uncertainty import Distribution, file_kind
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import (
@@ -252,8 +252,10 @@ class Tuning:
 
 @dataclass(frozen=True)
 class TuneResult:
-    start_success: float
-    best_success: float
+    start_score: float  # Outcomes.score: safe first, then caught, then fast
+    best_score: float
+    start_rates: dict[str, float]  # each tier's fraction of the draws
+    best_rates: dict[str, float]
     best_trial: int
     best_values: dict[str, float]  # by dimension name
     best_flat: dict[str, Any]  # the whole configuration with the best values
@@ -312,11 +314,11 @@ def open_study(tuning: Tuning, storage: str) -> Any:
 
 
 def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None = None,
-         progress: Callable[[int, float], None] | None = None) -> TuneResult:
+         progress: Callable[[int, dict[str, float]], None] | None = None) -> TuneResult:
     """Run the study of ``tuning`` until it holds ``trials`` complete trials.
 
-    ``progress(done, best)`` is called after each trial with the number of complete
-    trials and the best success so far.
+    ``progress(done, rates)`` is called after each trial with the number of complete
+    trials and the tiers' rates of the best trial so far (:meth:`Outcomes.score`).
     """
     start_config, start_flat = load_graph_config(tuning.config, tuning.overrides)
     draws = tuning.distribution.draw(tuning.draws, tuning.seed)
@@ -325,24 +327,25 @@ def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None
     inside = tuning.space.contains(start_values)
     study = open_study(tuning, storage)
 
-    def score(values: Mapping[str, float]) -> tuple[float, str]:
+    def score(values: Mapping[str, float]) -> tuple[float, dict[str, float], str]:
         overrides = {**tuning.overrides, **tuning.space.overrides(start_flat, values)}
         try:
             config, _ = load_graph_config(tuning.config, overrides)
             Supervisor(config.supervisor)  # the gain condition and the catch design
         except ConfigError as exc:
-            return 0.0, str(exc)
+            return 0.0, dict.fromkeys(TIERS, 0.0), str(exc)
         config, _ = prepare(config, tuning.distribution)
         outcomes = evaluate(config, plant, draws, tuning.criteria, tuning.seed, map_chunks)
-        return outcomes.rate, ""
+        return outcomes.score(), outcomes.rates(), ""
 
     def objective(trial: Any) -> float:
         values = {d.name: trial.suggest_float(d.name, d.low, d.high, log=d.log)
                   for d in tuning.space.dimensions}
-        rate, refused = score(values)
+        value, rates, refused = score(values)
+        trial.set_user_attr("rates", rates)
         if refused:
             trial.set_user_attr("refused", refused)
-        return rate
+        return value
 
     from optuna.trial import TrialState
 
@@ -354,7 +357,7 @@ def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None
 
     def callback(study_: Any, trial: Any) -> None:
         if progress is not None:
-            progress(len(complete()), study_.best_value)
+            progress(len(complete()), study_.best_trial.user_attrs.get("rates", {}))
 
     remaining = trials - len(complete())
     if remaining > 0:
@@ -367,15 +370,21 @@ def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None
                           f"with: {refusal}; check the search space")
     best = max(accepted, key=lambda t: t.value)  # the first of equals
     start = next((t for t in done if t.user_attrs.get("start")), None)
-    if start is None and "start_success" not in study.user_attrs:
+    if start is None and "start_score" not in study.user_attrs:
         # outside the space (or its trial was killed): scored once, kept with the study
-        study.set_user_attr("start_success", score(start_values)[0])
-    start_success = (float(start.value) if start is not None
-                     else float(study.user_attrs["start_success"]))
+        value, rates, _ = score(start_values)
+        study.set_user_attr("start_score", value)
+        study.set_user_attr("start_rates", rates)
+    if start is not None:
+        start_score, start_rates = float(start.value), start.user_attrs["rates"]
+    else:
+        start_score = float(study.user_attrs["start_score"])
+        start_rates = study.user_attrs["start_rates"]
     best_values = {d.name: float(best.params[d.name]) for d in tuning.space.dimensions}
     best_flat = full_flat({**start_flat,
                            **tuning.space.overrides(start_flat, best_values)})
-    return TuneResult(start_success, float(best.value), best.number, best_values, best_flat,
+    return TuneResult(start_score, float(best.value), dict(start_rates),
+                      dict(best.user_attrs["rates"]), best.number, best_values, best_flat,
                       len(done), sum(1 for t in done if "refused" in t.user_attrs))
 
 
@@ -394,8 +403,8 @@ def provenance(result: TuneResult, tuning: Tuning, command: str, date: str,
         + ", ".join(d.name for d in tuning.space.dimensions),
         f"draws {tuning.draws}, seed {tuning.seed}, sampler {tuning.sampler}, trials "
         f"{result.trials} ({result.refused} refused by the configuration), study in {storage}",
-        f"success: start {100 * result.start_success:.2f} %, best "
-        f"{100 * result.best_success:.2f} % (trial {result.best_trial}), on the same draws",
+        f"tiers on the same draws: start {_rates(result.start_rates)}; best "
+        f"{_rates(result.best_rates)} (trial {result.best_trial})",
         "best: " + ", ".join(f"{k} = {v:.6g}" for k, v in result.best_values.items()),
     ]
 
@@ -410,6 +419,10 @@ def tuned_file_text(result: TuneResult, tuning: Tuning, command: str, date: str,
     head += provenance(result, tuning, command, date, storage)
     return "".join(f"# {line}\n" for line in head) + params_file_text(
         {k: _plain(v) for k, v in result.best_flat.items()})
+
+
+def _rates(rates: Mapping[str, float]) -> str:
+    return ", ".join(f"{tier} {100 * rates[tier]:.2f} %" for tier in TIERS)
 
 
 def _plain(value: Any) -> Any:

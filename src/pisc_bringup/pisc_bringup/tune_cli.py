@@ -1,5 +1,6 @@
-"""pisc_tune: search the controllers' parameters for the highest success rate over a
-distribution, with Optuna, and write the best as a parameter file (docs/robustness.md).
+"""pisc_tune: search the controllers' parameters over a distribution, safe first, then
+caught, then fast (the benchmark's tiers), with Optuna, and write the best as a parameter
+file (docs/robustness.md).
 
     pisc_tune default --trials 40 --draws 400 --seed 1 --out tuned.yaml
 
@@ -41,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="the tuned parameter file (default: %(default)s)")
     quiet_threads()
     args = parser.parse_args(argv)
-    check_run_arguments(parser, args)
+    criteria = check_run_arguments(parser, args)
     if args.trials < 1:
         parser.error(f"--trials {args.trials}: at least 1")
     command = shlex.join([PROG, *(sys.argv[1:] if argv is None else argv)])
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         distribution = load_distribution(args.distribution, config)
         space = load_space(args.space, flat)
         tuning = Tuning(args.config, overrides, distribution, space, args.draws, args.seed,
-                        args.sampler)
+                        args.sampler, criteria)
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
@@ -82,9 +83,10 @@ def main(argv: list[str] | None = None) -> int:
         with progress_bar(args.trials, "trial", "best -") as bar, \
                 chunk_runner(workers, args.scheduler) as map_chunks:
 
-            def progress(done: int, best: float) -> None:
+            def progress(done: int, best: dict[str, float]) -> None:
                 bar.to(done)
-                bar.describe(f"best {100 * best:.1f} %")
+                bar.describe("best " + "/".join(f"{100 * best.get(t, 0.0):.1f}"
+                                                for t in ("safe", "caught", "fast")) + " %")
 
             result = tune(tuning, args.trials, storage, map_chunks, progress)
     except ConfigError as exc:  # includes a storage of another tuning

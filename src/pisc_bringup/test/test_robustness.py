@@ -26,8 +26,9 @@ from pisc_bringup.uncertainty import load_distribution
 
 def outcomes(**columns) -> Outcomes:
     n = len(next(iter(columns.values())))
-    base = dict(success=np.zeros(n, bool), caught_at_s=np.full(n, 1.0),
-                first_catch_s=np.full(n, 1.0), largest_x_m=np.full(n, 0.05),
+    base = dict(safe=np.ones(n, bool), caught=np.zeros(n, bool), fast=np.zeros(n, bool),
+                caught_at_s=np.full(n, 1.0), first_catch_s=np.full(n, 1.0),
+                largest_x_m=np.full(n, 0.05), unheld_at_s=np.full(n, 1.5),
                 hold_theta_rad=np.full(n, 0.01), hold_x_m=np.full(n, 0.005),
                 hold_setpoint_rms_a=np.full(n, 0.02), faulted=np.zeros(n, bool),
                 left_range=np.zeros(n, bool))
@@ -38,22 +39,60 @@ def outcomes(**columns) -> Outcomes:
 def test_failures_are_told_apart_and_ranked_worst_first():
     c = Criteria()
     o = outcomes(
-        success=[True, False, False, False, False, False, False],
-        left_range=[False, True, False, False, False, False, False],
-        faulted=[False, True, True, False, False, False, False],
-        caught_at_s=[1.0, math.inf, math.inf, math.inf, math.inf, 4.0, 1.0],
-        first_catch_s=[1.0, math.inf, math.inf, math.inf, 2.0, 4.0, 1.0],
-        hold_theta_rad=[0.01, 0, 0, 0, 0, 0.01, 0.2])
-    assert list(o.kinds(c)) == [-1, 0, 1, 2, 3, 4, 5]
+        safe=[True, False, False, True, True, True, True, True],
+        caught=[True, False, False, False, False, False, False, True],
+        fast=[True, False, False, False, False, False, False, False],
+        left_range=[False, True, False, False, False, False, False, False],
+        faulted=[False, True, True, False, False, False, False, False],
+        caught_at_s=[1.0, math.inf, math.inf, math.inf, math.inf, 8.5, 1.0, 4.0],
+        first_catch_s=[1.0, math.inf, math.inf, math.inf, 2.0, 8.5, 1.0, 4.0],
+        unheld_at_s=[1.5, 12.0, 12.0, 12.0, 12.0, 9.0, 10.0, 4.5])
+    assert list(o.kinds(c, "safe")) == [-1, 0, 1, -1, -1, -1, -1, -1]
+    assert list(o.kinds(c, "caught")) == [-1, 0, 1, 2, 3, 4, 5, -1]
+    assert list(o.kinds(c, "fast")) == [-1, 0, 1, 2, 3, 4, 5, 4]
     assert o.why(0, c) == ""
-    assert o.why(1, c) == FAILURES[0]
-    assert o.why(4, c) == "caught at 2.00 s, lost"
-    assert o.why(5, c) == "caught for good only at 4.00 s"
-    assert o.why(6, c).startswith("not held: |theta| up to 0.200 rad")
-    badness = o.badness(c)
-    assert badness[0] == 0
+    assert o.why(1, c, "safe") == "cart left the safe range (|x| up to 0.050 m)"
+    assert o.why(2, c, "safe") == FAILURES[1]
+    assert o.why(4, c, "caught") == "caught at 2.00 s, lost"
+    assert o.why(5, c, "caught") == "caught for good only at 8.50 s"
+    assert o.why(6, c, "caught") == "not held: outside the hold box until 10.00 s"
+    assert o.why(7, c, "caught") == ""
+    assert o.why(7, c, "fast") == "caught for good only at 4.00 s"
+    badness = o.badness(c, "caught")
+    assert badness[0] == badness[7] == 0
     assert np.argmax(badness) in (1, 2)  # faults first
     assert badness[3] > badness[5] > 0  # never caught before caught late
+    assert o.badness(c, "fast")[7] > 0
+    assert o.rates() == {"safe": 6 / 8, "caught": 2 / 8, "fast": 1 / 8}
+
+
+def test_the_score_puts_safe_before_caught_before_fast():
+    """One safe draw more outweighs every caught one; one caught more every fast one."""
+    n = 10
+
+    def score(safe: int, caught: int, fast: int) -> float:
+        return outcomes(safe=np.arange(n) < safe, caught=np.arange(n) < caught,
+                        fast=np.arange(n) < fast).score()
+
+    assert score(10, 10, 10) == 1.0
+    assert score(6, 0, 0) > score(5, 5, 5)
+    assert score(5, 3, 0) > score(5, 2, 2)
+    assert score(5, 3, 1) > score(5, 3, 0)
+    assert score(0, 0, 0) == 0.0
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(catch_by_s=13.0), r"--catch-by 13 s is past --run-s 12 s"),
+    (dict(hold_from_s=12.0), r"--hold-from 12 s is not inside the run"),
+    (dict(hold_from_s=7.0), r"--hold-from 7 s is before --catch-by 8 s"),
+    (dict(fast_by_s=9.0, fast_hold_from_s=9.5, hold_from_s=10.0),
+     r"the fast tier .* must be within the caught tier"),
+    (dict(run_s=-1.0), r"--run-s -1: a positive number of s"),
+    (dict(catch_by_s=math.nan), r"--catch-by nan: a positive number of s"),
+])
+def test_rules_that_make_no_sense_are_refused_by_name(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        Criteria(**kwargs)
 
 
 def test_the_binomial_interval_holds_the_rate_and_reaches_the_ends():
@@ -114,15 +153,16 @@ def test_pisc_robustness_prints_the_same_numbers_for_the_same_seed(tmp_path, cap
     assert numbers(first) == numbers(again)
     assert numbers(first) != numbers(other)
     for expected in ("distribution thesis-rig (digest ", "motor.resistance_ohm in [9.8, 18.2]",
-                     "draws 120, seed 3", "success ", "95 % interval", "failures: ",
-                     "catch time (", "largest |x| (all draws): p5 ",
-                     "hold's current set-point RMS (successes): ", "simulated s per wall s",
+                     "draws 120, seed 3", "safe   ", "caught ", "fast   ", "95 % interval",
+                     "failures: ", "catch time (", "largest |x| (all draws): p5 ",
+                     "hold's current set-point RMS from 9 s (caught): ",
+                     "simulated s per wall s",
                      f"plot: {tmp_path / 'a' / PLOT}"):
         assert expected in first, expected
     assert (tmp_path / "a" / PLOT).stat().st_size > 10_000
     worst = [line.strip() for line in first.splitlines()
              if line.strip().startswith("./pisc run")]
-    assert 0 < len(worst) <= 3 or "worst draws: no failure" in first
+    assert 0 < len(worst) <= 9 or first.count("no failure") == 3
     for command in worst:
         args = shlex.split(command)
         assert args[:4] == ["./pisc", "run", "--config", "default"]
@@ -144,7 +184,7 @@ def wall_time(draws: int, workers: int, tmp_path, **env: str) -> tuple[float, st
         env={**os.environ, **env})
     assert completed.returncode == 0, completed.stderr
     wall = re.search(r"^wall time ([0-9.]+) s", completed.stdout, re.M)
-    success = re.search(r"^success .*$", completed.stdout, re.M)
+    success = re.search(r"^safe .*$", completed.stdout, re.M)
     return float(wall[1]), success[0]
 
 
@@ -161,7 +201,7 @@ def test_bench_wall_time_by_draws_and_workers(tmp_path):
             wall, success = wall_time(n, workers, tmp_path)
             table[n, workers] = wall
             print(f"{n:6d} draws, --workers {workers}: {wall:6.1f} s wall, "
-                  f"{n * 10.0 / wall:6.0f} simulated s per wall s; {success}", flush=True)
+                  f"{n * 12.0 / wall:6.0f} simulated s per wall s; {success}", flush=True)
     active, _ = wall_time(1000, 0, tmp_path, OMP_WAIT_POLICY="ACTIVE")
     print(f"  1000 draws, --workers 0, OMP_WAIT_POLICY=ACTIVE: {active:.1f} s wall")
     print(f"\n{os.cpu_count()} cores; load average {os.getloadavg()}")

@@ -23,8 +23,9 @@ from pisc_bringup.tune_cli import main as tune_main
 from pisc_bringup.uncertainty import load_distribution
 from pisc_msgs_py.config import ConfigError
 
-# caught by 3 s and held from 4.5 to 5 s: half the simulated time of the full criteria
-SHORT = Criteria(duration_s=5.0, hold_start_s=4.5)
+# caught by 3 s and held from 4.5 to 5 s (both tiers): less than half the simulated time
+SHORT = Criteria(run_s=5.0, catch_by_s=3.0, hold_from_s=4.5, fast_by_s=3.0,
+                 fast_hold_from_s=4.5)
 
 # a rig near the nominal one with uneven starts
 RIG = """\
@@ -79,14 +80,20 @@ def first(files, tmp_path_factory):
 def test_a_small_search_improves_a_poor_start(first):
     t, storage, result = first
     assert result.trials == 12
-    assert result.start_success <= 0.05  # the poor start
-    assert result.best_success >= result.start_success + 0.1
+    assert result.start_rates["caught"] <= 0.05  # the poor start
+    assert result.best_score > result.start_score
+    tiers = ("safe", "caught", "fast")
+    best = tuple(result.best_rates[t] for t in tiers)
+    start = tuple(result.start_rates[t] for t in tiers)
+    assert best > start  # better, safe first (tuples compare in order)
+    assert result.best_rates["caught"] >= result.start_rates["caught"] + 0.1
     assert result.best_trial > 0
     assert result.best_values["swing_up.k_x"] > 2.0
     assert result.best_flat["swing_up.k_x"] == result.best_values["swing_up.k_x"]
     assert result.best_flat["swing_up.k_v"] == 0.1  # the rest is the thesis's
     study = optuna.load_study(study_name=t.study_name, storage=storage)
-    assert study.trials[0].user_attrs == {"start": True}
+    assert study.trials[0].user_attrs["start"] is True
+    assert set(study.trials[0].user_attrs["rates"]) == {"safe", "caught", "fast"}
     assert study.trials[0].params["swing_up.k_x"] == 2.0
 
 
@@ -94,7 +101,7 @@ def test_the_same_seed_gives_the_same_best(files, first, tmp_path):
     _, _, result = first
     again = tune(tuning(files), 12, f"sqlite:///{tmp_path / 'b.db'}")
     assert again.best_values == result.best_values
-    assert again.best_success == result.best_success
+    assert again.best_score == result.best_score
     assert again.best_trial == result.best_trial
 
 
@@ -103,7 +110,7 @@ def test_the_same_command_resumes_its_study(files, first):
     again = tune(tuning(files), 12, storage)  # nothing left to do
     assert again == result
     more = tune(tuning(files), 13, storage)
-    assert more.trials == 13 and more.best_success >= result.best_success
+    assert more.trials == 13 and more.best_score >= result.best_score
 
 
 @pytest.mark.parametrize("change, named", [
@@ -135,8 +142,8 @@ def test_the_tuned_file_loads_and_says_where_it_comes_from(files, first, tmp_pat
     for expected in ("command: pisc_tune thesis ...", "date: 2026-12-02",
                      f"distribution: rig (digest {t.distribution.digest})",
                      "draws 100, seed 1, sampler tpe, trials 12",
-                     f"success: start {100 * result.start_success:.2f} %, best "
-                     f"{100 * result.best_success:.2f} %"):
+                     f"tiers on the same draws: start safe "
+                     f"{100 * result.start_rates['safe']:.2f} %"):
         assert expected in text, expected
     config, flat = load_graph_config(str(path))
     assert config.supervisor.swing_up.k_x == result.best_values["swing_up.k_x"]
@@ -184,7 +191,7 @@ def test_a_start_outside_the_space_is_scored_apart(files, tmp_path):
     result = tune(t, 2, storage)
     study = optuna.load_study(study_name=t.study_name, storage=storage)
     assert all(10.0 <= trial.params["swing_up.k_x"] <= 100.0 for trial in study.trials)
-    assert study.user_attrs["start_success"] == result.start_success
+    assert study.user_attrs["start_score"] == result.start_score
 
 
 BAD_SPACES = {
@@ -262,7 +269,7 @@ def test_pisc_tune_writes_the_file_and_refuses_a_study_of_another_distribution(
             "--draws", "10", "--out", str(out)]
     assert tune_main(argv) == 0
     printed = capsys.readouterr().out
-    assert "success: start " in printed and f"wrote {out}" in printed
+    assert "tiers on the same draws: start " in printed and f"wrote {out}" in printed
     assert (tmp_path / "tuned.db").exists()
     text = out.read_text()
     assert text.startswith("# pisc_tune: ")

@@ -12,7 +12,11 @@ from pisc_msgs_py.config import ConfigError, finite, nonnegative, one_of, param,
 from pisc_model.dynamics import linearise_upright, wrap_to_upright
 from pisc_model.params import RigParams
 
-__all__ = ["CatchParams", "SAME_DESIGN_RTOL", "catch_force", "catch_gain", "recorded_or_designed"]
+__all__ = ["CatchParams", "GOVERNOR_STRIDE", "SAME_DESIGN_RTOL", "catch_force", "catch_gain",
+           "governor_rows", "recorded_or_designed"]
+
+#: the governor checks its prediction every this many periods (and at the first)
+GOVERNOR_STRIDE = 3
 
 
 @dataclass(frozen=True)
@@ -40,6 +44,22 @@ class CatchParams:
     settle_rate_mps: float = param(
         0.0, "the catch's cart reference starts where the cart is when the catch begins and "
         "moves to x* at this speed (0 = x* at once, the thesis's law)", "m/s", nonnegative)
+    governor: bool = param(
+        False, "a reference governor keeps the catch inside the track and the current limit: "
+        "the catch starts only where the linear closed loop's prediction from the state "
+        "stays inside both with its cart reference somewhere, and the reference is kept "
+        "where it does (false: the thesis's catch, which starts wherever (4.1) says)", "")
+    governor_horizon_s: float = param(1.5, "governor: how far ahead it predicts", "s",
+                                      positive)
+    governor_margin_m: float = param(
+        0.02, "governor: the predicted cart stays this far inside the safe range "
+        "(safety.x_min_m, safety.x_max_m)", "m", nonnegative)
+    governor_current_a: float = param(
+        0.8, "governor: the predicted current set-point stays within +- this", "A", positive)
+    guard: bool = param(
+        False, "the swing-up's track guard (swing_up.guard_accel_mps2, guard_margin_m) also "
+        "watches the catch: where the cart, braked at the guard's rate, would stop beyond the "
+        "guard's limits, the catch lets go (or does not start) and the guard brakes", "")
     recorded_gain: tuple[float, ...] = param(
         [], "K as a recorded run computed it (pisc_graph writes it into the bag's parameter "
         "file); used instead of the designed K only when the design gives the same K within "
@@ -149,3 +169,40 @@ def catch_force(
         + k3 * wrap_to_upright(theta)
         + k4 * np.asarray(theta_dot, dtype=float)
     )
+
+
+def governor_rows(rig: RigParams, gain: np.ndarray, period_s: float, horizon_s: float,
+                  force_per_amp: float) -> np.ndarray:
+    """The catch's linear closed-loop prediction, one row per checked sample.
+
+    Row j is ``(P_j, Q_j)`` (8 values): with ``w = [x - r, x_dot, theta, theta_dot]`` now
+    (theta from upright, r the catch's cart reference held constant), the cart after
+    ``k_j`` periods is ``r + P_j . w`` and the current set-point ``Q_j . w``, for
+    ``k_j = 0, GOVERNOR_STRIDE, 2 GOVERNOR_STRIDE, ...`` up to ``horizon_s``.
+
+    Notes
+    -----
+    The linearisation (3.41)-(3.42) held over each period (zero-order hold, the
+    discrete model ``Phi = e^{A Ts}``, ``Gamma = int_0^Ts e^{A s} ds B``), under the catch
+    ``f = -K w`` (3.46), and the set-point (4.2) ``i_d = f / (k_m / r)`` before its
+    saturation: ``w_{k+1} = (Phi - Gamma K) w_k``, ``P_j = e_1^T (Phi - Gamma K)^{k_j}``,
+    ``Q_j = -K (Phi - Gamma K)^{k_j} / (k_m / r)``.
+    """
+    from scipy.linalg import expm
+
+    a, b = linearise_upright(rig)
+    block = np.zeros((5, 5))
+    block[:4, :4] = a * period_s
+    block[:4, 4:] = b * period_s
+    e = expm(block)
+    phi, gamma = e[:4, :4], e[:4, 4:]
+    k = np.asarray(gain, dtype=float).reshape(1, 4)
+    closed = phi - gamma @ k
+    steps = int(round(horizon_s / period_s))
+    rows = []
+    power = np.eye(4)
+    for step in range(steps + 1):
+        if step % GOVERNOR_STRIDE == 0:
+            rows.append(np.concatenate([power[0], -(k @ power)[0] / force_per_amp]))
+        power = closed @ power
+    return np.ascontiguousarray(rows, dtype=float)

@@ -29,6 +29,14 @@ import math
 
 import numpy as np
 
+from pisc_control.adaptation import (
+    adaptation_constants,
+    adaptation_estimates,
+    adaptation_init,
+    adaptation_size,
+    adaptation_std,
+    adaptation_step,
+)
 from pisc_control.current_loop import CurrentLoopParams
 from pisc_control.estimator import EstimatorParams
 from pisc_control.supervisor import (
@@ -43,8 +51,8 @@ from pisc_msgs_py.types import Mode
 
 __all__ = ["LAW_ENERGY_PUMP", "LAW_LYAPUNOV", "OneRigCurrentLoop", "OneRigEstimator",
            "OneRigSupervisor", "current_loop_constants",
-           "current_loop_step", "estimator_constants", "estimator_step",
-           "supervisor_constants", "supervisor_step"]
+           "current_loop_step", "estimator_constants", "estimator_step", "governor_interval",
+           "governor_rows", "supervisor_constants", "supervisor_step"]
 
 SWING_UP, CATCH, FAULT = Mode.SWING_UP.code, Mode.CATCH.code, Mode.FAULT.code
 TWO_PI = 2.0 * np.pi  # wrap_to_upright's constant, as numpy forms it
@@ -55,7 +63,8 @@ LAW_LYAPUNOV, LAW_ENERGY_PUMP = 0, 1
  S_BAND, S_INERTIA_HALF, S_MGL, S_K1, S_K2, S_K3, S_K4, S_CATCH_TARGET, S_SETTLE_STEP,
  S_A1, S_A2, S_A1G, S_ML, S_HALF_A2, S_HALF_J, S_M_L, S_KV, S_KX, S_KDELTA, S_KE, S_E_REF,
  S_PUMP_ACCEL_NEG, S_PUMP_GAIN, S_TWO_MGL, S_OMEGA0, S_TRACK_KX, S_TRACK_KV, S_BRAKE,
- S_TWO_BRAKE, S_GUARD_LOW, S_GUARD_HIGH, S_LAW, S_GUARD, S_SETTLE, N_S) = range(43)
+ S_TWO_BRAKE, S_GUARD_LOW, S_GUARD_HIGH, S_LAW, S_GUARD, S_SETTLE, S_GOV, S_GOV_X_LO,
+ S_GOV_X_HI, S_GOV_I, S_CATCH_GUARD, S_ADAPT, S_LOSS_GAIN, S_QUIET, N_S) = range(51)
 # places in the current loop's constants
 C_FORCE_PER_AMP, C_I_LIMIT, C_VM, C_KII_TS, C_RESET, C_K_PI, N_C = range(7)
 
@@ -126,7 +135,21 @@ def supervisor_constants(supervisor: Supervisor) -> tuple[float, ...]:
     s[S_LAW] = float(LAW_ENERGY_PUMP if pump else LAW_LYAPUNOV)
     s[S_GUARD] = 1.0 if pump and su.guard_accel_mps2 > 0.0 else 0.0
     s[S_SETTLE] = 1.0 if c.catch.settle_rate_mps != 0.0 else 0.0
+    s[S_GOV] = 1.0 if c.catch.governor else 0.0
+    s[S_GOV_X_LO] = c.safety.x_min_m + c.catch.governor_margin_m
+    s[S_GOV_X_HI] = c.safety.x_max_m - c.catch.governor_margin_m
+    s[S_GOV_I] = c.catch.governor_current_a
+    s[S_CATCH_GUARD] = 1.0 if c.catch.guard and s[S_GUARD] > 0.0 else 0.0
+    s[S_ADAPT] = 1.0 if c.adaptation.enabled else 0.0
+    s[S_LOSS_GAIN] = su.loss_gain
+    s[S_QUIET] = su.track_quiet
     return tuple(s)
+
+
+def governor_rows(supervisor: Supervisor) -> list[tuple[float, ...]]:
+    """The governor's prediction rows (:attr:`Supervisor.governor_rows`) as tuples of
+    floats, which Python indexes faster than an array's elements."""
+    return [tuple(float(v) for v in row) for row in supervisor.governor_rows]
 
 
 def _clip(v: float, lo: float, hi: float) -> float:
@@ -175,15 +198,46 @@ def _lyapunov_force(s: tuple[float, ...], x: float, x_dot: float, sn: float, c: 
     return numerator / (s[S_KV] + den_mass * s[S_KE] * e)
 
 
+def _pendulum_energy(s: tuple[float, ...], c: float, theta_dot: float, w2: float) -> float:
+    """The pendulum's own energy (the pendulum terms of (2.54)): with the model's J, or with
+    the online estimate ``w2`` of omega_0^2 = m g l / J (m g l (theta_dot^2 / (2
+    omega_0^2) + cos(theta) - 1))."""
+    if s[S_ADAPT] > 0.0:
+        return s[S_MGL] * (theta_dot * theta_dot / (2.0 * w2) + (c - 1.0))
+    return s[S_INERTIA_HALF] * theta_dot * theta_dot + s[S_MGL] * (c - 1.0)
+
+
 def _energy_pump_force(s: tuple[float, ...], x: float, x_dot: float, sn: float, c: float,
-                       theta_dot: float, target: float) -> float:
+                       theta_dot: float, target: float,
+                       pendulum: tuple[float, float, float, float, float]) -> float:
     """:func:`pisc_control.swing_up.energy_pump_force`; ``sn``, ``c``: the sine and cosine
-    of the angle."""
-    e_p = s[S_INERTIA_HALF] * theta_dot * theta_dot + s[S_MGL] * (c - 1.0)
-    error = (s[S_E_REF] - e_p) / s[S_TWO_MGL]
-    pump = s[S_PUMP_ACCEL_NEG] * _clip(s[S_PUMP_GAIN] * error * theta_dot * c / s[S_OMEGA0],
-                                       -1.0, 1.0)
-    a = pump - s[S_TRACK_KX] * (x - target) - s[S_TRACK_KV] * x_dot
+    of the angle. ``pendulum``: (cos, rate, angle from upright) of the instant the energy
+    is read at, and the online estimates omega_0^2 and beta = b / J. With the estimates,
+    the energy is the estimated pendulum's, read one period late from a central
+    difference, the pump acts on that instant's rate and angle, and the energy's target
+    makes up for the pivot's loss still ahead on the way up, 4 b omega_0 (1 - |cos(th /
+    2)|) (the loss int b theta_dot dtheta along the separatrix, theta_dot = 2 omega_0
+    sin(th / 2)), times ``swing_up.loss_gain``."""
+    e_c, e_rate, th, w2, beta = pendulum
+    if s[S_ADAPT] > 0.0:
+        e_p = _pendulum_energy(s, e_c, e_rate, w2)
+        omega0 = math.sqrt(w2)
+        loss = s[S_LOSS_GAIN] * s[S_MGL] * 4.0 * beta / omega0 * (1.0 - abs(_cos(0.5 * th)))
+        error = (s[S_E_REF] + loss - e_p) / s[S_TWO_MGL]
+        pump = s[S_PUMP_ACCEL_NEG] * _clip(s[S_PUMP_GAIN] * error * e_rate * e_c / omega0,
+                                           -1.0, 1.0)
+    else:
+        e_p = _pendulum_energy(s, c, theta_dot, w2)
+        error = (s[S_E_REF] - e_p) / s[S_TWO_MGL]
+        pump = s[S_PUMP_ACCEL_NEG] * _clip(
+            s[S_PUMP_GAIN] * error * theta_dot * c / s[S_OMEGA0], -1.0, 1.0)
+    if s[S_QUIET] > 0.0:
+        # the track's pull weighs less where it would change the pendulum's energy most
+        # (dE_p/dt = -m l a theta_dot cos(theta))
+        swing = s[S_QUIET] * theta_dot * c / s[S_OMEGA0]
+        a = pump - (s[S_TRACK_KX] * (x - target) + s[S_TRACK_KV] * x_dot) / (1.0 + swing * swing)
+    else:
+        a = pump - s[S_TRACK_KX] * (x - target) - s[S_TRACK_KV] * x_dot
     if s[S_GUARD] > 0.0:
         stop = x + x_dot * abs(x_dot) / s[S_TWO_BRAKE]
         if stop > s[S_GUARD_HIGH] and x_dot > 0.0:
@@ -194,7 +248,40 @@ def _energy_pump_force(s: tuple[float, ...], x: float, x_dot: float, sn: float, 
     return (s[S_A2] - a1 * c * c) * a + s[S_A1G] * sn * c - s[S_ML] * theta_dot * theta_dot * sn
 
 
-def supervisor_step(s: tuple[float, ...], first: bool, x: float, x_dot: float, theta: float,
+def _narrow(lo: float, hi: float, a: float, b: float, low: float, high: float
+            ) -> tuple[float, float]:
+    """[lo, hi] narrowed to the r with low <= a + b r <= high (empty: lo > hi)."""
+    if b > 1e-12:
+        lo = max(lo, (low - a) / b)
+        hi = min(hi, (high - a) / b)
+    elif b < -1e-12:
+        lo = max(lo, (high - a) / b)
+        hi = min(hi, (low - a) / b)
+    elif not (a >= low and a <= high):
+        lo, hi = math.inf, -math.inf
+    return lo, hi
+
+
+def governor_interval(s: tuple[float, ...], rows, x: float, x_dot: float, th: float,
+                      theta_dot: float) -> tuple[float, float]:
+    """(lo, hi): the catch's cart references r for which the linear closed loop's
+    prediction from this state (:func:`pisc_control.catch.governor_rows`: row j gives the
+    cart ``r + P_j . w`` and the set-point ``Q_j . w``, ``w = [x - r, x_dot, th,
+    theta_dot]``) keeps the cart in [S_GOV_X_LO, S_GOV_X_HI] and the set-point within
+    +-S_GOV_I at every row; lo > hi when no reference does."""
+    lo, hi = -math.inf, math.inf
+    x_lo, x_hi, i_max = s[S_GOV_X_LO], s[S_GOV_X_HI], s[S_GOV_I]
+    for j in range(len(rows)):
+        row = rows[j]
+        moved = row[0] * x + row[1] * x_dot + row[2] * th + row[3] * theta_dot
+        lo, hi = _narrow(lo, hi, moved, 1.0 - row[0], x_lo, x_hi)
+        current = row[4] * x + row[5] * x_dot + row[6] * th + row[7] * theta_dot
+        lo, hi = _narrow(lo, hi, current, -row[4], -i_max, i_max)
+    return lo, hi
+
+
+def supervisor_step(s: tuple[float, ...], rows, pendulum: tuple[float, float, float, float],
+                    first: bool, x: float, x_dot: float, theta: float,
                     theta_dot: float, mode: int, fault: int, caught: bool,
                     startup_target: float, reference: float
                     ) -> tuple[float, int, int, bool, float, float]:
@@ -226,19 +313,37 @@ def supervisor_step(s: tuple[float, ...], first: bool, x: float, x_dot: float, t
     th = _wrap(theta)
     sn = _sin(theta)  # taken once: the band and the swing-up law use them
     c = _cos(theta)
+    w2, beta, middle, rate = pendulum
+    if s[S_ADAPT] > 0.0:  # the energy from the angle and rate of one instant
+        e_c = _cos(middle)
+        e_rate = rate
+        e_th = _wrap(middle)
+    else:
+        e_c, e_rate, e_th = c, theta_dot, th
     criterion = th * th + s[S_K_VA] * theta_dot * theta_dot
     catching = mode == CATCH
     inside = criterion < (s[S_DELTA_EXIT] if catching else s[S_DELTA_S])
     if s[S_BAND] > 0.0:
-        e_p = s[S_INERTIA_HALF] * theta_dot * theta_dot + s[S_MGL] * (c - 1.0)
+        e_p = _pendulum_energy(s, e_c, e_rate, w2)
         inside = inside and (catching or abs(e_p) < s[S_BAND])
+    if inside and s[S_CATCH_GUARD] > 0.0:
+        stop = x + x_dot * abs(x_dot) / s[S_TWO_BRAKE]
+        if (stop > s[S_GUARD_HIGH] and x_dot > 0.0) or (stop < s[S_GUARD_LOW] and x_dot < 0.0):
+            inside = False  # the cart would not stop inside the guard's limits: brake
+    governed = s[S_GOV] > 0.0 and inside
+    lo = hi = 0.0
+    if governed:
+        lo, hi = governor_interval(s, rows, x, x_dot, th, theta_dot)
+        if not catching and not lo <= hi:
+            inside = False  # no reference keeps this catch in the track: do not start it
     new_mode = CATCH if inside else SWING_UP
     if new_fault != FAULT_NONE:
         new_mode = FAULT
     now_caught = caught or new_mode == CATCH
     target = s[S_SWING_TARGET] if now_caught else startup_target
     if s[S_LAW] == LAW_ENERGY_PUMP:
-        f_swing = _energy_pump_force(s, x, x_dot, sn, c, theta_dot, target)
+        f_swing = _energy_pump_force(s, x, x_dot, sn, c, theta_dot, target,
+                                     (e_c, e_rate, e_th, w2, beta))
     else:
         f_swing = _lyapunov_force(s, x, x_dot, sn, c, theta_dot, target)
     if s[S_SETTLE] > 0.0:
@@ -247,6 +352,8 @@ def supervisor_step(s: tuple[float, ...], first: bool, x: float, x_dot: float, t
             ref = ref + _clip(s[S_CATCH_TARGET] - ref, -s[S_SETTLE_STEP], s[S_SETTLE_STEP])
     else:
         ref = s[S_CATCH_TARGET]
+    if governed and new_mode == CATCH and lo <= hi:
+        ref = _clip(ref, lo, hi)
     f_catch = -(s[S_K1] * (x - ref) + s[S_K2] * x_dot + s[S_K3] * th + s[S_K4] * theta_dot)
     if new_mode == CATCH:
         force = f_catch
@@ -335,10 +442,20 @@ class OneRigSupervisor:
         self.configure(supervisor)
 
     def configure(self, supervisor: Supervisor) -> None:
-        """New parameters; the state carries over (also into and out of an experiment)."""
+        """New parameters; the state carries over (also into and out of an experiment), and
+        so do the online estimates unless their parameters changed."""
+        previous = getattr(self, "supervisor", None)
         self.supervisor = supervisor
-        scalar = supervisor.config.experiment.kind == "none"
+        c = supervisor.config
+        scalar = c.experiment.kind == "none"
         self._constants = supervisor_constants(supervisor) if scalar else None
+        self._rows = governor_rows(supervisor) if scalar else []
+        self._adapt = adaptation_constants(c.adaptation, c.rig, c.loop.period_s)
+        if previous is None or (previous.config.adaptation, previous.config.rig) != (
+                c.adaptation, c.rig):
+            self._adapt_state = [0.0] * adaptation_size(c.adaptation)
+            adaptation_init(c.adaptation, c.rig, self._adapt_state)
+        self.estimates = adaptation_estimates(self._adapt_state)
         if scalar and self._numpy_state.mode is not None:
             n = self._numpy_state
             ref = n.catch_reference_m
@@ -351,6 +468,21 @@ class OneRigSupervisor:
                                                 np.float64(target), np.bool_(caught),
                                                 np.float64(ref))
             self._state = None
+
+    def estimates_std(self) -> tuple[float, float]:
+        """The standard deviations of :attr:`estimates` (omega_0^2, beta)."""
+        return adaptation_std(self._adapt_state)
+
+    @property
+    def caught(self) -> bool:
+        """Whether the rig has been caught at least once."""
+        return bool(self._state[2]) if self._state is not None else bool(
+            self._numpy_state.caught is not None and self._numpy_state.caught)
+
+    @property
+    def reference(self) -> float:
+        """The catch's cart reference (0 before the first sample)."""
+        return float(self._state[4]) if self._state is not None else 0.0
 
     @property
     def fault(self) -> int:
@@ -367,12 +499,16 @@ class OneRigSupervisor:
                 self._numpy_state, x, x_dot, theta, theta_dot)
             return float(force), int(code)
         state = self._state
+        w2, beta, middle, rate = adaptation_step(
+            self._adapt, self._adapt_state, x, theta, state is None or state[0] != CATCH)
+        self.estimates = (w2, beta)
         if state is None:
-            force, *new = supervisor_step(self._constants, True, x, x_dot, theta, theta_dot,
-                                          SWING_UP, FAULT_NONE, False, 0.0, 0.0)
+            force, *new = supervisor_step(self._constants, self._rows, (w2, beta, middle, rate),
+                                          True, x, x_dot, theta, theta_dot, SWING_UP,
+                                          FAULT_NONE, False, 0.0, 0.0)
         else:
-            force, *new = supervisor_step(self._constants, False, x, x_dot, theta, theta_dot,
-                                          *state)
+            force, *new = supervisor_step(self._constants, self._rows, (w2, beta, middle, rate),
+                                          False, x, x_dot, theta, theta_dot, *state)
         self._state = tuple(new)  # type: ignore[assignment]
         return force, new[0]
 

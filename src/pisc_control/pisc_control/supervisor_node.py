@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from pisc_control.adaptation import AdaptationParams
 from pisc_control.catch import CatchParams
 from pisc_control.excitation import ExperimentParams
 from pisc_control.supervisor import (
@@ -17,11 +18,16 @@ from pisc_control.supervisor import (
 )
 from pisc_control.scalar import OneRigSupervisor
 from pisc_control.swing_up import SwingUpParams
-from pisc_model.params import LoopParams, RigParams
+from pisc_model.params import LoopParams, MotorParams, RigParams
 from pisc_msgs_py.base_node import ERROR, OK, PiscNode, ResendCache, run_node
-from pisc_msgs_py.convert import cart_force_to_cdr, mode_to_msg, state_from_msg
-from pisc_msgs_py.topics import CART_FORCE, MODE, STATE
-from pisc_msgs_py.types import CartForce, Mode, ModeReport, StateEstimate
+from pisc_msgs_py.convert import (
+    cart_force_to_cdr,
+    mode_to_msg,
+    pendulum_estimate_to_cdr,
+    state_from_msg,
+)
+from pisc_msgs_py.topics import CART_FORCE, MODE, PENDULUM_ESTIMATE, STATE
+from pisc_msgs_py.types import CartForce, Mode, ModeReport, PendulumEstimate, StateEstimate
 
 SECTIONS = {
     "rig": RigParams,
@@ -32,6 +38,8 @@ SECTIONS = {
     "safety": SafetyParams,
     "loop": LoopParams,
     "experiment": ExperimentParams,
+    "motor": MotorParams,
+    "adaptation": AdaptationParams,
 }
 
 
@@ -43,6 +51,7 @@ class SupervisorNode(PiscNode):
         self._answers = ResendCache()  # a resent cycle: same force, same state
         self._force_pub = self.publisher(CART_FORCE)
         self._mode_pub = self.publisher(MODE)
+        self._estimate_pub = self.publisher(PENDULUM_ESTIMATE)
         self._sub = self.subscription(STATE, self._on_state, state_from_msg, "state")
         self.get_logger().info(f"catch gain K = {np.array2string(self.config.gain, precision=5)}")
 
@@ -57,8 +66,13 @@ class SupervisorNode(PiscNode):
         if self._answers.resend(state.stamp_ns):
             return
         supervisor: Supervisor = self.config
+        believed = self._supervisor.estimates
         force, code = self._supervisor.step(state.position_m, state.velocity_mps,
                                             state.angle_rad, state.rate_radps)
+        if self._supervisor.estimates != believed:
+            self._estimate_pub.publish(pendulum_estimate_to_cdr(PendulumEstimate(
+                state.stamp_ns, *self._supervisor.estimates,
+                *self._supervisor.estimates_std())))
         mode = Mode.from_code(code)
         if mode is not self._mode:
             # Announce a change before the force of the same cycle, so that the current

@@ -57,6 +57,13 @@ class SwingUpParams:
         0.0, "energy_pump: braking acceleration of the track guard: when the cart, braked at "
         "this rate, would stop beyond the guard's limits, it is braked at this rate (0 = no "
         "guard)", "m/s^2", nonnegative)
+    track_quiet: float = param(
+        0.0, "energy_pump: kappa; the track's pull (track_k_x, track_k_v) is divided by 1 + "
+        "(kappa theta_dot cos(theta) / omega_0)^2, so that it works where it changes the "
+        "pendulum's energy least (0 = always in full)", "", nonnegative)
+    loss_gain: float = param(
+        1.0, "energy_pump with adaptation.enabled: the energy target gains this times the "
+        "pivot's loss still ahead on the way up, as estimated online", "", nonnegative)
     guard_margin_m: float = param(0.02, "energy_pump: the guard's limits lie this far inside "
                                   "the safe range (safety.x_min_m, safety.x_max_m)", "m",
                                   nonnegative)

@@ -90,3 +90,27 @@ def test_a_recorded_gain_is_used_only_when_the_design_gives_it_up_to_rounding():
 def test_a_malformed_recorded_gain_is_refused(gain):
     with pytest.raises(ConfigError, match=r"catch.recorded_gain = .*expected 4 finite gains"):
         CatchParams(recorded_gain=gain)
+
+
+def test_governor_rows_against_an_independent_discretisation():
+    """Row j is e_1 and -K / (k_m / r) times (Phi - Gamma K)^(3 j), with Phi, Gamma the
+    zero-order hold of the linearisation, here from scipy.signal.cont2discrete."""
+    from scipy.signal import cont2discrete
+
+    from pisc_control.catch import GOVERNOR_STRIDE, governor_rows
+    from pisc_model.params import MotorParams
+
+    k = catch_gain(RIG, CatchParams())
+    a, b = linearise_upright(RIG)
+    phi, gamma, *_ = cont2discrete((a, b, np.eye(4), np.zeros((4, 1))), 0.005, "zoh")
+    closed = phi - gamma @ k.reshape(1, 4)
+    fpa = MotorParams().force_per_amp
+    assert fpa == pytest.approx(0.0637 / 0.032)
+    rows = governor_rows(RIG, k, 0.005, 1.5, fpa)
+    assert rows.shape == (1 + 300 // GOVERNOR_STRIDE, 8)
+    np.testing.assert_array_equal(rows[0, :4], [1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(rows[0, 4:], -k / fpa, rtol=1e-12)
+    for j in (1, 10, 100):
+        power = np.linalg.matrix_power(closed, GOVERNOR_STRIDE * j)
+        np.testing.assert_allclose(rows[j, :4], power[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(rows[j, 4:], -(k @ power) / fpa, rtol=1e-9, atol=1e-12)

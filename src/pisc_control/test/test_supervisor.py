@@ -137,3 +137,64 @@ def test_the_energy_band_catches_only_a_pendulum_that_can_coast_up():
                                np.array([True]))
     _, _, mode = sup.update(catching, 0.0, 0.0, 0.3, 0.0)
     assert list(mode) == [CATCH]
+
+
+def _governed(**catch):
+    from pisc_control.catch import CatchParams as Catch
+
+    # the default configuration's catch poles
+    poles = (-14.0443, -4.8126, -4.0131, -3.5227)
+    return Supervisor(SupervisorConfig(
+        swing_up=SwingUpParams(law="energy_pump", guard_accel_mps2=2.0),
+        catch=Catch(governor=True, poles=poles, **catch)))
+
+
+def test_governor_interval_holds_its_prediction():
+    """Every reference inside the governor's interval keeps the linear prediction inside
+    the track less the margin and the set-point within its bound; just outside it, some
+    row breaks one of them."""
+    from pisc_control.scalar import governor_interval, governor_rows, supervisor_constants
+
+    sup = _governed()
+    s = supervisor_constants(sup)
+    rows = np.array(governor_rows(sup))
+    state = (0.05, 0.05, 0.03, -0.1)  # x, x_dot, theta from upright, theta_dot
+    lo, hi = governor_interval(s, governor_rows(sup), *state)
+    assert lo < hi
+    c = sup.config
+
+    def worst(r: float) -> tuple[float, float, float]:
+        w = np.array([state[0] - r, *state[1:]])
+        x = r + rows[:, :4] @ w
+        i = rows[:, 4:] @ w
+        return x.min(), x.max(), np.abs(i).max()
+
+    low, high = c.safety.x_min_m + 0.02, c.safety.x_max_m - 0.02
+    for r in np.linspace(lo, hi, 7):
+        x_min, x_max, i_max = worst(r)
+        assert x_min >= low - 1e-12 and x_max <= high + 1e-12 and i_max <= 0.8 + 1e-12
+    for r in (lo - 1e-3, hi + 1e-3):
+        x_min, x_max, i_max = worst(r)
+        assert x_min < low or x_max > high or i_max > 0.8
+
+
+def test_governor_refuses_a_catch_that_would_leave_the_track():
+    """The same pendulum, coasting into the catch region: caught with the cart in the
+    middle of the track, not with the cart near the end and running towards it (the
+    current's bound set out of the way: the track refuses it)."""
+    from pisc_control.scalar import OneRigSupervisor
+
+    theta, theta_dot = 0.03, -0.1
+    middle = OneRigSupervisor(_governed(governor_current_a=5.0))
+    _, code = middle.step(0.0, 0.0, theta, theta_dot)
+    assert code == Mode.CATCH.code
+    end = OneRigSupervisor(_governed(governor_current_a=5.0))
+    _, code = end.step(0.10, 0.4, theta, theta_dot)
+    assert code == Mode.SWING_UP.code
+
+
+def test_catch_guard_needs_the_pump_guard():
+    from pisc_control.catch import CatchParams as Catch
+
+    with pytest.raises(ConfigError, match="catch.guard"):
+        Supervisor(SupervisorConfig(catch=Catch(guard=True)))

@@ -28,13 +28,14 @@ from sensor_msgs.msg import JointState
 
 from pisc_msgs_py import cdr
 from pisc_msgs_py.cdr import MessageError
-from pisc_msgs_py.topics import JOINT_NAMES, MOTOR_JOINT
+from pisc_msgs_py.topics import JOINT_NAMES, MOTOR_JOINT, PENDULUM_ESTIMATE_JOINTS
 from pisc_msgs_py.types import (
     CartForce,
     JointSample,
     Mode,
     ModeReport,
     MotorSample,
+    PendulumEstimate,
     StateEstimate,
     TrueState,
 )
@@ -55,6 +56,8 @@ __all__ = [
     "motor_sample_to_cdr",
     "motor_sample_to_msg",
     "note_read",
+    "pendulum_estimate_from_msg",
+    "pendulum_estimate_to_cdr",
     "stamp_from_msg",
     "stamp_to_msg",
     "state_from_msg",
@@ -192,6 +195,22 @@ def true_state_from_msg(msg: Any) -> TrueState:
     x_dot, theta_dot, _ = _joint_values(msg, names, "velocity", "true_state")
     _, _, current = _joint_values(msg, names, "effort", "true_state")
     return TrueState(stamp_from_msg(msg.header.stamp), x, x_dot, theta, theta_dot, current)
+
+
+def _pendulum_estimate_fields(e: PendulumEstimate) -> JointFields:
+    return (e.stamp_ns, PENDULUM_ESTIMATE_JOINTS, (float(e.omega0_sq), float(e.pivot_loss)),
+            (float(e.omega0_sq_std), float(e.pivot_loss_std)), ())
+
+
+def pendulum_estimate_to_cdr(estimate: PendulumEstimate) -> bytes:
+    return cdr.joint_state(*_pendulum_estimate_fields(estimate))
+
+
+def pendulum_estimate_from_msg(msg: Any) -> PendulumEstimate:
+    what = "pendulum_estimate"
+    w2, beta = _joint_values(msg, PENDULUM_ESTIMATE_JOINTS, "position", what)
+    w2_std, beta_std = _joint_values(msg, PENDULUM_ESTIMATE_JOINTS, "velocity", what)
+    return PendulumEstimate(stamp_from_msg(msg.header.stamp), w2, beta, w2_std, beta_std)
 
 
 CART_FRAME = "cart"  # the frame of the cart force

@@ -48,6 +48,8 @@ __all__ = [
     "MOTOR_CURRENT",
     "MOTOR_JOINT",
     "OPTIONAL_TOPICS",
+    "PENDULUM_ESTIMATE",
+    "PENDULUM_ESTIMATE_JOINTS",
     "QosSpec",
     "RECORDER_PROGRESS",
     "SIM_STATE",
@@ -126,6 +128,14 @@ VOLTAGE_SENT = Topic(
     "answers, or for a byte of the driver's own the newest sample; frame_id: answer, hold "
     "or zero",
 )
+#: The joints of the supervisor's online estimates (PENDULUM_ESTIMATE).
+PENDULUM_ESTIMATE_JOINTS = ("omega0_sq", "pivot_loss")
+PENDULUM_ESTIMATE = Topic(
+    "/pisc/pendulum_estimate", "sensor_msgs/msg/JointState", CONTROL_QOS,
+    "supervisor with adaptation.enabled: what it believes of the pendulum, joints omega0_sq "
+    "(omega_0^2 = m g l / J [1/s^2]) and pivot_loss (b / J [1/s]), the estimate in position "
+    "and its standard deviation in velocity; in every cycle the estimate changed",
+)
 SIM_STATE = Topic(
     "/pisc/sim/true_state", "sensor_msgs/msg/JointState", CONTROL_QOS,
     "simulator only: true state (cart, pendulum, motor: position, velocity; motor effort "
@@ -145,7 +155,7 @@ CLOCK = Topic(
 #: The topics a run records by default.
 GRAPH_TOPICS = (
     JOINT_STATES, MOTOR_CURRENT, STATE, CART_FORCE, MODE, CURRENT_SETPOINT, VOLTAGE,
-    VOLTAGE_SENT, SIM_STATE, DIAGNOSTICS, CLOCK,
+    VOLTAGE_SENT, PENDULUM_ESTIMATE, SIM_STATE, DIAGNOSTICS, CLOCK,
 )
 # The rig drawn for RViz and Foxglove (pisc_bringup markers_node), on request only
 # (``pisc_graph --markers``). Each array holds the whole picture; the last few are kept

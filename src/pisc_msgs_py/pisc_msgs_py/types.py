@@ -67,6 +67,17 @@ class StateEstimate:
 
 
 @dataclass(frozen=True)
+class PendulumEstimate:
+    """The supervisor's online estimates of its pendulum and their standard deviations."""
+
+    stamp_ns: int
+    omega0_sq: float  # omega_0^2 = m g l / J [1/s^2]
+    pivot_loss: float  # b / J [1/s]
+    omega0_sq_std: float
+    pivot_loss_std: float
+
+
+@dataclass(frozen=True)
 class CartForce:
     stamp_ns: int
     force_n: float

@@ -39,7 +39,7 @@ import numba
 import numpy as np
 from numba.extending import register_jitable
 
-from pisc_control import scalar
+from pisc_control import adaptation, scalar
 from pisc_control.estimator import EstimatorState
 from pisc_control.scalar import SWING_UP
 from pisc_control.supervisor import FAULT_NONE, Supervisor
@@ -66,7 +66,8 @@ _drop_stale_cache()
 # the one-rig functions and their helpers, callable from compiled code (and unchanged as
 # Python functions)
 for _function in (scalar._clip, scalar._floor, scalar._sin, scalar._cos, scalar._wrap,
-                  scalar._lyapunov_force, scalar._energy_pump_force):
+                  scalar._lyapunov_force, scalar._energy_pump_force, scalar._narrow,
+                  scalar.governor_interval, scalar._pendulum_energy):
     register_jitable(error_model="numpy")(_function)
 # inlined into the pass (numba's own inlining), which calls them for every rig
 _estimator_step = numba.njit(scalar.estimator_step, error_model="numpy", inline="always")
@@ -74,6 +75,8 @@ _supervisor_step = numba.njit(scalar.supervisor_step, error_model="numpy", inlin
 _current_loop_step = numba.njit(scalar.current_loop_step, error_model="numpy",
                                 inline="always")
 _wrap = numba.njit(scalar._wrap, error_model="numpy", inline="always")
+_adaptation_step = numba.njit(adaptation.adaptation_step, error_model="numpy",
+                              inline="always")
 
 
 @numba.njit(error_model="numpy", inline="always")
@@ -100,12 +103,12 @@ def _actuator(full_scale, levels, step, v):
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
-def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, theta_hist,
+def _pass(s, rows, ac, adapt, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, theta_hist,
           v_x, v_theta, mode, fault, caught, startup_target, reference, integral, measure, y,
           ir_index, cur_index, draws, m, ir_table, x, theta, current, book, t, hold,
           track_range, force_per_amp, faulted, previous_mode, caught_at, first_catch,
-          hold_theta, hold_x, hold_i2, x_min, x_max, force_out, setpoint_out, voltage_out,
-          command_out, applied_out):
+          hold_theta, hold_x, hold_i2, x_min, x_max, unheld_at, box_theta, box_x, force_out,
+          setpoint_out, voltage_out, command_out, applied_out):
     """One cycle of every rig; state in place. Returns the number of rigs whose
     measurement the pass does not take (then nothing else has been done).
 
@@ -118,7 +121,10 @@ def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, the
     and calls again with ``measure`` false). Otherwise x, theta, current are given.
 
     ``book``: keep simulate_batch's outcomes (at time t; ``hold``: inside the hold
-    window; ``track_range``: y is a state after an advance, whose x the range takes)
+    window; ``track_range``: y is a state after an advance, whose x the range takes;
+    ``unheld_at``: the last sample time the true state was outside the hold box
+    |theta| < ``box_theta``, |x| < ``box_x``, so that a run is held from T when it is
+    below T)
     and write the plant's command (the voltage, or ``force_per_amp`` i_d when that is
     positive: an ideal force source) and what acts on the plant (the voltage through
     the actuator, :meth:`pisc_model.params.ActuatorParams.apply`, or the force).
@@ -161,8 +167,9 @@ def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, the
         theta_hist[r, write] = thr
         v_x[r] = x_dot
         v_theta[r] = theta_dot
+        pendulum = _adaptation_step(ac, adapt[r], xr, thr, first or mode[r] != scalar.CATCH)
         force, md, f, k, tg, ref = _supervisor_step(
-            s, first, xr, x_dot, thr, theta_dot, mode[r], fault[r], caught[r],
+            s, rows, pendulum, first, xr, x_dot, thr, theta_dot, mode[r], fault[r], caught[r],
             startup_target[r], reference[r])
         mode[r], fault[r], caught[r], startup_target[r], reference[r] = md, f, k, tg, ref
         i_d, voltage, integral[r] = _current_loop_step(c, md == scalar.FAULT, force,
@@ -183,8 +190,11 @@ def _pass(s, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, the
             if catching and not math.isfinite(first_catch[r]):
                 first_catch[r] = t
             previous_mode[r] = md
+            off_upright = abs(_wrap(y[r, 2]))
+            if not (off_upright < box_theta and abs(y[r, 0]) < box_x):
+                unheld_at[r] = t
             if hold:
-                hold_theta[r] = _maximum(hold_theta[r], abs(_wrap(y[r, 2])))
+                hold_theta[r] = _maximum(hold_theta[r], off_upright)
                 hold_x[r] = _maximum(hold_x[r], abs(y[r, 0]))
                 hold_i2[r] += i_d * i_d
             if force_per_amp > 0.0:
@@ -242,6 +252,12 @@ class BatchControllers:
                              "experiments run on the numpy cores, not the compiled ones")
         period = config.loop.period_s
         self._s = scalar.supervisor_constants(supervisor)
+        self._rows = np.ascontiguousarray(supervisor.governor_rows, dtype=float).reshape(-1, 8)
+        sc = supervisor.config
+        self._ac = adaptation.adaptation_constants(sc.adaptation, sc.rig, period)
+        self._adapt = np.zeros((rigs, adaptation.adaptation_size(sc.adaptation)))
+        for row in self._adapt:
+            adaptation.adaptation_init(sc.adaptation, sc.rig, row)
         self._c = scalar.current_loop_constants(config.plant.motor, config.current_loop,
                                                 period)
         self._est_a, self._est_b = scalar.estimator_constants(config.estimator, period)
@@ -279,7 +295,8 @@ class BatchControllers:
         self._book = {name: np.zeros(rigs, dtype=dtype) for name, dtype in (
             ("faulted", np.bool_), ("previous_mode", np.int64), ("caught_at", float),
             ("first_catch", float), ("hold_theta", float), ("hold_x", float),
-            ("hold_i2", float), ("x_min", float), ("x_max", float))}
+            ("hold_i2", float), ("x_min", float), ("x_max", float), ("unheld_at", float))}
+        self._box = (0.0, 0.0)
 
     def _window(self) -> tuple[float, int, int]:
         """(span, oldest, write) of the estimator's window at this cycle."""
@@ -293,14 +310,15 @@ class BatchControllers:
         span, oldest, write = self._window()
         m, table = self._constants
         k = self._book
-        bad = _pass(self._s, self._c, self._est_a, self._est_b, self._cycles == 0,
+        bad = _pass(self._s, self._rows, self._ac, self._adapt, self._c, self._est_a, self._est_b, self._cycles == 0,
                     self._seen == 0, span, oldest, write, self._x_hist, self._theta_hist,
                     self._v_x, self._v_theta, self._mode, self._fault, self._caught,
                     self._startup_target, self._reference, self._integral, measure, y,
                     self._ir_index, self._cur_index, draws, m, table, *measured, book, t,
                     hold, track_range, self._force_per_amp, k["faulted"], k["previous_mode"],
                     k["caught_at"], k["first_catch"], k["hold_theta"], k["hold_x"],
-                    k["hold_i2"], k["x_min"], k["x_max"], self._force, self._setpoint,
+                    k["hold_i2"], k["x_min"], k["x_max"], k["unheld_at"], *self._box,
+                    self._force, self._setpoint,
                     self._voltage, self._command, self._applied)
         if not bad:
             self._seen += 1
@@ -320,9 +338,11 @@ class BatchControllers:
         return (self._force.copy(), self._mode.copy(), self._setpoint.copy(),
                 self._voltage.copy())
 
-    def track(self, plant: Plant, x0: np.ndarray) -> None:
+    def track(self, plant: Plant, x0: np.ndarray, box: tuple[float, float] = (0.05, 0.02)
+              ) -> None:
         """Keep simulate_batch's outcomes from here on (:meth:`cycle`), for rigs that start
-        at the flat positions ``x0`` on ``plant``."""
+        at the flat positions ``x0`` on ``plant``; ``box``: the hold's |theta| and |x|
+        bounds, outside which a sample's time is the rig's ``unheld_at``."""
         rigs = self._v_x.shape[0]
         m, table, self._measures = _plant_constants(plant)
         self._constants = m, table
@@ -336,7 +356,8 @@ class BatchControllers:
                       "caught_at": np.full(rigs, np.inf), "first_catch": np.full(rigs, np.inf),
                       "hold_theta": np.zeros(rigs), "hold_x": np.zeros(rigs),
                       "hold_i2": np.zeros(rigs), "x_min": np.array(x0, dtype=float),
-                      "x_max": np.array(x0, dtype=float)}
+                      "x_max": np.array(x0, dtype=float), "unheld_at": np.full(rigs, -np.inf)}
+        self._box = (float(box[0]), float(box[1]))
 
     def cycle(self, y: np.ndarray, applied: np.ndarray, draws: np.ndarray | None, t: float,
               hold: bool) -> tuple[np.ndarray, np.ndarray]:

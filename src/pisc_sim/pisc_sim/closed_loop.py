@@ -125,6 +125,9 @@ class BatchOutcome:
     first_catch_s: np.ndarray | None = None  # first time in catch; inf if never
     # RMS of the current set-point i_d from hold_start_s on (the hold's chatter)
     hold_setpoint_rms_a: np.ndarray | None = None
+    # the last sample time the true state was outside the hold box (-inf: never), so
+    # that a rig is held from T to the end when this is below T
+    unheld_at_s: np.ndarray | None = None
 
 
 def simulate_batch(
@@ -142,6 +145,7 @@ def simulate_batch(
     noise_seed: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     controllers: str = "compiled",
+    hold_box: tuple[float, float] = (0.05, 0.02),
 ) -> BatchOutcome:
     """The cycle of :func:`simulate` for many starting states at once.
 
@@ -169,6 +173,9 @@ def simulate_batch(
     (:mod:`pisc_sim.batch_controllers`, the same outcomes as the numpy path;
     experiments fall back to it), ``"numpy"`` runs the sensors' model and the numpy
     cores over arrays.
+
+    ``hold_box`` (|theta| from upright [rad], |x| [m]): the outcome's ``unheld_at_s`` is
+    the last sample time the true state lay outside it.
     """
     if controllers not in ("compiled", "numpy"):
         raise ValueError(f"controllers = {controllers!r}: 'compiled' or 'numpy'")
@@ -219,6 +226,7 @@ def simulate_batch(
     hold_x = np.zeros_like(x0)
     hold_i2 = np.zeros_like(x0)
     hold_cycles = 0
+    unheld_at = np.full(x0.shape, -np.inf)
     faulted = np.zeros(x0.shape, dtype=bool)
     previous_mode = np.full(x0.shape, Mode.SWING_UP.code)
     noise = plant_config.noise
@@ -229,7 +237,7 @@ def simulate_batch(
         # the measurement, the controllers and the outcomes in the compiled pass; the
         # plant steps the rows in place with the input the pass put through the actuator
         # (a plant set or one delay a rig: Plant.advance with the commands)
-        compiled.track(sim, x0.reshape(-1))
+        compiled.track(sim, x0.reshape(-1), hold_box)
         flat = np.array(y.reshape(-1, y.shape[-1]), dtype=float, order="C")
         applied = applied.reshape(-1)
         in_place = sim.rigs is None and not delay.ndim  # one duration, one rig's constants
@@ -261,6 +269,7 @@ def simulate_batch(
         faulted = book["faulted"]
         x_min, x_max, hold_theta = book["x_min"], book["x_max"], book["hold_theta"]
         hold_x, hold_i2 = book["hold_x"], book["hold_i2"]
+        unheld_at = book["unheld_at"]
     else:  # the numpy cores over arrays
         for k in range(cycles):
             t = k * period
@@ -280,8 +289,11 @@ def simulate_batch(
             caught_at = np.where(entered, t, np.where(catching, caught_at, np.inf))
             first_catch = np.where(catching & ~np.isfinite(first_catch), t, first_catch)
             previous_mode = mode
+            off_upright = np.abs(wrap_to_upright(y[..., THETA]))
+            unheld_at = np.where((off_upright < hold_box[0]) & (np.abs(y[..., X]) < hold_box[1]),
+                                 unheld_at, t)
             if t >= hold_start_s:
-                hold_theta = np.maximum(hold_theta, np.abs(wrap_to_upright(y[..., THETA])))
+                hold_theta = np.maximum(hold_theta, off_upright)
                 hold_x = np.maximum(hold_x, np.abs(y[..., X]))
                 hold_i2 += i_d ** 2
                 hold_cycles += 1
@@ -300,4 +312,5 @@ def simulate_batch(
             if progress is not None:
                 progress(k + 1, cycles)
     rms = np.sqrt(hold_i2 / hold_cycles) if hold_cycles else np.full(x0.shape, np.nan)
-    return BatchOutcome(caught_at, x_min, x_max, hold_theta, hold_x, faulted, first_catch, rms)
+    return BatchOutcome(caught_at, x_min, x_max, hold_theta, hold_x, faulted, first_catch, rms,
+                        unheld_at)

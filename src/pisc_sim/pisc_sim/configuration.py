@@ -22,6 +22,7 @@ from typing import Any
 import yaml
 
 from pisc_control.catch import CatchParams
+from pisc_control.adaptation import AdaptationParams
 from pisc_control.current_loop import CurrentLoopParams
 from pisc_control.estimator import EstimatorParams
 from pisc_control.excitation import ExperimentParams
@@ -59,7 +60,7 @@ SECTIONS: dict[str, type] = {
     "noise": NoiseParams, "initial": InitialParams, "estimator": EstimatorParams,
     "swing_up": SwingUpParams, "catch": CatchParams, "switching": SwitchingParams,
     "startup": StartupParams, "safety": SafetyParams, "current_loop": CurrentLoopParams,
-    "experiment": ExperimentParams,
+    "experiment": ExperimentParams, "adaptation": AdaptationParams,
 }
 
 
@@ -134,7 +135,8 @@ def load_graph_config(
         supervisor=SupervisorConfig(rig=s["rig"], swing_up=s["swing_up"], catch=s["catch"],
                                     switching=s["switching"], startup=s["startup"],
                                     safety=s["safety"], loop=s["loop"],
-                                    experiment=s["experiment"]),
+                                    experiment=s["experiment"], motor=s["motor"],
+                                    adaptation=s["adaptation"]),
         current_loop=s["current_loop"],
     )
     return config, flat

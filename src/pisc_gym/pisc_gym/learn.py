@@ -1,0 +1,155 @@
+"""pisc_gym_learn: learn a catch policy on randomised rigs with CMA-ES, through the vector
+environment, and count its catches over fresh randomised starts.
+
+    pisc_gym_learn [--generations 40] [--population 16] [--starts 32] [--seed 0]
+                   [--evaluate 1000] [--figure FILE]
+
+The task is ``pisc/Catch-v0`` on ``thesis-rig`` rigs (each start a new rig: motor,
+masses, friction, noise and latency drawn from the distribution), the pendulum at rest
+within 0.3 rad of upright, the action the current set-point through PISC's PI current
+loop, the observation the sensors' x, theta, i and the estimator's differences.
+
+The policy is linear in what it observes, ``i_d = g . (x - x_mid, x_dot, theta_wrapped,
+theta_dot)`` (x_mid the middle of the safe range, theta wrapped to the nearest upright,
+:func:`pisc_model.dynamics.wrap_to_upright`): four numbers, learnt from zero (on the
+features over :data:`SCALE`). Each generation of CMA-ES (the ``cmaes`` package,
+Hansen's CMA-ES with its default step-size adaptation) asks for ``--population``
+candidates; every candidate runs ``--starts`` episodes, all of them in
+one vector environment (each rig its candidate's gains), and is scored by its mean
+return (:mod:`pisc_gym.task`'s reward). The generation's mean is the policy.
+
+A start is caught when its episode (3 s) is not terminated (the cart stays in the safe
+range, the pendulum within pi / 2 of upright) and the true angle stays within 0.05 rad
+of upright over its last second. The learnt policy is evaluated on ``--evaluate`` new
+starts (seeds no generation used) and the command prints the share caught with its
+Clopper-Pearson 95 % interval. docs/gym.md has the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["CAUGHT_RAD", "episodes", "learn", "main"]
+
+CAUGHT_RAD = 0.05  # |theta| over the episode's last second, for a catch
+HOLD_S = 1.0
+OPTIONS = {"distribution": "thesis-rig", "action": "current", "velocities": True}
+#: the features' scales (m, m/s, rad, rad/s): the policy's gains act on z / SCALE, so that
+#: CMA-ES starts from one step size for all four
+SCALE = np.array([0.1, 0.5, 0.3, 3.0])
+
+
+def episodes(gains: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One episode of each row of ``gains`` (rigs, 4) on its own randomised rig (vector
+    environment seeded ``seed``): (returns, caught)."""
+    from pisc_gym.vector import PiscVectorEnv
+    from pisc_model.dynamics import wrap_to_upright
+
+    n = len(gains)
+    env = PiscVectorEnv(n, task="catch", **OPTIONS)
+    obs, _ = env.reset(seed=seed)
+    steps = env.task.episode_steps
+    middle = env.task.middle_m
+    hold_from = steps - int(round(HOLD_S / env.task.period_s))
+    returns = np.zeros(n)
+    live = np.ones(n, dtype=bool)  # in its first episode
+    held = np.ones(n, dtype=bool)
+    for k in range(steps):
+        z = np.column_stack([obs[:, 0] - middle, obs[:, 3], wrap_to_upright(obs[:, 1]),
+                             obs[:, 4]])
+        obs, reward, terminated, truncated, info = env.step(np.sum(gains * z / SCALE, axis=1))
+        returns += np.where(live, reward, 0.0)
+        if k + 1 >= hold_from:
+            angle = np.abs(wrap_to_upright(info["true_state"][:, 2]))
+            held &= ~live | (angle < CAUGHT_RAD)
+        held &= ~(live & terminated)
+        live &= ~(terminated | truncated)
+    return returns, held & ~live
+
+
+def learn(generations: int, population: int, starts: int, seed: int,
+          report: bool = True) -> tuple[np.ndarray, list[tuple[float, float, float]]]:
+    """CMA-ES from zero gains: the final mean and, per generation, (best, mean) return of
+    the candidates and the mean's return."""
+    from cmaes import CMA
+
+    optimizer = CMA(mean=np.zeros(4), sigma=1.0, population_size=population, seed=seed)
+    history = []
+    for g in range(generations):
+        candidates = np.array([optimizer.ask() for _ in range(optimizer.population_size)])
+        rows = np.repeat(np.vstack([candidates, optimizer.mean]), starts, axis=0)
+        returns, _ = episodes(rows, seed * 1_000_003 + g * (population + 1) * starts)
+        scores = returns.reshape(population + 1, starts).mean(axis=1)
+        optimizer.tell([(c, -s) for c, s in zip(candidates, scores[:-1])])
+        history.append((float(scores[:-1].max()), float(scores[:-1].mean()),
+                        float(scores[-1])))
+        if report:
+            print(f"generation {g + 1:3d}: best {history[-1][0]:7.1f}, mean "
+                  f"{history[-1][1]:7.1f}, policy {history[-1][2]:7.1f} (of "
+                  f"{len(rows)} episodes)", flush=True)
+    return optimizer.mean.copy(), history
+
+
+def plot(history: list[tuple[float, float, float]], rate: float, n: int, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h = np.array(history)
+    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=110)
+    gens = np.arange(1, len(h) + 1)
+    ax.plot(gens, h[:, 0], label="best candidate")
+    ax.plot(gens, h[:, 1], label="candidates' mean")
+    ax.plot(gens, h[:, 2], label="the policy (CMA-ES mean)", linewidth=2)
+    ax.set_xlabel("generation")
+    ax.set_ylabel("mean return of its episodes")
+    ax.set_title(f"CMA-ES, pisc/Catch-v0 on thesis-rig rigs: {100 * rate:.1f} % of {n} new "
+                 "starts caught", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="pisc_gym_learn", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--generations", type=int, default=80)
+    parser.add_argument("--population", type=int, default=16)
+    parser.add_argument("--starts", type=int, default=32, help="episodes a candidate")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--evaluate", type=int, default=1000,
+                        help="new randomised starts the learnt policy is counted on")
+    parser.add_argument("--figure", type=Path, help="write the learning curve (PNG) here")
+    args = parser.parse_args(argv)
+    for name in ("generations", "population", "starts", "evaluate"):
+        if getattr(args, name) < (2 if name == "population" else 1):
+            parser.error(f"--{name} {getattr(args, name)}: too small")
+    from pisc_bringup.robustness import binomial_interval
+
+    started = time.perf_counter()
+    gains, history = learn(args.generations, args.population, args.starts, args.seed)
+    learnt = time.perf_counter() - started
+    # the evaluation's seeds lie past every seed the generations used
+    _, caught = episodes(np.repeat(gains[None, :], args.evaluate, axis=0), 2**31 + args.seed)
+    low, high = binomial_interval(int(caught.sum()), args.evaluate)
+    rate = float(caught.mean())
+    k = gains / SCALE
+    print(f"learnt in {learnt:.0f} s: i_d = {k[0]:.4g} (x - x_mid) + {k[1]:.4g} x_dot + "
+          f"{k[2]:.4g} theta + {k[3]:.4g} theta_dot [A]")
+    print(f"caught {int(caught.sum())} of {args.evaluate} new randomised starts: "
+          f"{100 * rate:.1f} % (95 % interval {100 * low:.1f}-{100 * high:.1f} %)")
+    if args.figure is not None:
+        plot(history, rate, args.evaluate, args.figure)
+        print(f"figure: {args.figure}")
+    return 0 if rate >= 0.95 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
