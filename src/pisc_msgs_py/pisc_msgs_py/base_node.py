@@ -68,6 +68,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
+from rosgraph_msgs.msg import Clock
 
 from pisc_msgs_py import cdr
 from pisc_msgs_py import config as cfg
@@ -443,7 +444,7 @@ class PiscNode(Node):
         self.config = self.build(flat)
         self._start_params = self.section(flat, "start")
         self._pinned_publishers = {**GRAPH_PUBLISHERS,
-                            **parse_publishers(self._start_params.publishers)}
+                                   **parse_publishers(self._start_params.publishers)}
         self._input_guards: list[InputGuard] = []
         self._clock_ns = -1  # the newest /clock taken (simulated time)
         if getattr(self._time_source, "_clock_sub", None) is not None:
@@ -618,7 +619,6 @@ class PiscNode(Node):
         self.destroy_subscription(source._clock_sub)
         owners = self._pinned_publishers.get(CLOCK.name)
         guard = None if owners is None else self._guard(CLOCK.name, owners)
-        from rosgraph_msgs.msg import Clock
 
         def on_clock(msg: Any) -> None:
             stamp = stamp_from_msg(msg.clock)
