@@ -604,3 +604,26 @@ def test_the_summary_flags_a_voltage_before_its_sample_and_a_foreign_publisher()
     lines = summary.format().splitlines()
     assert "FOREIGN PUBLISHER      /pisc/motor/current_setpoint: /visitor" in lines
     assert lines[-1] == "result                 NOT CAUGHT"
+
+
+@pytest.mark.parametrize("kind", [k for k in __import__("pisc_bringup.graph", fromlist=["x"])
+                                  .NODE_KINDS if k != ("pisc_driver", "driver_node")],
+                         ids=lambda k: k[1])
+def test_every_topic_a_node_publishes_is_declared_for_the_runner(ros_context, kind):
+    """pisc_graph pins the publishers of every topic of the graph by what NODE_KINDS
+    declares: a node publishing a topic not declared there would be taken for a foreign
+    publisher and stop every run. (The driver needs a port; its topics are declared with
+    the plant's, test_driver.)"""
+    import importlib
+
+    from pisc_bringup.graph import NODE_KINDS
+
+    spec = NODE_KINDS[kind]
+    cls = getattr(importlib.import_module(spec.module), spec.cls)
+    node = cls(context=ros_context, parameter_overrides=[
+        Parameter("simulation.clock", value="lockstep")] if kind[1] == "plant_node" else [])
+    try:
+        published = {p.topic_name for p in node.publishers} - {"/rosout", "/parameter_events"}
+        assert published <= {t.name for t in spec.publishes}, published
+    finally:
+        node.destroy_node()

@@ -131,6 +131,7 @@ from pisc_msgs_py.topics import (
     MARKERS,
     MODE,
     MOTOR_CURRENT,
+    PENDULUM_ESTIMATE,
     SIM_STATE,
     STATE,
     VOLTAGE,
@@ -169,7 +170,7 @@ NODE_KINDS: dict[tuple[str, str], NodeKind] = {
         "controller"),
     ("pisc_control", "supervisor_node"): NodeKind(
         "pisc_control.supervisor_node", "SupervisorNode", (STATE,),
-        (CART_FORCE, MODE, DIAGNOSTICS), "controller"),
+        (CART_FORCE, MODE, PENDULUM_ESTIMATE, DIAGNOSTICS), "controller"),
     ("pisc_control", "current_loop_node"): NodeKind(
         "pisc_control.current_loop_node", "CurrentLoopNode",
         (CART_FORCE, MOTOR_CURRENT, MODE), (CURRENT_SETPOINT, VOLTAGE, DIAGNOSTICS),
