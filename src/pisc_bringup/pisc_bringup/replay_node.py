@@ -143,6 +143,7 @@ def replay_nodes(bag: str | Path, config: str | None = None,
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     nodes: list[Node] = []
+    feeder = None
     try:
         # the samples come from the feeder: its publishers are the pinned ones
         fed = format_publishers({JOINT_STATES.name: ("pisc_replay",),
@@ -167,7 +168,10 @@ def replay_nodes(bag: str | Path, config: str | None = None,
         # a last mode change may still be on its way: let what is in flight arrive
         _spin_for(executor, 0.2)
     finally:
-        for node in nodes:
+        # the feeder too: a node left undestroyed keeps its publishers in the domain after
+        # the context's shutdown, and a second replay's controllers took them for a
+        # publisher other than their own feeder
+        for node in [*nodes, *([feeder] if feeder is not None else [])]:
             node.destroy_node()
         context.try_shutdown()
     report = compare(run, feeder.outputs, tolerance, str(bag), "nodes", bag_topics(bag))
