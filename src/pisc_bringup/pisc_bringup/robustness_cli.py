@@ -77,6 +77,12 @@ def add_run_arguments(parser: argparse.ArgumentParser, draws: int) -> None:
                        help="run on an existing Dask cluster (tcp://host:8786)")
 
 
+# the most draws a run takes: each holds its parameters and outcomes in this process's
+# memory (10^15 asked for 135 PiB, and ended in a traceback)
+MAX_DRAWS = 10_000_000
+MAX_SEED = 2**63 - 1  # numpy's seeds are non-negative integers
+
+
 def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace
                         ) -> Criteria:
     """Refuse what makes no sense, naming it; the tiers' rules as :class:`Criteria`."""
@@ -84,6 +90,11 @@ def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespac
 
     if args.draws < 1:
         parser.error(f"--draws {args.draws}: at least 1")
+    if args.draws > MAX_DRAWS:
+        parser.error(f"--draws {args.draws}: at most {MAX_DRAWS:,} (each draw is held in "
+                     "memory; run more as several seeds)")
+    if not 0 <= args.seed <= MAX_SEED:
+        parser.error(f"--seed {args.seed}: must be an integer 0 .. {MAX_SEED}")
     if args.workers is not None and args.workers < 0:
         parser.error(f"--workers {args.workers}: 0 (in this process) or more")
     try:

@@ -58,6 +58,7 @@ from pisc_msgs_py.config import (
     flatten,
     from_flat,
     load_keyed_yaml,
+    load_yaml,
     package_dir,
 )
 from pisc_model.params import (
@@ -189,7 +190,7 @@ def distribution_names() -> list[str]:
 def file_kind(path: Path) -> str | None:
     """The top-level key of a YAML file ('distribution', 'space'), None if it has none."""
     try:
-        document = yaml.safe_load(path.read_text())
+        document = load_yaml(path.read_text())
     except yaml.YAMLError:
         return None
     return next(iter(document), None) if isinstance(document, Mapping) else None
