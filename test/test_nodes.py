@@ -88,7 +88,8 @@ NODES = {"plant": PlantNode, "estimator": EstimatorNode, "supervisor": Superviso
      r"start.await_subscribers = .* names /pisc/motor/voltage twice"),
     ("supervisor", {"start.await_subscribers": "/pisc/state=1"},
      r"start.await_subscribers: /pisc/state is not published by node 'supervisor' \(it "
-     r"publishes /diagnostics, /parameter_events, /pisc/cart_force, /pisc/mode\)"),
+     r"publishes /diagnostics, /parameter_events, /pisc/cart_force, /pisc/mode, "
+     r"/pisc/pendulum_estimate\)"),
     ("plant", {"start.await_timeout_s": 0.0},
      r"start.await_timeout_s = 0.0 must lie in \[0.01, 600"),
 ])

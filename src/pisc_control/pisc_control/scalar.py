@@ -49,7 +49,7 @@ from pisc_control.supervisor import (
 from pisc_model.params import MotorParams
 from pisc_msgs_py.types import Mode
 
-__all__ = ["LAW_ENERGY_PUMP", "LAW_LYAPUNOV", "OneRigCurrentLoop", "OneRigEstimator",
+__all__ = ["ArraySupervisor", "LAW_ENERGY_PUMP", "LAW_LYAPUNOV", "OneRigCurrentLoop", "OneRigEstimator",
            "OneRigSupervisor", "current_loop_constants",
            "current_loop_step", "estimator_constants", "estimator_step", "governor_interval",
            "governor_rows", "supervisor_constants", "supervisor_step"]
@@ -537,6 +537,39 @@ class OneRigSupervisor:
                                           x_dot, theta, theta_dot, *state)
         self._state = tuple(new)  # type: ignore[assignment]
         return force, new[0]
+
+
+class ArraySupervisor:
+    """:meth:`Supervisor.update` over arrays for any configuration: the numpy core's, or
+    for one whose laws are written for one rig at a time (:attr:`Supervisor.by_rig`) a
+    :class:`OneRigSupervisor` per rig. The state it returns holds the mode, fault, caught
+    and reference arrays; the one-rig supervisors keep the rest themselves, so a state is
+    good for one next call only."""
+
+    def __init__(self, supervisor: Supervisor) -> None:
+        self.supervisor = supervisor
+        self._rigs: list[OneRigSupervisor] | None = None
+
+    def update(self, state: SupervisorState, x, x_dot, theta, theta_dot
+               ) -> tuple[SupervisorState, np.ndarray, np.ndarray]:
+        if not self.supervisor.by_rig:
+            return self.supervisor.update(state, x, x_dot, theta, theta_dot)
+        values = [np.asarray(v, dtype=float) for v in (x, x_dot, theta, theta_dot)]
+        shape = np.broadcast_shapes(*(v.shape for v in values))
+        flat = [np.broadcast_to(v, shape).reshape(-1) for v in values]
+        size = flat[0].size
+        if state.mode is None or self._rigs is None:
+            self._rigs = [OneRigSupervisor(self.supervisor) for _ in range(size)]
+        force = np.empty(size)
+        mode = np.empty(size, dtype=np.int64)
+        for r, rig in enumerate(self._rigs):
+            force[r], mode[r] = rig.step(*(float(v[r]) for v in flat))
+        fault = np.array([rig.fault for rig in self._rigs], dtype=np.int64)
+        caught = np.array([rig.caught for rig in self._rigs], dtype=bool)
+        reference = np.array([rig.reference for rig in self._rigs])
+        new = SupervisorState(mode.reshape(shape), fault.reshape(shape), np.zeros(shape),
+                              caught.reshape(shape), reference.reshape(shape))
+        return new, force.reshape(shape), mode.reshape(shape)
 
 
 class OneRigCurrentLoop:

@@ -144,9 +144,6 @@ class SupervisorState:
     catch_reference_m: np.ndarray | None = None  # the catch's cart reference (settling)
     sample: np.ndarray | None = None  # experiments: index of the sample (their clock)
     origin_m: np.ndarray | None = None  # experiments: the first measured position
-    # the one-rig supervisors that run a configuration the numpy laws do not cover
-    # (:attr:`Supervisor.by_rig`), one per rig, flat; they hold their state themselves
-    rigs: tuple | None = None
 
 
 def switching_criterion(k_va: float, theta: ArrayLike, theta_dot: ArrayLike) -> np.ndarray:
@@ -195,7 +192,8 @@ class Supervisor:
                               "(swing_up.law: energy_pump), not (3.30)")
         #: the configuration uses a law written only for one rig at a time
         #: (:mod:`pisc_control.scalar`: the governor, the catch's guard, the online
-        #: estimates); :meth:`update` then runs that law rig by rig
+        #: estimates); :meth:`update` refuses it, :class:`pisc_control.scalar.
+        #: ArraySupervisor` runs it over arrays, rig by rig
         self.by_rig = config.experiment.kind == "none" and (
             c.governor or c.guard or config.adaptation.enabled)
 
@@ -215,7 +213,9 @@ class Supervisor:
         theta_dot = np.asarray(theta_dot, dtype=float)
         shape = np.broadcast_shapes(x.shape, x_dot.shape, theta.shape, theta_dot.shape)
         if self.by_rig:
-            return self._update_by_rig(state, x, x_dot, theta, theta_dot, shape)
+            raise ValueError("this configuration's laws are written for one rig at a time "
+                             "(the governor, the catch's guard, the online estimates): "
+                             "run them over arrays with pisc_control.scalar.ArraySupervisor")
 
         if state.mode is None:
             mode = np.full(shape, Mode.SWING_UP.code)
@@ -266,28 +266,6 @@ class Supervisor:
         force = np.where(np.isfinite(force), force, 0.0)
         return (SupervisorState(new_mode, new_fault, startup_target, caught, reference), force,
                 new_mode)
-
-    def _update_by_rig(self, state: SupervisorState, x: np.ndarray, x_dot: np.ndarray,
-                       theta: np.ndarray, theta_dot: np.ndarray, shape: tuple
-                       ) -> tuple[SupervisorState, np.ndarray, np.ndarray]:
-        """:meth:`update` by :class:`pisc_control.scalar.OneRigSupervisor`, rig by rig."""
-        from pisc_control.scalar import OneRigSupervisor
-
-        size = int(np.prod(shape))
-        rigs = state.rigs if state.rigs is not None else tuple(
-            OneRigSupervisor(self) for _ in range(size))
-        values = [np.broadcast_to(v, shape).reshape(-1) for v in (x, x_dot, theta, theta_dot)]
-        force = np.empty(size)
-        mode = np.empty(size, dtype=np.int64)
-        for r, rig in enumerate(rigs):
-            force[r], mode[r] = rig.step(*(float(v[r]) for v in values))
-        fault = np.array([rig.fault for rig in rigs], dtype=np.int64)
-        caught = np.array([rig.caught for rig in rigs], dtype=bool)
-        reference = np.array([rig.reference for rig in rigs])
-        new = SupervisorState(mode.reshape(shape), fault.reshape(shape),
-                              np.zeros(shape), caught.reshape(shape), reference.reshape(shape),
-                              rigs=rigs)
-        return new, force.reshape(shape), mode.reshape(shape)
 
     def _experiment(self, state: SupervisorState, fault: np.ndarray, startup_target: np.ndarray,
                     caught: np.ndarray, x: np.ndarray, x_dot: np.ndarray, shape: tuple

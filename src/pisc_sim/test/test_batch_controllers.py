@@ -10,7 +10,12 @@ import pytest
 
 from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
 from pisc_control.estimator import EstimatorParams, EstimatorState, estimator_update
-from pisc_control.scalar import OneRigCurrentLoop, OneRigEstimator, OneRigSupervisor
+from pisc_control.scalar import (
+    ArraySupervisor,
+    OneRigCurrentLoop,
+    OneRigEstimator,
+    OneRigSupervisor,
+)
 from pisc_control.supervisor import Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_plant.command import plant_command
@@ -55,13 +60,14 @@ class _Cores:
     def __init__(self, config, rigs: int) -> None:
         self.config = config
         self.supervisor = Supervisor(config.supervisor)
+        self.arrays = ArraySupervisor(self.supervisor)
         self.est, self.sup = EstimatorState(), SupervisorState()
         self.cl = CurrentLoopState(np.zeros(rigs))
 
     def step(self, x, theta, current):
         c, period = self.config, self.config.loop.period_s
         self.est, x_dot, theta_dot = estimator_update(c.estimator, period, self.est, x, theta)
-        self.sup, force, mode = self.supervisor.update(self.sup, x, x_dot, theta, theta_dot)
+        self.sup, force, mode = self.arrays.update(self.sup, x, x_dot, theta, theta_dot)
         self.cl, i_d, voltage = current_loop_cycle(
             c.plant.motor, c.current_loop, period, self.cl, force, current,
             mode == Mode.FAULT.code)
