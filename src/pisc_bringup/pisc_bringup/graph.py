@@ -833,6 +833,8 @@ def run_graph(options: RunOptions) -> RunResult:
     # the K this machine computes goes into the bag's parameter file, so that a replay on
     # a machine whose LAPACK rounds differently uses the same bits (catch.recorded_gain)
     flat = {**flat, "catch.recorded_gain": [float(k) for k in supervisor.gain]}
+    if config.supervisor.catch.hold_poles:
+        flat["catch.recorded_hold_gain"] = [float(k) for k in supervisor.hold_gain]
     track = config.simulated_plant.track
     if options.driver_port is None and not track.min_m <= config.initial.x_m <= track.max_m:
         raise ConfigError(f"initial.x_m = {config.initial.x_m} lies outside the track "

@@ -76,6 +76,9 @@ class CatchParams:
         0.04, "guard: the cart is taken to move on at its estimated velocity for this long "
         "before it brakes (what the IR's low-pass and the estimator's differences lag)", "s",
         nonnegative)
+    recorded_hold_gain: tuple[float, ...] = param(
+        [], "the hold's gain (hold_poles) as a recorded run computed it, used as "
+        "recorded_gain is", "N/m, N s/m, N/rad, N s/rad")
     recorded_gain: tuple[float, ...] = param(
         [], "K as a recorded run computed it (pisc_graph writes it into the bag's parameter "
         "file); used instead of the designed K only when the design gives the same K within "
@@ -112,10 +115,11 @@ class CatchParams:
                               "(catch.design: poles)")
         if len(self.lqr_q) != 4:
             raise ConfigError(f"catch.lqr_q: expected 4 weights, got {len(self.lqr_q)}")
-        if self.recorded_gain and (len(self.recorded_gain) != 4
-                                   or not all(math.isfinite(k) for k in self.recorded_gain)):
-            raise ConfigError(f"catch.recorded_gain = {list(self.recorded_gain)}: expected "
-                              "4 finite gains, or none")
+        for name in ("recorded_gain", "recorded_hold_gain"):
+            gain = getattr(self, name)
+            if gain and (len(gain) != 4 or not all(math.isfinite(k) for k in gain)):
+                raise ConfigError(f"catch.{name} = {list(gain)}: expected 4 finite gains, "
+                                  "or none")
 
 
 def catch_gain(rig: RigParams, params: CatchParams) -> np.ndarray:
@@ -220,15 +224,15 @@ def governor_rows(rig: RigParams, gain: np.ndarray, period_s: float, horizon_s: 
     if the rig had been moving at the estimated velocities: the reading where the cart
     is, the previous readings ``p - i Ts v``, the estimates ``v``. Without filters and
     with N = 1 the IR reading and the difference's lag are those of the model alone.
+    Every product is summed in a fixed order (:func:`_matmul`, :func:`_expm`): the rows
+    are the same bits on every CPU, as a replay on another machine needs.
     """
-    from scipy.linalg import expm
-
     a, b = linearise_upright(rig)
     block = np.zeros((5, 5))
     block[:4, :4] = a * period_s
     block[:4, 4:] = b * period_s
-    e = expm(block)
-    phi, gamma = e[:4, :4], e[:4, 4:5]
+    e = _expm(block)
+    phi, gamma = e[:4, :4], e[:4, 4]
     k = np.asarray(gain, dtype=float).reshape(4)
     n = difference_periods
     c_ir = math.exp(-2.0 * math.pi * ir_filter_hz * period_s) if ir_filter_hz > 0 else 0.0
@@ -245,7 +249,7 @@ def governor_rows(rig: RigParams, gain: np.ndarray, period_s: float, horizon_s: 
         vth = c_v * s[VTH] + (1.0 - c_v) * (angle - s[HTH + n - 1]) / (n * period_s)
         force = -(k[0] * reading + k[1] * vx + k[2] * angle + k[3] * vth)
         out = np.zeros(size)
-        out[:4] = phi @ s[:4] + gamma[:, 0] * force
+        out[:4] = _matmul(phi, s[:4, None])[:, 0] + gamma * force
         out[X_IR] = c_ir * s[X_IR] + (1.0 - c_ir) * s[0]
         out[HX] = reading
         out[HX + 1:HX + n] = s[HX:HX + n - 1]
@@ -274,6 +278,29 @@ def governor_rows(rig: RigParams, gain: np.ndarray, period_s: float, horizon_s: 
     power = embed
     for index in range(steps + 1):
         if index % GOVERNOR_STRIDE == 0:
-            rows.append(np.concatenate([power[0], setpoint @ power]))
-        power = closed @ power
+            rows.append(np.concatenate([power[0], _matmul(setpoint[None, :], power)[0]]))
+        power = _matmul(closed, power)
     return np.ascontiguousarray(rows, dtype=float)
+
+
+def _matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b by elementwise products summed in a fixed order: the same bits on every CPU
+    (a BLAS's kernels round differently from one CPU to another, and a replay on another
+    machine must give the recorded run's governor back exactly)."""
+    return np.add.reduce(a[:, :, None] * b[None, :, :], axis=1)
+
+
+def _expm(m: np.ndarray) -> np.ndarray:
+    """e^m by scaling and squaring of its Taylor series (:func:`_matmul` only, so the same
+    bits on every CPU); for the small norms of a period's linearisation."""
+    norm = float(np.max(np.sum(np.abs(m), axis=0)))
+    squarings = max(0, int(math.ceil(math.log2(norm / 0.25)))) if norm > 0.25 else 0
+    scaled = m / (2.0 ** squarings)
+    result = np.eye(len(m))
+    term = np.eye(len(m))
+    for order in range(1, 20):
+        term = _matmul(term, scaled) / order
+        result = result + term
+    for _ in range(squarings):
+        result = _matmul(result, result)
+    return result

@@ -166,10 +166,9 @@ class Supervisor:
         self.gain = catch_gain(config.rig, config.catch)
         c = config.catch
         #: the gain that balances once the catch has held (catch.hold_poles)
-        self.hold_gain = (catch_gain(config.rig, replace(c, poles=tuple(c.hold_poles),
-                                                          poles_imag=(0.0,) * 4,
-                                                          recorded_gain=()))
-                          if c.hold_poles else self.gain)
+        self.hold_gain = (catch_gain(config.rig, replace(
+            c, poles=tuple(c.hold_poles), poles_imag=(0.0,) * 4,
+            recorded_gain=c.recorded_hold_gain)) if c.hold_poles else self.gain)
         margin = 2.0 * c.governor_margin_m
         if c.governor and not margin < config.safety.x_max_m - config.safety.x_min_m:
             raise ConfigError(
