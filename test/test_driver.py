@@ -638,7 +638,9 @@ def test_a_command_the_driver_cannot_read_is_refused_with_its_reason_and_writes_
 
     master, slave, path = _raw_pty()
     node = DriverNode(context=ros_context, parameter_overrides=[
-        Parameter("driver.port", value=path)])
+        Parameter("driver.port", value=path),
+        Parameter("driver.command_max_age_periods", value=100.0),
+        Parameter("driver.silence_timeout_s", value=10.0)])
     loop = Node("current_loop", context=ros_context)
     warnings = _driver_statuses(loop, b"\x01")
     pub = loop.create_publisher(message_class(VOLTAGE.type), VOLTAGE.name,
@@ -676,9 +678,18 @@ def test_a_command_the_driver_cannot_read_is_refused_with_its_reason_and_writes_
             w == "rejected voltage command: motor: expected joints ['motor'], got ['cart']"
             for w in warnings), 10.0), warnings
         assert written() == b"" and node._core.commands == 0
+        # a fresh sample to answer: the first one is older than the commands' age limit by
+        # now (the two refusals take tens of ms, more on a loaded machine; the good command
+        # was dropped as stale); the limit is the longest the driver allows, 0.5 s, and the
+        # device is not called silent while the test takes its time
+        first = node._core.newest_stamp_ns
+        os.write(master, struct.pack(">BHHh", 0xAA, 400, 780, 0))
+        assert spin_until(executor, lambda: node._core.newest_stamp_ns > first, 10.0)
         command(2.0)
-        assert spin_until(executor, lambda: node._core.commands == 1, 10.0)
+        assert spin_until(executor, lambda: node._core.commands == 1, 10.0), (
+            f"{node._core.stale_commands} stale")
         out = written()
+        deadline = time.monotonic() + 10.0
         while not out and time.monotonic() < deadline:
             time.sleep(0.005)
             out = written()

@@ -39,8 +39,10 @@ distribution:
     initial.x_dot_mps: {offset: 0.2}
 """
 
-# the thesis's law from the thesis's gains, with a poor pull towards the track's middle
-POOR = {"swing_up.k_x": 2.0}
+# the thesis's law from the thesis's gains, with a pull towards the track's middle so
+# strong that the cart leaves the safe range in about 4 of 10 draws (it catches some)
+POOR = {"swing_up.k_x": 86.4, "swing_up.energy_target_j": 0.00094,
+        "startup.distance_m": 0.069}
 SPACE = """\
 space:
   description: the swing-up's pull and energy target, and the start-up distance
@@ -78,23 +80,27 @@ def first(files, tmp_path_factory):
 
 
 def test_a_small_search_improves_a_poor_start(first):
+    """Safe first: the search trades the unsafe start's catches for a configuration that
+    keeps every draw in the safe range (the score counts catches only once safety meets
+    its target)."""
     t, storage, result = first
     assert result.trials == 12
-    assert result.start_rates["caught"] <= 0.05  # the poor start
+    assert 0.3 <= 1.0 - result.start_rates["safe"] <= 0.5  # the poor start
+    assert result.start_rates["caught"] >= 0.1
     assert result.best_score > result.start_score
     tiers = ("safe", "caught", "fast")
     best = tuple(result.best_rates[t] for t in tiers)
     start = tuple(result.start_rates[t] for t in tiers)
     assert best > start  # better, safe first (tuples compare in order)
-    assert result.best_rates["caught"] >= result.start_rates["caught"] + 0.1
+    assert result.best_rates["safe"] == 1.0
     assert result.best_trial > 0
-    assert result.best_values["swing_up.k_x"] > 2.0
+    assert result.best_values["swing_up.k_x"] < 86.4
     assert result.best_flat["swing_up.k_x"] == result.best_values["swing_up.k_x"]
     assert result.best_flat["swing_up.k_v"] == 0.1  # the rest is the thesis's
     study = optuna.load_study(study_name=t.study_name, storage=storage)
     assert study.trials[0].user_attrs["start"] is True
-    assert set(study.trials[0].user_attrs["rates"]) == {"safe", "caught", "fast"}
-    assert study.trials[0].params["swing_up.k_x"] == 2.0
+    assert set(study.trials[0].user_attrs["rates"]) == {"safe", "caught", "fast", "hold_rms_a"}
+    assert study.trials[0].params["swing_up.k_x"] == 86.4
 
 
 def test_the_same_seed_gives_the_same_best(files, first, tmp_path):
@@ -184,13 +190,13 @@ def test_a_start_outside_the_space_is_scored_apart(files, tmp_path):
     space = write(tmp_path / "space.yaml", """\
         space:
           parameters:
-            swing_up.k_x: {log: [10.0, 100.0]}   # the start's k_x = 2 is outside
+            swing_up.k_x: {log: [1.0, 10.0]}   # the start's k_x = 86.4 is outside
         """)
     t = tuning((files[0], space), draws=20)
     storage = f"sqlite:///{tmp_path / 'o.db'}"
     result = tune(t, 2, storage)
     study = optuna.load_study(study_name=t.study_name, storage=storage)
-    assert all(10.0 <= trial.params["swing_up.k_x"] <= 100.0 for trial in study.trials)
+    assert all(1.0 <= trial.params["swing_up.k_x"] <= 10.0 for trial in study.trials)
     assert study.user_attrs["start_score"] == result.start_score
 
 

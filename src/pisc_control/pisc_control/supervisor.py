@@ -190,11 +190,11 @@ class Supervisor:
             raise ConfigError("adaptation.enabled: the online estimates serve the energy pump "
                               "(swing_up.law: energy_pump), not (3.30)")
         #: the configuration uses a law written only for one rig at a time
-        #: (:mod:`pisc_control.scalar`: the governor, the catch's guard, the online
-        #: estimates); :meth:`update` refuses it, :class:`pisc_control.scalar.
+        #: (:mod:`pisc_control.scalar`: the governor, the catch's guard, the hold's gain,
+        #: the online estimates); :meth:`update` refuses it, :class:`pisc_control.scalar.
         #: ArraySupervisor` runs it over arrays, rig by rig
         self.by_rig = config.experiment.kind == "none" and (
-            c.governor or c.guard or config.adaptation.enabled)
+            c.governor or c.guard or bool(c.hold_poles) or config.adaptation.enabled)
 
     def update(
         self,
@@ -213,7 +213,8 @@ class Supervisor:
         shape = np.broadcast_shapes(x.shape, x_dot.shape, theta.shape, theta_dot.shape)
         if self.by_rig:
             raise ValueError("this configuration's laws are written for one rig at a time "
-                             "(the governor, the catch's guard, the online estimates): "
+                             "(the governor, the catch's guard, the hold's gain, the online "
+                             "estimates): "
                              "run them over arrays with pisc_control.scalar.ArraySupervisor")
 
         if state.mode is None:

@@ -333,8 +333,9 @@ def test_unknown_controllers_and_wrong_shapes_are_refused():
 def test_one_rig_forms_follow_a_parameter_change_as_the_cores_do():
     """A node's parameters change mid-run (N of the differences 7 -> 3 -> 9, the catch
     region, the PI gains): the one-rig forms carry their state over as the numpy cores'
-    state carries, to the bit."""
-    config = _config("default")
+    state carries, to the bit (the numpy cores run the laws written for arrays: the fixed
+    pump without the hold's gain)."""
+    config = load_scene("thesis-rig", {**CONFIGS["fixed pump"], "catch.hold_poles": []}).config
     period = config.loop.period_s
     rng = np.random.default_rng(3)
     x = np.cumsum(rng.normal(0.0, 0.002, 300)) * 0.2

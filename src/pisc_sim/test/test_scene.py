@@ -176,6 +176,7 @@ def test_swing_up_gains_on_the_boundary_of_3_29_are_refused_and_just_inside_stay
     bound_kv = k_e * rig.a2 * 2.0 * rig.mgl
     path = _write(tmp_path, f"""\
         scene:
+          configuration: lyapunov-tuned
           parameters: {{swing_up: {{law: lyapunov, k_v: {bound_kv!r}, k_e: {k_e},
                                     energy_target_j: 0.0}}}}
         """)
