@@ -105,7 +105,8 @@ def _ros_value(value: Any) -> Any:
 #: The sections some PISC node reads (plant, estimator, supervisor, current loop, driver,
 #: markers); test_nodes checks this against the nodes' own lists.
 PISC_SECTIONS = frozenset({
-    "actuator", "catch", "current_loop", "driver", "estimator", "experiment", "friction",
+    "actuator", "adaptation", "catch", "current_loop", "driver", "estimator", "experiment",
+    "friction",
     "initial", "integrator", "loop", "markers", "models", "motor", "noise", "rig", "safety",
     "sensors", "simulation", "start", "startup", "swing_up", "switching", "track"})
 
