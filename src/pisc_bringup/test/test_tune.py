@@ -4,6 +4,7 @@ seed, resumes only its own study, and refuses a bad search space by name."""
 from __future__ import annotations
 
 import textwrap
+from dataclasses import replace
 
 import optuna
 import pytest
@@ -402,3 +403,38 @@ def test_ctrl_c_keeps_the_trials_says_how_many_and_the_same_study_resumes(files,
     done = subprocess.run(command(kept + 1), capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert complete() == kept + 1
+
+
+def test_aim_fast_puts_the_fast_draws_first_and_safe_second():
+    """With --aim fast a candidate that never swings up (safe on every draw, caught on
+    none) scores below one that is fast on 87 of 100 draws and safe on 88; with the
+    default aim it is the other way round (one more safe draw outweighs any catch)."""
+    import numpy as np
+
+    from pisc_bringup.robustness import Outcomes
+    from pisc_bringup.tune import score_for
+
+    def outcomes(safe: int, caught: int, fast: int, n: int = 100) -> Outcomes:
+        k = np.arange(n)
+        arrays = [k < safe, k < caught, k < fast] + [np.zeros(n)] * 7 + [
+            np.zeros(n, bool), k >= safe]
+        return Outcomes(*arrays)
+
+    idle, swinging = outcomes(100, 0, 0), outcomes(88, 88, 87)
+    assert score_for("fast", swinging) > score_for("fast", idle)
+    assert score_for("safe", swinging) < score_for("safe", idle)
+    # fast first, then safe: one more fast draw outweighs every safe one
+    assert score_for("fast", outcomes(87, 87, 87)) > score_for("fast", outcomes(100, 86, 86))
+    assert score_for("fast", outcomes(100, 100, 100)) == 1.0
+    assert score_for("fast", outcomes(90, 87, 87)) > score_for("fast", outcomes(88, 87, 87))
+
+
+def test_the_aim_is_part_of_the_study_so_two_aims_never_mix(files, tmp_path):
+    safe, fast = tuning(files, draws=5), replace(tuning(files, draws=5), aim="fast")
+    assert "aim" not in safe.key() and fast.key()["aim"] == "fast"
+    storage = f"sqlite:///{tmp_path / 'a.db'}"
+    open_study(safe, storage)
+    with pytest.raises(StudyMismatch, match="aim None \\(now 'fast'\\)"):
+        open_study(fast, storage)
+    with pytest.raises(ConfigError, match="aim 'slow': one of safe, fast"):
+        replace(safe, aim="slow")
