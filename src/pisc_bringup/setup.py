@@ -34,6 +34,8 @@ setup(
             'pisc_robustness = pisc_bringup.robustness_cli:main',
             'pisc_feasibility = pisc_bringup.feasibility_cli:main',
             'pisc_tune = pisc_bringup.tune_cli:main',
+            'pisc_commission = pisc_bringup.commission_cli:main',
+            'pisc_commission_bench = pisc_bringup.commission_bench:main',
             'pisc_identify = pisc_bringup.identify_cli:main',
             'pisc_soak = pisc_bringup.soak:main',
             'pisc_bench = pisc_bringup.bench:main',
