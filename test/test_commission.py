@@ -279,3 +279,25 @@ def test_the_distribution_widens_each_interval_by_the_factor_about_its_estimate(
     assert ranges["friction.pivot_viscous_nms"] == pytest.approx([0.0, 1e-4])
     assert "motor.viscous_friction_nms" not in ranges and "current_offset" not in ranges
     assert "not identifiable from these runs: thesis-rig's range" in text
+
+
+def test_the_benchmarks_hidden_rig_is_a_plant_file_of_its_draw(tmp_path, capsys):
+    from pisc_bringup.commission_bench import main as bench_main
+    from pisc_bringup.commission_bench import plant_file
+    from pisc_sim.configuration import PLANT_READS, load_run_config
+
+    values = {"motor.resistance_ohm": 16.5, "friction.pivot_viscous_nms": 7e-5,
+              "rig.pendulum_com_m": 0.09, "noise.current_std_a": 0.01}
+    path = tmp_path / "hidden.yaml"
+    plant_file(values, 1007, path)
+    sections = set(yaml.safe_load(path.read_text())["/**"]["ros__parameters"])
+    assert sections <= set(PLANT_READS) and "swing_up" not in sections
+    run, _, plant = load_run_config("default", plant=str(path))
+    assert run.true_plant.motor.resistance_ohm == 16.5
+    assert run.true_plant.friction.pivot_viscous_nms == 7e-5
+    assert run.true_plant.models.friction == "coulomb" and plant["noise.seed"] == 1007
+    for argv, message in ((["--rigs", "0"], "--rigs 0: at least 1"),
+                          (["--seed", "-2"], "--seed -2: 0 or more")):
+        with pytest.raises(SystemExit):
+            bench_main(argv)
+        assert message in capsys.readouterr().err

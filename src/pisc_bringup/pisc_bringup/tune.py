@@ -59,9 +59,9 @@ from pisc_msgs_py.config import (
     to_flat,
 )
 
-__all__ = ["AIMS", "READ_ONLY_WHEN", "SAMPLERS", "SPACE_DIR", "TUNABLE_SECTIONS", "Dimension", "Space",
-           "StudyMismatch", "TuneResult", "Tuning", "load_space", "space_for", "space_names",
-           "trials_kept", "tune", "tuned_file_text", "unread"]
+__all__ = ["AIMS", "READ_ONLY_WHEN", "SAMPLERS", "SPACE_DIR", "TUNABLE_SECTIONS", "Dimension",
+           "Space", "StudyMismatch", "TuneResult", "Tuning", "load_space", "space_for",
+           "space_names", "trials_kept", "tune", "tuned_file_text", "unread"]
 
 SPACE_DIR = package_dir("pisc_bringup", "distributions")
 DEFAULT_SPACE = "tuning-space"
