@@ -5,8 +5,7 @@ catches the hidden rig through the graph from 5 starts; every refusal with its m
 The hidden rig: R 11.3 ohm, pivot friction 6.2e-5 N m s/rad, the cart's friction and the
 rotor of draw 11 of 40 of seed 3 of thesis-rig, the sensors' noise of the rig. The budget
 is small (20 s excitation, 10 s free swing, 4 trials x 30 draws, 100 fresh draws): the
-test is about the pipeline (a trial costs about the same for 30 draws as for 400: the
-batch's cost is per period); docs/commissioning.md has the full-size figures.
+test is about the pipeline; docs/commissioning.md has the full-size figures.
 """
 
 from __future__ import annotations
