@@ -46,9 +46,9 @@ from pisc_msgs_py.config import (
     find_file,
     flatten,
     from_flat,
-    to_flat,
     load_keyed_yaml,
     package_dir,
+    to_flat,
 )
 from pisc_model.params import (
     ActuatorParams,
@@ -277,8 +277,7 @@ def _check_used(config: GraphConfig, plant: Mapping[str, Any], ranges: list[Rang
 
 
 def _default(name: str) -> float:
-    cls, f = _field(name)
-    return float(f.default)
+    return float(_field(name)[1].default)
 
 
 def load_distribution(name_or_path: str, config: GraphConfig) -> Distribution:
