@@ -20,7 +20,7 @@ from pisc_model.dynamics import wrap_to_upright
 pytestmark = pytest.mark.bag
 
 BAGS = Path(__file__).resolve().parent.parent / "bags"
-SWINGUP = BAGS / "default-swingup"
+SWINGUP = BAGS / "lyapunov-swingup"  # the times below are of this recording
 THESIS = BAGS / "thesis-gains"
 
 
@@ -105,7 +105,7 @@ def test_csv_has_the_thesis_columns_and_every_value_exactly(analysed):
 def test_two_bags_overlaid(tmp_path):
     completed = pisc_bag("analyse", SWINGUP, "--overlay", THESIS, "--out", tmp_path)
     assert completed.returncode == 0, completed.stderr
-    assert "default-swingup:" in completed.stdout and "thesis-gains:" in completed.stdout
+    assert "lyapunov-swingup:" in completed.stdout and "thesis-gains:" in completed.stdout
     assert "modes                  swing_up at 0.000 s, catch at 1.445 s, swing_up at 1.715 s" \
         in completed.stdout
     assert (tmp_path / "log_overlay_thesis-gains.csv").is_file()

@@ -1,4 +1,4 @@
-"""The feasibility study of issue 13 (pisc_analysis.feasibility, pisc_feasibility): a
+"""The feasibility study (pisc_analysis.feasibility, pisc_feasibility): a
 witness found for the nominal rig meets every rule when re-simulated on the plant, a
 rig made infeasible on purpose is refused by its energy bound, and bad input is refused
 by name."""
@@ -46,8 +46,16 @@ def test_exact_plant_refuses_unknown_and_invalid_parameters(nominal):
 
 
 def test_limits_refuse_inconsistent_rules():
-    with pytest.raises(ValueError, match=r"catch_by_s \(7.0\) < hold_start_s \(6.0\)"):
+    with pytest.raises(ValueError, match=r"catch_by_s \(7.0\) <= hold_start_s \(6.0\)"):
         F.Limits(catch_by_s=7.0)
+    with pytest.raises(ValueError, match=r"hold_start_s \(12.0\) < duration_s \(12.0\)"):
+        F.Limits(catch_by_s=8.0, hold_start_s=12.0, duration_s=12.0)
+    with pytest.raises(ValueError, match=r"duration_s = inf: must be finite"):
+        F.Limits(duration_s=math.inf)
+    with pytest.raises(ValueError, match=r"catch_by_s = nan: must be finite"):
+        F.Limits(catch_by_s=math.nan)
+    # held from the moment it must be caught: a rule that makes sense
+    assert F.Limits(catch_by_s=8.0, hold_start_s=8.0, duration_s=12.0).hold_start_s == 8.0
     with pytest.raises(ValueError, match=r"safe range \[0.1, 0.2\] m must contain x = 0"):
         F.Limits(x_min_m=0.1, x_max_m=0.2)
     with pytest.raises(ValueError, match=r"current_a = 0.0: must be positive"):
@@ -150,6 +158,19 @@ def test_clopper_pearson_interval():
     (["--distribution", "no-such-distribution"], "no-such-distribution"),
     (["--set", "safety.x_top_m=0.5"], "safety.x_top_m"),
     (["--draws", "5", "--only", "2,5"], "--only: draw 5 is not among the 5 draws"),
+    (["--only", "2,3,2"], "argument --only: '2,3,2': a draw named twice"),
+    (["--catch-by", "12"], "--catch-by 12: not before the end of the run (--run-s 10)"),
+    (["--catch-by", "8", "--hold-from", "9", "--run-s", "8"],
+     "--catch-by 8: not before the end of the run (--run-s 8)"),
+    (["--hold-from", "10"], "--hold-from 10: outside the run (--run-s 10)"),
+    (["--catch-by", "8", "--hold-from", "13", "--run-s", "12"],
+     "--hold-from 13: outside the run (--run-s 12)"),
+    (["--catch-by", "8", "--run-s", "12"], "--hold-from 6: before --catch-by 8"),
+    (["--catch-by", "0"], "argument --catch-by: '0': a positive, finite time in seconds"),
+    (["--hold-from", "-1"], "argument --hold-from: '-1': a positive, finite time"),
+    (["--run-s", "inf"], "argument --run-s: 'inf': a positive, finite time"),
+    (["--catch-by", "nan"], "argument --catch-by: 'nan': a positive, finite time"),
+    (["--run-s", "ten"], "argument --run-s: 'ten': a time in seconds"),
 ])
 def test_the_command_refuses_bad_input_by_name(args, message, capsys, tmp_path):
     from pisc_bringup.feasibility_cli import main
@@ -235,3 +256,80 @@ def test_multiple_shooting_brings_a_late_catch_forward_to_a_witness(nominal):
     with pytest.raises(ValueError, match=r"segment_periods \(30\) must be a multiple of "
                                          r"knot_periods \(4\)"):
         F.transcribe(rig, tight, pool, F.Transcription(knot_periods=4, segment_periods=30))
+
+
+CAUGHT_RULES = dict(catch_by_s=8.0, hold_start_s=9.0, duration_s=12.0)
+
+
+def test_the_energy_bounds_horizon_is_the_catch_deadline(nominal):
+    """The bound asks what any input can do by the catch deadline: T = catch_by_s.
+    A pivot friction of 3e-4 N m s: the comparison lemma's least time to the catch
+    region, about 4 s, proves it cannot be caught by 3 s, and proves nothing by 8 s.
+    With 1e-3 N m s the budget (m l a_b)^2 T / (4 b_p) grows with T in proportion."""
+    viscous = replace(nominal, models=replace(nominal.models, friction="viscous"))
+    rig = F.make_rig(F.exact_plant(viscous, {"friction.pivot_viscous_nms": 3e-4}),
+                     0.0, 0.0, math.pi, 0.0)
+    fast, caught = F.energy_bound(rig, F.Limits()), F.energy_bound(rig, F.Limits(**CAUGHT_RULES))
+    assert fast.horizon_s == 3.0 and caught.horizon_s == 8.0
+    assert 3.0 < fast.least_time_s == caught.least_time_s < 8.0
+    assert fast.infeasible and not caught.infeasible
+    assert F.find_witness(rig, F.Limits(), np.random.default_rng(0)).how == "bound"
+    lossy = F.make_rig(F.exact_plant(viscous, {"friction.pivot_viscous_nms": 1e-3}),
+                       0.0, 0.0, math.pi, 0.0)
+    three = F.energy_bound(lossy, F.Limits())
+    eight = F.energy_bound(lossy, F.Limits(**CAUGHT_RULES))
+    assert eight.largest_gain_j == pytest.approx(three.largest_gain_j * 8.0 / 3.0, rel=1e-12)
+    assert eight.largest_gain_j == pytest.approx(
+        (lossy.ml * eight.accel_bound_mps2) ** 2 * 8.0 / (4 * 1e-3), rel=1e-12)
+    assert three.largest_gain_j < three.needed_j < eight.largest_gain_j
+
+
+def test_the_witness_and_its_check_follow_the_run_length(nominal):
+    """A 12 s run is 2,400 voltages: the feedback search's rollouts, the check and
+    verify all take the run's length from the rules."""
+    limits = F.Limits(**CAUGHT_RULES)
+    rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
+    found = F.find_witness(rig, limits, np.random.default_rng(3))
+    assert found.feasible and found.voltages.shape == (2400,)
+    y = F.rollout(rig, found.voltages)
+    t = np.arange(2401) * 0.005
+    theta = F.wrap(y[:, 2])
+    assert (theta[t >= 8.0] ** 2 + 0.0015 * y[t >= 8.0, 3] ** 2 < 0.2363).all()
+    assert np.max(np.abs(theta[t >= 9.0])) < 0.05 and np.max(np.abs(y[t >= 9.0, 0])) < 0.02
+    with pytest.raises(ValueError, match=r"voltages: 2400 values expected \(one a period over "
+                                         r"12.0 s\)"):
+        F.verify(rig, limits, found.voltages[:2000])
+    # 6 V over the last 2 s push the cart out of the hold: a 10 s run with the same
+    # deadlines does not see it, the 12 s run does
+    pushed = found.voltages.copy()
+    pushed[2000:] = 6.0
+    assert F.verify(rig, replace(limits, duration_s=10.0), pushed[:2000]).ok
+    late = F.verify(rig, limits, pushed)
+    assert not late.ok and "the hold" in late.reason
+
+
+def test_a_draw_late_for_3_s_has_a_witness_by_8_s(tmp_path, capsys):
+    """Draw 41 of the 100 of seed 1 (pivot friction 6.3e-5 N m s, R 16.9 ohm) has no
+    witness by 3.0 s: its best candidate is in the catch region for good only from
+    3.060 s (docs/feasibility.md). With the "caught" rules (by 8 s, held from 9 s to
+    12 s) the same search finds one; the witness table says so with its rules."""
+    from pisc_analysis.witnesses import read_witness_csv
+    from pisc_bringup.feasibility_cli import main
+
+    common = ["--draws", "100", "--seed", "1", "--only", "41", "--restarts", "0"]
+    assert main([*common, "--csv", str(tmp_path / "3s.csv")]) == 0
+    meta, rows = read_witness_csv(tmp_path / "3s.csv")
+    assert (meta["catch_by_s"], meta["hold_from_s"], meta["run_s"]) == (3.0, 6.0, 10.0)
+    assert rows[0]["draw"] == 41 and rows[0]["feasible"] is False
+    assert rows[0]["reason"] == "in the catch region for good only from 3.060 s"
+    assert rows[0]["bound_horizon_s"] == 3.0
+    assert main([*common, "--catch-by", "8", "--hold-from", "9", "--run-s", "12",
+                 "--csv", str(tmp_path / "8s.csv")]) == 0
+    meta, rows = read_witness_csv(tmp_path / "8s.csv")
+    assert (meta["catch_by_s"], meta["hold_from_s"], meta["run_s"]) == (8.0, 9.0, 12.0)
+    assert (meta["seed"], meta["draws"], meta["searched"], meta["only"]) == (1, 100, 1, "41")
+    assert rows[0]["feasible"] is True and rows[0]["how"] == "feedback"
+    assert rows[0]["caught_at_s"] <= 8.0 and rows[0]["bound_horizon_s"] == 8.0
+    assert rows[0]["friction.pivot_viscous_nms"] == pytest.approx(6.27e-5, abs=5e-8)
+    out = capsys.readouterr().out
+    assert "for good by 8.0 s, |theta| < 0.05 rad and |x| < 0.02 m from 9.0 s to 12.0 s" in out

@@ -158,10 +158,12 @@ def test_node_processes_wait_until_their_publishers_have_matched_their_readers(l
     counted = [*g.controllers, *([g.source] if lockstep else [])]
     told = {n.name: graph.awaiting(n, counted, recorded).parameters[
         "start.await_subscribers"] for n in (*g.controllers, *g.observers)}
-    # supervisor and recorder; current loop and recorder (twice); the recorder alone;
-    # the recorder, the tap and the plant; the recorder
+    # supervisor and recorder; current loop and recorder (twice), the recorder alone for
+    # the pendulum estimate; the recorder alone; the recorder, the tap and the plant; the
+    # recorder
     assert told == {
-        "estimator": "/pisc/state=2", "supervisor": "/pisc/cart_force=2,/pisc/mode=2",
+        "estimator": "/pisc/state=2",
+        "supervisor": "/pisc/cart_force=2,/pisc/mode=2,/pisc/pendulum_estimate=1",
         "current_loop": "/pisc/motor/current_setpoint=1,"
                         f"/pisc/motor/voltage={3 if lockstep else 2}",
         "markers": "/pisc/markers=1"}

@@ -228,10 +228,15 @@ def test_the_node_publishes_the_throttled_samples_with_their_stamps(ros_context)
     from pisc_bringup.markers_node import MarkersNode
     from pisc_msgs_py.base_node import message_class, qos_profile
     from pisc_msgs_py.convert import cart_force_to_msg, mode_to_msg, true_state_to_msg
-    from pisc_msgs_py.topics import CART_FORCE, MARKERS, MODE, SIM_STATE
+    from pisc_msgs_py.topics import CART_FORCE, JOINT_STATES, MARKERS, MODE, SIM_STATE
     from pisc_msgs_py.types import CartForce, ModeReport, TrueState
 
-    node = MarkersNode(context=ros_context)
+    from rclpy.parameter import Parameter
+
+    # the probe stands in for the graph: the node's inputs answer to it alone
+    fed = ",".join(f"{t.name}=probe" for t in (SIM_STATE, JOINT_STATES, CART_FORCE, MODE))
+    node = MarkersNode(context=ros_context,
+                       parameter_overrides=[Parameter("start.publishers", value=fed)])
     probe = Node("probe", context=ros_context)
     pubs = {t.name: probe.create_publisher(message_class(t.type), t.name, qos_profile(t.qos))
             for t in (SIM_STATE, CART_FORCE, MODE)}

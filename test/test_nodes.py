@@ -88,7 +88,8 @@ NODES = {"plant": PlantNode, "estimator": EstimatorNode, "supervisor": Superviso
      r"start.await_subscribers = .* names /pisc/motor/voltage twice"),
     ("supervisor", {"start.await_subscribers": "/pisc/state=1"},
      r"start.await_subscribers: /pisc/state is not published by node 'supervisor' \(it "
-     r"publishes /diagnostics, /parameter_events, /pisc/cart_force, /pisc/mode\)"),
+     r"publishes /diagnostics, /parameter_events, /pisc/cart_force, /pisc/mode, "
+     r"/pisc/pendulum_estimate\)"),
     ("plant", {"start.await_timeout_s": 0.0},
      r"start.await_timeout_s = 0.0 must lie in \[0.01, 600"),
     ("plant", {"friction.pivot_viscous_nms": 4e-5},
@@ -304,7 +305,8 @@ def test_controllers_answer_a_sample_with_a_voltage_of_the_same_stamp(ros_contex
     nodes = [EstimatorNode(context=ros_context), SupervisorNode(context=ros_context),
              CurrentLoopNode(context=ros_context)]
     probe = nodes[0].__class__.__mro__[-2]  # rclpy Node
-    probe = probe("probe", context=ros_context)
+    # in the plant's place: the controllers' inputs answer to the plant alone
+    probe = probe("plant", context=ros_context)
     joints = probe.create_publisher(message_class(JOINT_STATES.type), JOINT_STATES.name,
                                     qos_profile(JOINT_STATES.qos))
     current = probe.create_publisher(message_class(MOTOR_CURRENT.type), MOTOR_CURRENT.name,
@@ -334,10 +336,11 @@ def test_controllers_answer_a_sample_with_a_voltage_of_the_same_stamp(ros_contex
             n.destroy_node()
 
 
-def _diagnostics_probe(ros_context, node):
-    """A probe node whose subscription gathers every status message on /diagnostics, and
+def _diagnostics_probe(ros_context, node, name: str):
+    """A probe node named ``name`` (the node whose topics it publishes: the inputs answer
+    to it alone) whose subscription gathers every status message on /diagnostics, and
     an executor spinning it with ``node``: (probe, the messages, executor)."""
-    probe = rclpy.node.Node("probe", context=ros_context)
+    probe = rclpy.node.Node(name, context=ros_context)
     statuses: list[str] = []
     probe.create_subscription(message_class(DIAGNOSTICS.type), DIAGNOSTICS.name,
                               lambda m: statuses.extend(s.message for s in m.status),
@@ -354,7 +357,7 @@ def test_bytes_that_are_no_joint_state_are_refused_on_diagnostics_and_the_node_a
     JointState is refused on /diagnostics, naming the topic and what is wrong, and the
     next good sample is answered (rclpy's own deserialisation raised in the executor)."""
     estimator = EstimatorNode(context=ros_context)
-    probe, statuses, executor = _diagnostics_probe(ros_context, estimator)
+    probe, statuses, executor = _diagnostics_probe(ros_context, estimator, "plant")
     joints = probe.create_publisher(message_class(JOINT_STATES.type), JOINT_STATES.name,
                                     qos_profile(JOINT_STATES.qos))
     states = []
@@ -383,7 +386,7 @@ def test_the_current_loop_takes_the_mode_as_a_value_and_refuses_an_unknown_one(r
     converter's value too; a mode it does not know is refused on /diagnostics as parse
     says it, and a fault after it is taken."""
     loop = CurrentLoopNode(context=ros_context)
-    probe, statuses, executor = _diagnostics_probe(ros_context, loop)
+    probe, statuses, executor = _diagnostics_probe(ros_context, loop, "supervisor")
     modes = probe.create_publisher(message_class(MODE.type), MODE.name, qos_profile(MODE.qos))
     try:
         assert spin_until(executor, lambda: modes.get_subscription_count() >= 1

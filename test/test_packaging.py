@@ -18,7 +18,7 @@ EXECUTABLES = {
     "pisc_control": ["estimator_node", "supervisor_node", "current_loop_node"],
     "pisc_bringup": ["pisc_graph", "pisc_record", "pisc_bag", "pisc_scene",
                      "pisc_integrators", "pisc_batch_bench", "pisc_robustness", "pisc_tune",
-                     "markers_node", "pisc_parser_bench"],
+                     "markers_node", "pisc_parser_bench", "pisc_calibrate", "pisc_experiment"],
     "pisc_msgs_py": [],
     "pisc_driver": ["driver_node"],
     "pisc_model": [],
@@ -56,10 +56,13 @@ def test_every_node_executable_lands_where_ros2_run_looks(install, package):
 def test_installed_configuration_and_node_run_from_the_install(install, env_for_domain):
     config = install / "pisc_sim" / "share" / "pisc_sim" / "config"
     assert sorted(p.name for p in config.glob("*.yaml")) == [
-        "default.yaml", "lyapunov-tuned.yaml", "thesis.yaml"]
+        "default.yaml", "fixed-pump.yaml", "lyapunov-tuned.yaml", "thesis-calibrated-plant.yaml",
+        "thesis.yaml"]
     bringup = install / "pisc_bringup" / "share" / "pisc_bringup"
     distributions = bringup / "distributions"
-    assert "thesis-rig.yaml" in [p.name for p in distributions.glob("*.yaml")]
+    assert {"thesis-rig.yaml", "thesis-calibrated.yaml"} <= {
+        p.name for p in distributions.glob("*.yaml")}
+    assert (bringup / "experiments" / "thesis-6.6.yaml").is_file()
     launch = bringup / "launch"  # ros2 launch pisc_bringup sim.launch.xml
     assert sorted(p.name for p in launch.glob("*.launch.xml")) == [
         "rig.launch.xml", "sim.launch.xml"]

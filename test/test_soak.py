@@ -32,7 +32,9 @@ from pisc_bringup.soak import (
     read_proc,
     read_steal,
     recoveries,
+    start_load,
     steal_figures,
+    stop_load,
     usage_over,
 )
 from pisc_plant.virtual_rig import check_request
@@ -415,6 +417,10 @@ def test_the_report_prints_the_steal_beside_the_cycles_over_the_period_or_why_no
     assert lines[at + 1] == ("                       19 of the 21 cycles over 5 ms within "
                              "0.1 s of a wake-up over 1 ms late (142 such; 4.8 % of the "
                              "window is)")
+    report["load"] = 2
+    assert format_report(report).splitlines()[0] == (
+        "PISC soak: 600 s wall clock, simulated plant, under load (2 busy loops, one per "
+        "CPU); 2026-12-05 02:59 UTC")
 
 
 def test_a_run_that_meets_every_target_misses_none():
@@ -444,6 +450,38 @@ def test_each_missed_target_is_named_with_its_figure():
     assert missed_targets(report, Targets.for_run(driver=True)) == []
 
 
+def test_under_load_the_cycles_over_the_period_may_be_the_bare_timers_and_no_more():
+    """A loaded machine (pisc_soak --load): the bare timer measured beside the run is the
+    machine's own limit; the graph may have as many cycles over the period, not more."""
+    report = good_report(load=2)
+    report["machine"] = {"over_period": 3, "overs_near": 3, "near_s": 0.1}
+    report["latency"].update(over_period=3)
+    assert missed_targets(report, Targets.for_run(driver=True)) == []
+    report["latency"].update(over_period=4)
+    assert missed_targets(report, Targets.for_run(driver=True)) == [
+        "4 cycles over the 5 ms period (target 3 (the bare timer's wake-ups over it); 3 "
+        "within 0.1 s of the bare timer's stalls)"]
+
+
+def _cpu_ticks(pid: int) -> int:
+    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    return int(fields[11]) + int(fields[12])
+
+
+def test_the_load_is_one_busy_loop_per_cpu_held_there_and_stopped():
+    cpus = sorted(os.sched_getaffinity(0))
+    loops = start_load(len(cpus))
+    try:
+        assert [sorted(os.sched_getaffinity(p.pid)) for p in loops] == [[c] for c in cpus]
+        before = [_cpu_ticks(p.pid) for p in loops]
+        time.sleep(0.5)
+        assert all(_cpu_ticks(p.pid) > b for p, b in zip(loops, before))  # busy
+        assert all(os.sched_getscheduler(p.pid) == os.SCHED_OTHER for p in loops)
+    finally:
+        stop_load(loops)
+    assert all(p.poll() is not None for p in loops)
+
+
 def test_a_faults_run_misses_a_lost_silence_and_a_message_the_bag_lacks():
     report = good_report(faults=True, cycles={"completed": 100, "expected": 120001},
                          recoveries=[{"requested_s": 13.2, "recovery_s": 0.4},
@@ -468,6 +506,8 @@ def test_a_faults_run_misses_a_lost_silence_and_a_message_the_bag_lacks():
     (["--driver", "--realtime", "95"], "--realtime 95: must be a SCHED_FIFO priority from 1 "
                                        "to 89"),
     (["--seed", "-1"], "--seed -1: must be >= 0"),
+    (["--load", "-1"], "--load -1: must be 0 .. "),
+    (["--load", "999"], "--load 999: must be 0 .. "),
 ])
 def test_bad_arguments_exit_2_naming_the_rule_and_write_nothing(tmp_path, capsys, args,
                                                                  message):
@@ -531,6 +571,16 @@ def test_soak_of_the_simulated_plant_prints_its_figures(tmp_path):
     check_common(report, 20.0, {"graph", "recorder"})
     assert report["nodes_cpu_percent"] == report["processes"]["graph"]["cpu_percent"]
     assert "sample-to-voltage      median" in output and "p99.9" in output
+
+
+@pytest.mark.bench
+def test_soak_under_load_through_the_driver_measures_the_bare_timer_beside_it(tmp_path):
+    """The command docs/soak.md's figures under load come from (10 minutes there)."""
+    realtime = ["--realtime", "40"] if _fifo_allowed() else []
+    rc, output, report = soak(tmp_path, "--driver", "--load", "2", "--duration", "20",
+                              *realtime)
+    assert report["load"] == 2 and "under load (2 busy loops, one per CPU)" in output
+    assert "machine (bare timer)" in output and "error" not in report["machine"]
 
 
 @pytest.mark.bench

@@ -1,4 +1,4 @@
-"""Can any controller swing a given rig up and hold it? An upper bound (issue 13).
+"""Can any controller swing a given rig up and hold it? An upper bound (docs/feasibility.md).
 
 For one plant known exactly (its true m, l, I, M, motor and friction, its initial state,
 no noise, no latency), :func:`find_witness` looks for a voltage sequence, one value per
@@ -49,16 +49,17 @@ __all__ = ["EnergyBound", "Gains", "Limits", "Pool", "Rig", "Search", "Transcrib
            "Transcription", "Verdict", "accel_bound", "check", "climb_time", "clopper_pearson",
            "energy_bound", "exact_plant", "feedback_rollouts", "feedback_search",
            "find_witness", "hold_from", "hold_gain", "make_rig", "pendulum_energy",
-           "region_energy", "rollout", "shoot", "transcribe", "verify", "wrap"]
+           "region_energy", "rollout", "samples", "shoot", "transcribe", "verify", "wrap"]
 
 X, X_DOT, THETA, THETA_DOT, CURRENT = range(5)
 
 
 @dataclass(frozen=True)
 class Limits:
-    """What a successful run must respect (the robustness benchmark's rules, issue 13,
-    and the actuator's limits). ``current_a`` None: the voltage alone limits the
-    current (no current loop limit)."""
+    """What a successful run must respect (the robustness benchmark's rules and the
+    actuator's limits): a run of ``duration_s``, in the catch region for good from some
+    t <= ``catch_by_s``, held from ``hold_start_s`` to its end. ``current_a`` None: the
+    voltage alone limits the current (no current loop limit)."""
 
     voltage_v: float = 11.47
     current_a: float | None = 0.9
@@ -73,14 +74,18 @@ class Limits:
     delta_s: float = 0.2363
 
     def __post_init__(self) -> None:
+        for name in ("voltage_v", "x_min_m", "x_max_m", "catch_by_s", "duration_s",
+                     "hold_start_s", "hold_theta_rad", "hold_x_m", "k_va", "delta_s"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} = {getattr(self, name)}: must be finite")
         checks = [
             (self.voltage_v > 0, f"voltage_v = {self.voltage_v}: must be positive"),
             (self.current_a is None or self.current_a > 0,
              f"current_a = {self.current_a}: must be positive (or None: no limit)"),
             (self.x_min_m < 0 < self.x_max_m,
              f"safe range [{self.x_min_m}, {self.x_max_m}] m must contain x = 0"),
-            (0 < self.catch_by_s < self.hold_start_s < self.duration_s,
-             f"times must satisfy 0 < catch_by_s ({self.catch_by_s}) < hold_start_s "
+            (0 < self.catch_by_s <= self.hold_start_s < self.duration_s,
+             f"times must satisfy 0 < catch_by_s ({self.catch_by_s}) <= hold_start_s "
              f"({self.hold_start_s}) < duration_s ({self.duration_s})"),
             (self.hold_theta_rad > 0 and self.hold_x_m > 0,
              "hold_theta_rad and hold_x_m must be positive"),
@@ -175,6 +180,12 @@ def make_rig(config: PlantConfig, x_m: float, x_dot_mps: float, theta_rad: float
 
 
 # -- simulation ---------------------------------------------------------------------------
+
+def samples(seconds: float, period_s: float) -> int:
+    """The last sample at or before ``seconds`` (a deadline between two samples is met
+    only by the earlier one)."""
+    return int(math.floor(seconds / period_s + 1e-9))
+
 
 def rollout(rig: Rig, voltages: np.ndarray, y0: np.ndarray | None = None) -> np.ndarray:
     """States at every sample for voltage sequences held one period each.
@@ -403,7 +414,8 @@ def check(limits: Limits, voltages: np.ndarray, states: np.ndarray, period_s: fl
                      steps + 1 - np.argmax(outside[..., ::-1], axis=-1), 0)
     caught = np.where(start > steps, np.inf, t[np.minimum(start, steps)])
     late = np.where(np.isinf(caught), limits.duration_s + np.min(region, axis=-1),
-                    np.maximum(caught - limits.catch_by_s, 0.0))
+                    np.where(caught > limits.catch_by_s + 1e-9, caught - limits.catch_by_s,
+                             0.0))
     over = (np.max(np.maximum(x - limits.x_max_m, 0.0), axis=-1)
             + np.max(np.maximum(limits.x_min_m - x, 0.0), axis=-1))
     hold = t >= limits.hold_start_s - 1e-12
@@ -455,7 +467,7 @@ def verify(rig: Rig, limits: Limits, voltages: np.ndarray) -> Verdict:
         reasons.append(f"voltage {largest_u:.3f} V above {limits.voltage_v} V")
     if limits.current_a is not None and largest_i > limits.current_a * 1.02:
         reasons.append(f"current {largest_i:.3f} A above {limits.current_a} A")
-    if caught > limits.catch_by_s:
+    if caught > limits.catch_by_s + 1e-9:
         reasons.append("never in the catch region for good" if math.isinf(caught)
                        else f"in the catch region for good only from {caught:.3f} s")
     if np.max(np.abs(th[hold])) >= limits.hold_theta_rad:
@@ -531,7 +543,7 @@ class Transcription:
     segment_periods: int = 40  # a shooting segment: 0.2 s
     tail_s: float = 0.6  # the catch region kept this long past the deadline, then the hold
     deadline_step_s: float = 0.04  # the continuation's first step of the catch deadline
-    first_deadline_s: float = 3.5  # the latest deadline it starts from (a budget)
+    first_deadline_after_s: float = 0.5  # the latest deadline it starts from, past catch_by_s
     guesses: int = 2  # the best feedback rollouts it starts from
     max_nfev: int = 40  # least-squares evaluations per deadline
     track_margin_m: float = 0.0005
@@ -687,15 +699,14 @@ def transcribe(rig: Rig, limits: Limits, pool: Pool, settings: Transcription | N
     The rule "in the catch region (4.1) for good from some t <= catch_by_s" is the same
     as "in it at every sample from catch_by_s on": the deadline. From each of the
     ``guesses`` best rollouts of the feedback search (``pool``), whose stay in the region
-    begins late (at t_c), the deadline starts at min(t_c, ``first_deadline_s``) and
-    comes down by ``deadline_step_s`` to ``catch_by_s``; at each deadline d,
-    ``scipy.optimize.least_squares`` (trust region reflective, the bridge's voltage as
-    bounds) drives the residuals of :class:`_Shooting` over the horizon d + ``tail_s``
-    to zero (at most ``tolerance``), warm-started from the last deadline met (nodes
-    included). A deadline not met is tried again half as far below the last one met,
-    down to one period; then it stops. A rollout that starts later than
-    ``first_deadline_s`` starts there (a budget: a local method seldom moves a catch by
-    seconds). Met at ``catch_by_s``, the knots are
+    begins late (at t_c), the deadline starts at min(t_c, ``catch_by_s`` +
+    ``first_deadline_after_s``; a budget: a local method seldom moves a catch by
+    seconds) and comes down by ``deadline_step_s`` to ``catch_by_s``; at each deadline
+    d, ``scipy.optimize.least_squares`` (trust region reflective, the bridge's voltage
+    as bounds) drives the residuals of :class:`_Shooting` over the horizon d +
+    ``tail_s`` to zero (at most ``tolerance``), warm-started from the last deadline met
+    (nodes included). A deadline not met is tried again half as far below the last one
+    met, down to one period; then it stops. Met at ``catch_by_s``, the knots are
     re-simulated alone from the start, handed to the LQR hold (:func:`hold_from`) and
     checked (:func:`verify`)."""
     s = settings or Transcription()
@@ -705,7 +716,7 @@ def transcribe(rig: Rig, limits: Limits, pool: Pool, settings: Transcription | N
     period = rig.period_s
     steps = int(round(limits.duration_s / period))
     k_gain = hold_gain(rig) if k_gain is None else k_gain
-    target = int(round(limits.catch_by_s / period))
+    target = samples(limits.catch_by_s, period)
     step = max(1, int(round(s.deadline_step_s / period)))
     outside = (wrap(pool.states[..., THETA]) ** 2
                + limits.k_va * pool.states[..., THETA_DOT] ** 2 >= limits.delta_s)
@@ -713,7 +724,7 @@ def transcribe(rig: Rig, limits: Limits, pool: Pool, settings: Transcription | N
     earliest, tried = math.inf, 0
     best_verdict = None
     for j in np.argsort(pool.badness)[: s.guesses]:
-        d = min(int(start[j]), int(round(s.first_deadline_s / period)))
+        d = min(int(start[j]), target + int(round(s.first_deadline_after_s / period)))
         d = target + step * math.ceil(max(d - target, 0) / step)
         voltages, states = pool.voltages[j], pool.states[j]
         met, stride = math.inf, step
@@ -944,7 +955,7 @@ def find_witness(rig: Rig, limits: Limits, rng: np.random.Generator, rollouts: i
     volts, states, badness = pool.voltages, pool.states, pool.badness
     best = verify(rig, limits, volts[int(np.argmin(badness))])
     tried += 1
-    last = int(round(limits.catch_by_s / period))
+    last = samples(limits.catch_by_s, period)
     region = wrap(states[:, : last + 1, THETA]) ** 2 + limits.k_va * states[:, : last + 1,
                                                                             THETA_DOT] ** 2
     for j in np.argsort(badness)[:restarts]:

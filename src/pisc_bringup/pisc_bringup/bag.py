@@ -140,6 +140,11 @@ class BagWriter:
         )
         self._channels[topic.name] = _Channel(topic, channel_id, type_hash)
 
+    def add_topic(self, topic: Topic) -> None:
+        """A topic not given at the start (a channel of the stream from here on)."""
+        if topic.name not in self._channels:
+            self._add(topic)
+
     def write(self, topic_name: str, data: bytes, log_time_ns: int, publish_time_ns: int,
               flush: bool = True) -> None:
         """Append one message to the stream; ``flush`` hands it to the operating system

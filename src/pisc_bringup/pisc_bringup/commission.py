@@ -506,7 +506,7 @@ def _tune(ctx: Context, where: Path) -> dict[str, Any]:
     space_name = plan.space or space_for(flat)
     space = load_space(space_name, flat)
     tuning = Tuning(rig_file, {}, distribution, space, plan.draws, plan.seed, plan.sampler,
-                    Criteria(), plan.aim)
+                    Criteria(), aim=plan.aim)
     storage = f"sqlite:///{where / 'study.db'}"
     kept = trials_kept(tuning, storage)
     ctx.say(f"    space {space.name} ({len(space.dimensions)} parameters"

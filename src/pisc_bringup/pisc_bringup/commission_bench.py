@@ -43,11 +43,13 @@ def hidden_rigs(n: int, seed: int, say=print) -> list[tuple[int, dict[str, float
 
     from pisc_analysis.feasibility import exact_plant, find_witness, make_rig
     from pisc_bringup.feasibility_cli import witness_limits
-    from pisc_bringup.robustness import load_benchmark
+    from pisc_bringup.robustness import Criteria, load_benchmark
 
     candidates = 20 * n
     config, _, draws, base = load_benchmark("default", [], "thesis-rig", candidates, seed)
-    limits = witness_limits(config, base)
+    criteria = Criteria()  # the fast tier: caught for good by 3 s, held from 6 s to 12 s
+    limits = witness_limits(config, base, None, criteria.fast_by_s, criteria.fast_hold_from_s,
+                            criteria.run_s)
     kept = []
     for k in range(candidates):
         values = draws.one(k)

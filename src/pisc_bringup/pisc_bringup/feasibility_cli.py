@@ -1,25 +1,30 @@
 """pisc_feasibility: can any controller swing up and hold the rigs of a distribution?
-(issue 13; docs/feasibility.md)
+(docs/feasibility.md)
 
     pisc_feasibility --distribution thesis-rig --draws 100 --seed 1
+    pisc_feasibility --draws 300 --catch-by 8 --hold-from 9 --run-s 12
 
 For each draw (the same draws as ``pisc_robustness CONFIG --distribution D --seed S``):
 the exact plant (its own m, l, I, M, motor and friction, its own start; no noise, no
-latency) is searched for a voltage sequence that is caught by 3.0 s and held within the
-benchmark's rules (:mod:`pisc_analysis.feasibility`). Prints the fraction of draws with
-a witness and its Clopper-Pearson 95 % interval, split by pivot friction (fifths of its
-range) and by the search that found it, and every draw without one; ``--csv FILE``
-writes one row a draw. A witness proves a draw feasible; a search that fails proves
-nothing unless the energy bound or the comparison lemma's climb time says so (column
-``bound``; ``bound_least_time_s``). ``--multiple-shooting`` adds a last, slower search.
+latency) is searched for a voltage sequence that is caught by ``--catch-by`` seconds
+(3.0) and held from ``--hold-from`` (6.0) to the end of a run of ``--run-s`` (10.0),
+within the benchmark's rules (:mod:`pisc_analysis.feasibility`). Prints the fraction of
+draws with a witness and its Clopper-Pearson 95 % interval, split by pivot friction
+(fifths of its range) and by the search that found it, and every draw without one;
+``--csv FILE`` writes one row a draw, after ``# key: value`` lines giving the rules, the
+seed, the number of draws and the distribution's digest
+(:mod:`pisc_analysis.witnesses`). A witness proves a draw feasible; a search that fails
+proves nothing unless the energy bound or the comparison lemma's climb time says so
+(column ``bound``; ``bound_least_time_s``). ``--multiple-shooting`` adds a last, slower
+search.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -37,6 +42,8 @@ def _indices(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"{text!r}: draw numbers separated by commas") from None
     if any(v < 0 for v in values):
         raise argparse.ArgumentTypeError(f"{text!r}: draw numbers are 0 or more")
+    if len(set(values)) < len(values):
+        raise argparse.ArgumentTypeError(f"{text!r}: a draw named twice")
     return values
 
 
@@ -51,6 +58,31 @@ def _limit(text: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"{text!r}: the current limit must be positive")
     return value
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: a time in seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: a positive, finite time in seconds")
+    return value
+
+
+def rule_problem(catch_by_s: float, hold_from_s: float, run_s: float) -> str | None:
+    """What is wrong with the rules (``--catch-by``, ``--hold-from``, ``--run-s``), or
+    None: caught by a time within the run, held from then or later to the run's end."""
+    if catch_by_s >= run_s:
+        return (f"--catch-by {catch_by_s:g}: not before the end of the run (--run-s "
+                f"{run_s:g}): the catch must come within the run")
+    if hold_from_s >= run_s:
+        return (f"--hold-from {hold_from_s:g}: outside the run (--run-s {run_s:g}): the hold "
+                "is checked from there to the run's end")
+    if hold_from_s < catch_by_s:
+        return (f"--hold-from {hold_from_s:g}: before --catch-by {catch_by_s:g}: the hold "
+                "starts once the pendulum is caught")
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,8 +116,22 @@ def main(argv: list[str] | None = None) -> int:
                         help="last, when the other searches find nothing: multiple shooting "
                         "with the catch deadline brought down by continuation from the best "
                         "feedback rollouts (slow: a minute or more a draw)")
-    parser.add_argument("--csv", type=Path, metavar="FILE", help="write one row a draw")
+    parser.add_argument("--catch-by", type=_seconds, default=3.0, metavar="S",
+                        help="in the catch region for good from some t <= S (default: "
+                        "%(default)s)")
+    parser.add_argument("--hold-from", type=_seconds, default=6.0, metavar="S",
+                        help="|theta| and |x| within the hold's bounds from S to the end "
+                        "(default: %(default)s)")
+    parser.add_argument("--run-s", type=_seconds, default=10.0, metavar="S",
+                        help="the run's length (default: %(default)s)")
+    parser.add_argument("--csv", type=Path, metavar="FILE",
+                        help="write one row a draw, after '# key: value' lines with the "
+                        "rules, the seed, the draws and the distribution's digest")
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
+    problem = rule_problem(args.catch_by, args.hold_from, args.run_s)
+    if problem:
+        parser.error(problem)
     for name in ("draws", "rounds"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} {getattr(args, name)}: at least 1")
@@ -102,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from pisc_analysis.feasibility import (Transcription, clopper_pearson, exact_plant,
                                            find_witness, make_rig)
+    from pisc_analysis.witnesses import write_witness_csv
     from pisc_bringup.robustness import load_benchmark
     from pisc_msgs_py.config import ConfigError
 
@@ -111,7 +158,12 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
-    limits = witness_limits(config, base, args.current_limit)
+    try:
+        limits = witness_limits(config, base, args.current_limit, args.catch_by,
+                                args.hold_from, args.run_s)
+    except ValueError as exc:
+        print(f"{PROG}: the benchmark's rules: {exc}", file=sys.stderr)
+        return 2
     pivot_range = distribution.range(PIVOT)
     lo, hi = (pivot_range.value_range if pivot_range is not None
               else (base.friction.pivot_viscous_nms,) * 2)
@@ -126,6 +178,18 @@ def main(argv: list[str] | None = None) -> int:
           f"(theta^2 + {limits.k_va} theta_dot^2 < {limits.delta_s}) for good by "
           f"{limits.catch_by_s} s, |theta| < {limits.hold_theta_rad} rad and |x| < "
           f"{limits.hold_x_m} m from {limits.hold_start_s} s to {limits.duration_s} s")
+    meta = {"catch_by_s": limits.catch_by_s, "hold_from_s": limits.hold_start_s,
+            "run_s": limits.duration_s, "seed": args.seed, "draws": draws.n,
+            "searched": len(indices), "distribution": distribution.name,
+            "distribution_digest": distribution.digest, "config": args.config,
+            "set": " ".join(args.set), "only": ",".join(map(str, args.only or [])),
+            "voltage_limit_v": limits.voltage_v,
+            "current_limit_a": "none" if limits.current_a is None else limits.current_a,
+            "x_min_m": limits.x_min_m, "x_max_m": limits.x_max_m,
+            "hold_theta_rad": limits.hold_theta_rad, "hold_x_m": limits.hold_x_m,
+            "rounds": args.rounds, "restarts": args.restarts,
+            "multiple_shooting": args.multiple_shooting,
+            "command": shlex.join([PROG, *argv])}
     rows = []
     start = time.perf_counter()
     for index in indices:
@@ -151,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
                "bound_needed_j": found.bound.needed_j,
                "bound_largest_gain_j": found.bound.largest_gain_j,
                "bound_least_time_s": found.bound.least_time_s,
+               "bound_horizon_s": found.bound.horizon_s,
                "bound": found.bound.infeasible, "tried": found.tried,
                "transcribed_s": found.transcribed_s,
                "seconds": time.perf_counter() - began, **values}
@@ -162,21 +227,20 @@ def main(argv: list[str] | None = None) -> int:
               f"R {values.get('motor.resistance_ohm', math.nan):.1f} ohm, {met}"
               f"{row['seconds']:.1f} s", flush=True)
         if args.csv is not None:
-            with args.csv.open("w", newline="") as out:
-                writer = csv.DictWriter(out, fieldnames=list(rows[0]))
-                writer.writeheader()
-                writer.writerows(rows)
+            write_witness_csv(args.csv, meta, rows)
     wall = time.perf_counter() - start
     print("\n".join(summary(rows, lo, hi, clopper_pearson)))
     print(f"wall time {wall:.0f} s")
     return 0
 
 
-def witness_limits(config: Any, base: Any, current_limit: float | None = None) -> Any:
-    """The witness's limits: the actuator's and the track's, and the benchmark's fast tier
-    (:class:`~pisc_bringup.robustness.Criteria`: caught for good by 3 s, held from 6 s to
-    the end of the 12 s run) in the configuration's catch region (4.1). ``current_limit``
-    None: the configuration's; inf: none (the voltage alone)."""
+def witness_limits(config: Any, base: Any, current_limit: float | None = None,
+                   catch_by_s: float = 3.0, hold_from_s: float = 6.0,
+                   run_s: float = 10.0) -> Any:
+    """A witness's limits: the actuator's and the track's, the catch region (4.1) of the
+    configuration, the hold box of the benchmark (:class:`~pisc_bringup.robustness.Criteria`)
+    and the rules given. ``current_limit`` None: the configuration's; inf: none (the
+    voltage alone). :class:`ValueError` for rules that make no sense."""
     from pisc_analysis.feasibility import Limits
     from pisc_bringup.robustness import Criteria
 
@@ -187,9 +251,9 @@ def witness_limits(config: Any, base: Any, current_limit: float | None = None) -
         current_a=(config.current_loop.current_limit_a if current_limit is None
                    else None if math.isinf(current_limit) else current_limit),
         x_min_m=sup.safety.x_min_m, x_max_m=sup.safety.x_max_m,
-        catch_by_s=criteria.fast_by_s, duration_s=criteria.run_s,
-        hold_start_s=criteria.fast_hold_from_s, hold_theta_rad=criteria.theta_rad,
-        hold_x_m=criteria.x_m, k_va=sup.switching.k_va, delta_s=sup.switching.delta_s)
+        catch_by_s=catch_by_s, duration_s=run_s, hold_start_s=hold_from_s,
+        hold_theta_rad=criteria.theta_rad, hold_x_m=criteria.x_m, k_va=sup.switching.k_va,
+        delta_s=sup.switching.delta_s)
 
 
 def summary(rows: list[dict], lo: float, hi: float, interval) -> list[str]:

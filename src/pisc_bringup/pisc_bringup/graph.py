@@ -55,6 +55,13 @@ tier ``--tier`` names (default ``caught``: caught for good by 8 s and held from 
 the end), 1 when it does not, 2 bad configuration or the graph did not run. An experiment
 run (``experiment.kind``) gets no swing-up verdict: the summary says what the experiment
 did, and it exits 0 when it ran without a fault, 1 when it faulted.
+
+**Other ends** (:mod:`pisc_bringup.run_guard`): every node answers to the graph's own
+publishers alone, and a publisher of any other node on a topic of the graph stops the
+run (exit status 3); SIGINT or SIGTERM stop it (130, 143), a serial port that went
+away and did not come back within ``--port-retry`` seconds too (4). Each time the
+source is stopped first (0 V), then the other nodes, the bag is finished and its summary
+printed with what ended the run.
 """
 
 from __future__ import annotations
@@ -88,6 +95,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy
 from rclpy.serialization import serialize_message
+from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
 import yaml
@@ -97,6 +105,14 @@ from pisc_bringup.dds import dds_environment
 from pisc_bringup.launch_file import LaunchError, launch_path, read_launch
 from pisc_sim.configuration import load_run_config, write_params_file
 from pisc_bringup.recorder_node import header_stamp_ns
+from pisc_bringup.run_guard import (
+    EXIT_FOREIGN,
+    EXIT_PORT_LOST,
+    Interrupt,
+    RunGuard,
+    RunStopped,
+    pin_publishers,
+)
 from pisc_bringup.summary import RunSummary, summarise_bag
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.processes import console_command
@@ -118,6 +134,7 @@ from pisc_msgs_py.topics import (
     MARKERS,
     MODE,
     MOTOR_CURRENT,
+    PENDULUM_ESTIMATE,
     SIM_STATE,
     STATE,
     VOLTAGE,
@@ -156,7 +173,7 @@ NODE_KINDS: dict[tuple[str, str], NodeKind] = {
         "controller"),
     ("pisc_control", "supervisor_node"): NodeKind(
         "pisc_control.supervisor_node", "SupervisorNode", (STATE,),
-        (CART_FORCE, MODE, DIAGNOSTICS), "controller"),
+        (CART_FORCE, MODE, PENDULUM_ESTIMATE, DIAGNOSTICS), "controller"),
     ("pisc_control", "current_loop_node"): NodeKind(
         "pisc_control.current_loop_node", "CurrentLoopNode",
         (CART_FORCE, MOTOR_CURRENT, MODE), (CURRENT_SETPOINT, VOLTAGE, DIAGNOSTICS),
@@ -369,6 +386,8 @@ class RunOptions:
     # the launch file declaring the graph (a path); None: sim.launch.xml, or
     # rig.launch.xml with driver_port
     launch: str | None = None
+    # with driver_port: how long a port that went away may take to come back [s]
+    port_retry_s: float = 3.0
 
     @property
     def initial_x_m(self) -> Any:
@@ -817,6 +836,8 @@ def run_graph(options: RunOptions) -> RunResult:
     # the K this machine computes goes into the bag's parameter file, so that a replay on
     # a machine whose LAPACK rounds differently uses the same bits (catch.recorded_gain)
     flat = {**flat, "catch.recorded_gain": [float(k) for k in supervisor.gain]}
+    if config.supervisor.catch.hold_poles:
+        flat["catch.recorded_hold_gain"] = [float(k) for k in supervisor.hold_gain]
     track = config.simulated_plant.track
     if options.driver_port is None and not track.min_m <= config.initial.x_m <= track.max_m:
         raise ConfigError(f"initial.x_m = {config.initial.x_m} lies outside the track "
@@ -826,6 +847,12 @@ def run_graph(options: RunOptions) -> RunResult:
         # refused here, before the recorder makes the bag directory
         problem = "not readable and writable" if os.path.exists(port) else "no such device"
         raise ConfigError(f"driver.port = {port}: {problem}")
+    if options.domain_id is not None and not 0 <= options.domain_id <= MAX_DOMAIN_ID:
+        raise ConfigError(f"--domain-id {options.domain_id}: must be 0 .. {MAX_DOMAIN_ID} "
+                          "(Fast DDS's ports for a larger id are past 65535)")
+    if not (math.isfinite(options.port_retry_s) and 0.0 < options.port_retry_s <= 3600.0):
+        raise ConfigError(f"--port-retry {options.port_retry_s}: must be a number of seconds "
+                          "> 0 and <= 3600")
     if options.clock not in ("lockstep", "wall"):
         raise ConfigError(f"--clock {options.clock!r}: expected 'lockstep' or 'wall'")
     if options.executor not in EXECUTORS:
@@ -886,6 +913,9 @@ def run_graph(options: RunOptions) -> RunResult:
                        and expected_publishers(t, publishers, lockstep)
                        for arg in ("--progress", t.name)]
         topic_args += ["--gather", str(RECORDER_GATHER_S)]
+    marks = Path(ready_dir.name) / "foreign"  # the runner's word to the recorder (run_guard)
+    topic_args += [*(arg for n in graph.nodes for arg in ("--own", n.name)),
+                   "--marks-file", str(marks)]
     topic_args += ["--ready-file", str(ready), *(
         arg for t in recorded
         for arg in ("--expect", f"{t.name}={expected_publishers(t, publishers, lockstep)}"))]
@@ -897,11 +927,27 @@ def run_graph(options: RunOptions) -> RunResult:
                        *topic_args, "--ros-args", "-r", f"__node:={recorder_name}"], env,
                       subprocess.PIPE, batch_scheduling=True)
     children: list[subprocess.Popen] = []
+    interrupt = Interrupt()  # SIGINT, SIGTERM: a clean end (run_guard)
     context = Context()
-    rclpy.init(context=context, domain_id=options.domain_id)
+    rclpy.init(context=context, domain_id=options.domain_id,
+               signal_handler_options=SignalHandlerOptions.NO)
     progress = _Progress(options.duration_s)
     watch = _RecorderWatch(recorder, progress)
     watcher = Node("pisc_graph", context=context)
+
+    def end_run() -> None:
+        if not progress.future.done():
+            progress.future.set_result(None)
+
+    def run_time() -> str:
+        first, last = progress.first_ns, progress.last_ns
+        if first is None or last is None:
+            return "before the first cycle"
+        return f"at t = {(last - first) * 1e-9:.3f} s"
+
+    guard = RunGuard(watcher, graph, recorded, lockstep, interrupt, end_run, run_time,
+                     options.port_retry_s, options.duration_s,
+                     lambda: progress.first_wall if not options.processes else None)
 
     tap = _VoltageTap(watcher, progress) if options.processes else None
     alarms: list[_ExitAlarm] = []  # started once the executor is there
@@ -922,12 +968,18 @@ def run_graph(options: RunOptions) -> RunResult:
     executor: Any = None
     published: dict[str, int] = {}
     finished = False
+    interrupt.install()
     try:
+        interrupt.armed = True  # a signal from now until the spin raises KeyboardInterrupt
+        if interrupt.signum is not None:
+            raise KeyboardInterrupt
         _wait(lambda: _recorder_ready(watcher, recorder, recorded, recorder_name), 30.0,
               "pisc_record to subscribe")
         # a bag says what was simulated, model error or not (plant_params.yaml)
         files = _write_params(bag_dir, flat, None if driver else plant_params)
         graph = _read_again(graph, options, files, run_args)
+        # each node's inputs answer to the publishers of the graph alone (run_guard)
+        graph = pin_publishers(graph, recorder_name, lockstep)
         source = graph.source
         if options.processes:
             children = _start_processes(graph, watcher, env, recorded,
@@ -991,15 +1043,20 @@ def run_graph(options: RunOptions) -> RunResult:
         for alarm in alarms:
             alarm.start(executor)
         freeze_startup_objects()
-        executor.spin_until_future_complete(progress.future, timeout)
-        finished = progress.done.is_set()
+        interrupt.armed = False  # while spinning, the guard's timer looks at the signal
+        if interrupt.signum is None:
+            executor.spin_until_future_complete(progress.future, timeout)
+        finished = progress.done.is_set() and not guard.ended
         # the plant stops with the last sample; what is still in flight reaches the recorder
         if watch.returncode is None and not _wait_acknowledged(nodes,
                                                                30.0 + options.duration_s):
             print("pisc_graph: the recorder did not acknowledge every message within "
                   f"{30.0 + options.duration_s:.0f} s; the bag may miss the last ones",
                   file=sys.stderr)
+    except KeyboardInterrupt:  # a signal while the run started (Interrupt): a clean end
+        pass
     finally:
+        interrupt.armed = False
         # what was frozen is garbage again once the run is over (a process that runs
         # graphs one after another, as the tests do, would otherwise keep every frozen
         # object, nodes left undestroyed in reference cycles with their DDS endpoints)
@@ -1019,10 +1076,12 @@ def run_graph(options: RunOptions) -> RunResult:
         for node in [*reversed(nodes), watcher]:  # the plant or driver first: 0 V
             node.destroy_node()
         context.try_shutdown()
+        guard.tell(marks)  # before the recorder finishes the bag
         recorder_problem, recorder_output = _stop(recorder)
         if bridge is not None:
             _stop(bridge, hang_is_failure=False)
         ready_dir.cleanup()
+        interrupt.restore()
     failed = [f for f in failures if f]
     said = "; ".join(x for x in [*failed, recorder_problem.partition(": ")[2].strip()] if x)
     if watch.returncode is not None:
@@ -1031,6 +1090,10 @@ def run_graph(options: RunOptions) -> RunResult:
             f"run; the run was stopped there"
             f"{' and the rig left at 0 V' if driver else ''}",
             bag_dir, config.loop.period_s, said)
+    stopped = _stopped_by(guard, interrupt, run_time(), bag_dir, config.loop.period_s,
+                          recorder_problem)
+    if stopped is not None:
+        raise stopped
     if recorder_problem and finished and not failed:  # it died finishing the bag
         raise _recorder_died(
             f"pisc_record {_exit_description(recorder.returncode)} after the run, while "
@@ -1051,6 +1114,39 @@ def run_graph(options: RunOptions) -> RunResult:
         print(f"pisc_graph: the bag misses {lost} of the {published[topic]} messages "
               f"published on {topic}", file=sys.stderr)
     return result
+
+
+# Fast DDS maps a domain to UDP ports 7400 + 250 * id + ...: past 232 they exceed 65535
+MAX_DOMAIN_ID = 232
+
+
+def _stopped_by(guard: RunGuard, interrupt: Interrupt, run_time: str, bag_dir: Path,
+                period_s: float, recorder_problem: str) -> RunStopped | None:
+    """What ended a run before its duration (:mod:`pisc_bringup.run_guard`), as the
+    exception pisc_graph reports, with the summary of the bag (None: nothing ended it)."""
+    if interrupt.signum is not None:
+        what, status = (f"interrupted {run_time} by {interrupt.name}",
+                        128 + interrupt.signum)
+    elif guard.foreign:
+        what, status = (f"another publisher than the graph's {run_time}: "
+                        + "; ".join(guard.foreign), EXIT_FOREIGN)
+    elif guard.port_lost is not None:
+        what, status = (f"{guard.port_lost} went away and did not come back; the run "
+                        f"ended {run_time}", EXIT_PORT_LOST)
+    else:
+        return None
+    summary = None
+    lines = [what]
+    if recorder_problem:
+        lines.append(f"pisc_record: {recorder_problem}")
+    try:
+        summary = summarise_bag(bag_dir, period_s)
+        if guard.foreign:
+            summary = replace(summary, foreign=[*summary.foreign, *(
+                f for f in guard.foreign if f not in summary.foreign)])
+    except BagError as exc:
+        lines.append(f"no summary: {exc}")
+    return RunStopped("\n".join(lines), status, bag_dir, summary)
 
 
 def not_finished(duration_s: float, timeout_s: float, last_ns: int | None,
@@ -1158,8 +1254,11 @@ def _spawn(args: list[str], env: dict[str, str], stdout: int,
     long run: 344 lines of the driver's faults in a 10-minute soak blocked its reader
     thread in ``write`` at 163 s, and the run never ended.)"""
     preexec = _batch_scheduling if batch_scheduling else _die_with_parent
+    # a process group of its own: a terminal's Ctrl-C reaches the runner alone, which
+    # stops the source first (0 V) and then the rest (run_guard)
     child = subprocess.Popen(args, env=env, stdout=stdout, stderr=subprocess.PIPE,
-                             preexec_fn=preexec if sys.platform == "linux" else None)
+                             preexec_fn=preexec if sys.platform == "linux" else None,
+                             process_group=0)
     tail: collections.deque[bytes] = collections.deque(maxlen=STDERR_TAIL_LINES)
     stream, child.stderr = child.stderr, None  # the thread's alone: communicate() skips it
     reader = threading.Thread(target=_drain, args=(stream, tail), daemon=True,
@@ -1383,7 +1482,12 @@ def main(argv: list[str] | None = None) -> int:
                         "(needs CAP_SYS_NICE; 0 = normal scheduling)")
     parser.add_argument("--bag", type=Path,
                         help="bag directory (default ./bags/run-<config>-<clock>-x0_<x0>-<time>)")
-    parser.add_argument("--domain-id", type=int, help="ROS domain id (default: environment)")
+    parser.add_argument("--domain-id", type=int,
+                        help=f"ROS domain id 0-{MAX_DOMAIN_ID} (default: environment)")
+    parser.add_argument("--port-retry", type=float, default=3.0, metavar="S",
+                        help="with --driver: how long a serial port that went away may "
+                        "take to come back before the run ends, exit status 4 (default: "
+                        "%(default)s)")
     parser.add_argument("--record", action="append", metavar="TOPIC",
                         help="record this topic (repeatable; default: the scene's list, else "
                         "every topic); the run's own topics are always recorded")
@@ -1459,7 +1563,7 @@ def main(argv: list[str] | None = None) -> int:
                          domain_id=args.domain_id, driver_port=args.driver, record=record,
                          plant_config=args.plant_config, plant_overrides=plant_overrides,
                          markers=args.markers, launch=args.launch,
-                         foxglove_port=args.foxglove)
+                         port_retry_s=args.port_retry, foxglove_port=args.foxglove)
     try:
         result = run_graph(options)
     except ConfigError as exc:
@@ -1472,6 +1576,14 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(f"pisc_graph: {line}" for line in str(exc).splitlines()),
               file=sys.stderr)
         return 2
+    except RunStopped as exc:
+        if exc.summary is not None:
+            print(f"bag: {exc.bag_dir}")
+            print(exc.summary.format(args.tier))
+        first, *rest = str(exc).splitlines()
+        print(f"{'stopped':<23}{first}")
+        print("\n".join(f"pisc_graph: {line}" for line in [first, *rest]), file=sys.stderr)
+        return exc.status
     except (GraphError, BagError) as exc:
         print(f"pisc_graph: {exc}", file=sys.stderr)
         return 2

@@ -28,7 +28,7 @@ from typing import Any
 
 import yaml
 
-from pisc_msgs_py.config import ConfigError, package_dir
+from pisc_msgs_py.config import ConfigError, load_yaml, package_dir
 
 __all__ = ["LaunchArg", "LaunchError", "LaunchNode", "find_package_share", "launch_path",
            "read_launch"]
@@ -210,7 +210,7 @@ def _read_nodes(parent: ET.Element, path: Path, values: Mapping[str, str],
                 p = _attributes(child, {"name", "value"}, {"name", "value"},
                                 f"{where} <param>")
                 text = _substitute(p["value"], values, where)
-                parameters[p["name"]] = yaml.safe_load(text) if text else ""
+                parameters[p["name"]] = load_yaml(text) if text else ""
         nodes.append(LaunchNode(_substitute(a["pkg"], values, where),
                                 _substitute(a["exec"], values, where),
                                 _substitute(a["name"], values, where), tuple(files),

@@ -36,6 +36,7 @@ progress and a recorder woken for every message took 40 % of a core of the two a
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import time
@@ -66,6 +67,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--expect", action="append", default=[], metavar="NAME=N",
                         help="with --ready-file: publishers topic NAME must have matched "
                              "(default 1 per topic; 0 for a topic nothing publishes yet)")
+    parser.add_argument("--own", metavar="NODE", action="append", default=[],
+                        help="with --expect: a node of the run (repeatable); once ready, a "
+                        "topic with more publishers than --expect says is marked in the bag "
+                        "(/pisc/recorder/foreign), naming those of other nodes")
+    parser.add_argument("--marks-file", type=Path, metavar="PATH",
+                        help="with --expect: before finishing the bag, mark in it each "
+                        "'TOPIC<tab>publishers' line of this file, if it exists (the "
+                        "runner's own word on foreign publishers)")
     parser.add_argument("--progress", metavar="NAME", action="append", default=[],
                         help="a recorded topic published every sample (repeatable): publish "
                              "the oldest of the newest stamps written of each on "
@@ -106,6 +115,8 @@ def main(argv: list[str] | None = None) -> int:
             if expected is not None and all(
                     node.publisher_count(name) >= n for name, n in expected.items()):
                 args.ready_file.touch()
+                if args.expect:  # the run's publishers: more are marked in the bag
+                    node.expect_publishers(expected, args.own)
                 expected = None
         # drain: take what has arrived but not been taken, until the graph is quiet
         quiet_since = time.monotonic()
@@ -113,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
             if node.take(0.01):
                 quiet_since = time.monotonic()
     finally:
+        node.close_marks(_told(args.marks_file))
         node.destroy_node()
         rclpy.try_shutdown()
         failed = None
@@ -120,14 +132,34 @@ def main(argv: list[str] | None = None) -> int:
             node.close()  # finish the bag: seconds for a long one, after DDS is done
         except BagError as exc:
             failed = exc
-    if failed is not None:
-        print(f"pisc_record: {failed}", file=sys.stderr)
-        return 1
-    for name, count in writer.counts.items():
-        print(f"{name} {count}")
-    print(f"pisc_record: finished {args.bag} in {writer.finish_s:.2f} s (indexed, in "
-          "log-time order)", file=sys.stderr)
-    return 0
+    try:
+        if failed is not None:
+            print(f"pisc_record: {failed}", file=sys.stderr)
+            return 1
+        for name, count in writer.counts.items():
+            print(f"{name} {count}")
+        sys.stdout.flush()
+        for foreign in node.foreign:
+            print(f"pisc_record: marked in the bag: another publisher on {foreign}",
+                  file=sys.stderr)
+        print(f"pisc_record: finished {args.bag} in {writer.finish_s:.2f} s (indexed, in "
+              "log-time order)", file=sys.stderr)
+    except BrokenPipeError:
+        # the runner that reads this is gone (killed): the bag is whole all the same, and
+        # Python would raise again flushing at exit: what is left goes nowhere
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.dup2(devnull, sys.stderr.fileno())
+    return 0 if failed is None else 1
+
+
+def _told(path: Path | None) -> list[tuple[str, str]]:
+    """The ``TOPIC<tab>publishers`` lines of ``--marks-file`` (none if it is missing)."""
+    if path is None or not path.is_file():
+        return []
+    lines = path.read_text(errors="replace").splitlines()
+    return [(topic, who) for topic, sep, who in (line.partition("\t") for line in lines)
+            if sep and topic.startswith("/") and who]
 
 
 def _expected_publishers(expect: list[str], recorded: list[str],

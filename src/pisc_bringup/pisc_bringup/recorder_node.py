@@ -37,6 +37,14 @@ holds back the later ones of its topic until it is sent again, while the others 
 (before 2026-12-03 the voltage alone was followed: a recorder stopped for 3 s then lost
 13 and 6 messages of /clock in 2 of 8 one-process runs, and with Fast DDS's data sharing
 turned off 1 of /pisc/cart_force in 1 of 6).
+
+**Foreign publishers are marked.** Given the publishers each topic has in the run
+(:meth:`RecorderNode.expect_publishers`, ``pisc_record --expect``), the recorder looks at
+how many it has matched on each topic it takes messages of; while a topic has more, it
+records what arrives as ever, and writes into the bag a status on
+``/pisc/recorder/foreign`` (:data:`pisc_msgs_py.topics.FOREIGN`) naming the topic and
+its publishers when that starts, and one when it ends with the count of the messages
+taken meanwhile (no message says who sent it: all of them are contested).
 """
 
 from __future__ import annotations
@@ -45,16 +53,21 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
+from rclpy.serialization import serialize_message
 
 from pisc_bringup.bag import BagWriter, header_stamp_ns
 from pisc_msgs_py.base_node import message_class, qos_profile
 from pisc_msgs_py.convert import clock_to_cdr
-from pisc_msgs_py.topics import RECORDER_PROGRESS, Topic
+from pisc_msgs_py.convert import stamp_to_msg
+from pisc_msgs_py.topics import FOREIGN, RECORDER_PROGRESS, Topic
 
 __all__ = ["RecorderNode", "header_stamp_ns", "recording_qos"]
+
+UNNAMED = "a publisher the ROS graph does not name yet"
 
 
 def recording_qos(topic: Topic) -> Any:
@@ -112,6 +125,32 @@ class RecorderNode(Node):
         }
         self._takes = [(name, sub.handle, sub.msg_type) for name, sub in self._subs.items()]
         self._wait_set = _rclpy.WaitSet(len(self._takes), 0, 0, 0, 0, 0, self.context.handle)
+        self._expected: dict[str, int] = {}  # publishers of each topic in the run
+        self._own: frozenset[str] = frozenset()  # the run's node names
+        # topic -> [messages taken while contested, the publishers marked]
+        self._contested: dict[str, list[Any]] = {}
+        self._matched: dict[str, int] = {}  # publishers matched when last looked
+        self.foreign: list[str] = []  # "TOPIC: publishers" marked in the bag
+
+    def expect_publishers(self, counts: dict[str, int], own: Sequence[str] = ()) -> None:
+        """The run's publishers of each recorded topic (a count), and the names of its
+        nodes (``own``, not named as foreign): from now on more on a topic are marked in
+        the bag (module docstring)."""
+        self._expected = {t: n for t, n in counts.items() if t in self._subs}
+        self._own = frozenset(own)
+
+    def _others(self, topic: str, matched: int) -> str:
+        """The publishers on ``topic`` not of the run's nodes, as the graph names them
+        ('' for none: then only more matched than the run has is one, unnamed)."""
+        names = set()
+        for i in self.get_publishers_info_by_topic(topic):
+            if i.node_name in self._own or not self._own:  # (no names: by the count alone)
+                continue
+            names.add(UNNAMED if i.node_name.startswith("_NODE_NAME_UNKNOWN")
+                      else f"{i.node_namespace.rstrip('/')}/{i.node_name}")
+        if not names and matched > self._expected[topic]:
+            names.add(UNNAMED)
+        return ", ".join(sorted(names))
 
     def take(self, timeout_s: float) -> int:
         """Wait up to ``timeout_s`` for a message, then take and write every message that
@@ -130,6 +169,8 @@ class RecorderNode(Node):
             self._say_progress(idle=True)
             return 0
         batch.sort(key=lambda item: item[0])
+        if self._expected:
+            self._mark_foreign(batch)
         for log_time, name, data, publish_time in batch:
             self._writer.write(name, data, log_time, publish_time, flush=False)
             self.received[name] += 1
@@ -167,6 +208,74 @@ class RecorderNode(Node):
                 idle and self._said_ns >= 0 and now - self._said_at >= self._resay_after_s):
             self._progress_pub.publish(clock_to_cdr(oldest))
             self._said_ns, self._said_at = oldest, now
+
+    def _mark_foreign(self, batch: list[tuple[int, str, bytes, int]]) -> None:
+        """Mark in the bag a topic of ``batch`` that has more publishers than the run's,
+        and the end of that (module docstring)."""
+        counts: dict[str, int] = {}
+        for log_time, name, _, _ in batch:
+            counts[name] = counts.get(name, 0) + 1
+        for name, count in counts.items():
+            expected = self._expected.get(name)
+            if expected is None:
+                continue
+            matched = self._subs[name].get_publisher_count()
+            first_log = next(item[0] for item in batch if item[1] == name)
+            # the graph is asked only when the count moved or while the topic is contested
+            who = (self._others(name, matched)
+                   if matched != self._matched.get(name) or name in self._contested else "")
+            self._matched[name] = matched
+            if who:
+                state = self._contested.setdefault(name, [0, None])
+                if state[1] is None or state[1] == UNNAMED:  # (named once the graph can)
+                    if who != state[1]:
+                        state[1] = who
+                        self._mark(first_log, name, who, matched,
+                                   f": the messages of {name} from here on are contested")
+                state[0] += count
+            elif name in self._contested:
+                taken = self._contested.pop(name)[0]
+                self._write_mark(first_log, 0, f"{name} has the run's publishers alone again "
+                                 f"({taken} messages taken while it had more)", topic=name,
+                                 contested_messages=taken)
+
+    def _mark(self, log_time: int, name: str, who: str, matched: int, rest: str) -> None:
+        self.foreign.append(f"{name}: {who}")
+        self._write_mark(log_time, 2, f"another publisher on {name}: {who} ({matched} "
+                         f"matched, the run has {self._expected[name]}){rest}", topic=name,
+                         publishers=who)
+
+    def _write_mark(self, log_time: int, level: int, message: str, **values: Any) -> None:
+        if FOREIGN.name not in self._writer.counts:
+            self._writer.add_topic(FOREIGN)
+        msg = DiagnosticArray()
+        msg.header.stamp = stamp_to_msg(log_time)
+        status = DiagnosticStatus(level=bytes([level]), name="pisc/recorder",
+                                  hardware_id="pisc", message=message)
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg.status = [status]
+        self._writer.write(FOREIGN.name, serialize_message(msg), log_time, log_time,
+                           flush=False)
+
+    def close_marks(self, told: Sequence[tuple[str, str]] = ()) -> None:
+        """Before the bag is finished: a topic still contested gets its count, and one
+        with another publisher of which nothing came since is marked too (a run stopped
+        as that publisher appeared), as is each (topic, publishers) the runner ``told``
+        of (it may have seen a publisher this process has not yet discovered)."""
+        found = [(name, self._others(name, self._subs[name].get_publisher_count()))
+                 for name in self._expected]
+        for name, who in [*found, *told]:
+            if name not in self._subs or not who or f"{name}: {who}" in self.foreign:
+                continue
+            marked = self._contested.get(name)
+            if marked is None or (marked[1] == UNNAMED and who != UNNAMED):
+                self._contested[name] = [0 if marked is None else marked[0], who]
+                self._mark(time.time_ns(), name, who,
+                           self._subs[name].get_publisher_count(), "")
+        for name, (taken, who) in list(self._contested.items()):
+            self._write_mark(time.time_ns(), 2, f"{name} still had another publisher when "
+                             f"the recording ended ({taken} messages taken while it had "
+                             "more)", topic=name, contested_messages=taken, publishers=who)
 
     def publisher_count(self, topic: str) -> int:
         """Publishers this recorder's subscription of ``topic`` has matched."""

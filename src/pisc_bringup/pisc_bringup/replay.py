@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from pisc_bringup.bag import BagError, BagMessage, bag_topics, read_bag
+from pisc_bringup.summary import foreign_in_bag
 from pisc_sim.closed_loop import Controllers
 from pisc_sim.configuration import GraphConfig, load_graph_config
 from pisc_msgs_py.convert import (
@@ -392,10 +393,13 @@ class ReplayReport:
     topics: list[TopicComparison]
     unanswered: int = 0  # samples after the last recorded voltage (the run ended)
     notes: list[str] = field(default_factory=list)
+    # "TOPIC: publishers" the bag marks as foreign (/pisc/recorder/foreign): its messages
+    # may not be the graph's, so nothing it holds is called reproduced
+    foreign: list[str] = field(default_factory=list)
 
     @property
     def reproduced(self) -> bool:
-        return all(t.differ == 0 for t in self.topics)
+        return not self.foreign and all(t.differ == 0 for t in self.topics)
 
     def format(self) -> str:
         what = ("the estimator, supervisor and current loop cores" if self.how == "cores"
@@ -414,7 +418,10 @@ class ReplayReport:
         if self.unanswered:
             lines.append(f"{self.unanswered} sample(s) after the last recorded voltage "
                          "(the run ended before their answer) not compared")
-        verdict = ("REPRODUCED" if self.reproduced else "MISMATCH")
+        for foreign in self.foreign:
+            lines.append(f"the bag marks another publisher than the graph's on {foreign}")
+        verdict = ("CONTESTED" if self.foreign else
+                   "REPRODUCED" if self.reproduced else "MISMATCH")
         lines.append(f"result: {verdict} (tolerance {self.tolerance:g})")
         return "\n".join(lines)
 
@@ -524,6 +531,7 @@ def replay_bag(bag: str | Path, config: str | None = None,
     run = load_recorded_bag(bag)
     report = compare(run, replay_cores(run, cfg), tolerance, str(bag), "cores",
                      bag_topics(bag))
+    report.foreign.extend(foreign_in_bag(bag))
     changed = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items())
     report.notes.append(f"configuration: {source}" + (f" with {changed}" if changed else ""))
     return report

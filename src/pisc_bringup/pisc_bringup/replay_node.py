@@ -22,6 +22,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from pisc_bringup.bag import bag_topics, read_bag
+from pisc_bringup.summary import foreign_in_bag
 from pisc_sim.configuration import load_graph_config
 from pisc_bringup.graph import (
     CONTROLLERS,
@@ -59,6 +60,7 @@ from pisc_msgs_py.topics import (
     Topic,
 )
 from pisc_msgs_py.types import JointSample, MotorSample
+from pisc_msgs_py.watchdog import format_publishers
 
 __all__ = ["ReplayFeeder", "replay_nodes"]
 
@@ -141,8 +143,13 @@ def replay_nodes(bag: str | Path, config: str | None = None,
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     nodes: list[Node] = []
+    feeder = None
     try:
-        params = [*ros_parameters(flat), Parameter("use_sim_time", value=False)]
+        # the samples come from the feeder: its publishers are the pinned ones
+        fed = format_publishers({JOINT_STATES.name: ("pisc_replay",),
+                                 MOTOR_CURRENT.name: ("pisc_replay",)})
+        params = [*ros_parameters(flat), Parameter("use_sim_time", value=False),
+                  Parameter("start.publishers", value=fed)]
         for spec in CONTROLLERS:
             cls = getattr(importlib.import_module(spec.module), spec.cls)
             nodes.append(cls(context=context, parameter_overrides=params))
@@ -161,10 +168,14 @@ def replay_nodes(bag: str | Path, config: str | None = None,
         # a last mode change may still be on its way: let what is in flight arrive
         _spin_for(executor, 0.2)
     finally:
-        for node in nodes:
+        # the feeder too: a node left undestroyed keeps its publishers in the domain after
+        # the context's shutdown, and a second replay's controllers took them for a
+        # publisher other than their own feeder
+        for node in [*nodes, *([feeder] if feeder is not None else [])]:
             node.destroy_node()
         context.try_shutdown()
     report = compare(run, feeder.outputs, tolerance, str(bag), "nodes", bag_topics(bag))
+    report.foreign.extend(foreign_in_bag(bag))
     changed = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items())
     report.notes.append(f"configuration: {source}" + (f" with {changed}" if changed else ""))
     return report

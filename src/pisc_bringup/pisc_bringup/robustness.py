@@ -75,7 +75,8 @@ class Criteria:
         for name, option in names.items():
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{option} {value}: a positive number of "
+                shown = f"{value:g}" if isinstance(value, float) else value
+                raise ValueError(f"{option} {shown}: a positive number of "
                                  f"{'s' if name.endswith('_s') else 'rad' if 'theta' in name else 'm'}")
         for by, hold, tier in (("catch_by_s", "hold_from_s", "caught"),
                                ("fast_by_s", "fast_hold_from_s", "fast")):
@@ -152,15 +153,18 @@ class Outcomes:
         """Each tier's fraction of the draws."""
         return {tier: float(np.mean(self.passed(tier))) for tier in TIERS}
 
-    def score(self) -> float:
-        """One number that orders configurations by safe first, then caught, then fast:
-        one more safe draw outweighs any number of caught ones, one more caught draw any
-        number of fast ones. In [0, 1]; 1 when every draw is fast."""
+    def score(self, penalty: float = 0.0, safe_target: float = 1.0) -> float:
+        """One number that orders configurations safe first: one more safe draw outweighs
+        any number of catches, up to ``safe_target`` of the draws (beyond it, safety is
+        met and the catches decide); then each caught draw counts one and each fast draw
+        one more (a fast draw is caught), less ``penalty`` counted in the same draws. At
+        most 1, when every draw is fast and there is no penalty."""
         n = len(self)
-        counts = [int(np.sum(self.passed(t))) for t in TIERS]
-        base = float(n + 1)
-        return (counts[0] * base * base + counts[1] * base + counts[2]) / (
-            n * (base * base + base + 1.0))
+        safe, caught, fast = (int(np.sum(self.passed(t))) for t in TIERS)
+        enough = math.ceil(safe_target * n - 1e-9)
+        weight = 2.0 * n + 1.0
+        return (min(safe, enough) * weight + caught + fast - penalty) / (
+            enough * weight + 2.0 * n)
 
     def kinds(self, criteria: Criteria, tier: str = "fast") -> np.ndarray:
         """Each draw's failure of ``tier`` as an index into :data:`FAILURES`; -1 where it

@@ -77,6 +77,12 @@ def add_run_arguments(parser: argparse.ArgumentParser, draws: int) -> None:
                        help="run on an existing Dask cluster (tcp://host:8786)")
 
 
+# the most draws a run takes: each holds its parameters and outcomes in this process's
+# memory (10^15 asked for 135 PiB, and ended in a traceback)
+MAX_DRAWS = 10_000_000
+MAX_SEED = 2**63 - 1  # numpy's seeds are non-negative integers
+
+
 def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace
                         ) -> Criteria:
     """Refuse what makes no sense, naming it; the tiers' rules as :class:`Criteria`."""
@@ -86,9 +92,11 @@ def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespac
 
     if args.draws < 1:
         parser.error(f"--draws {args.draws}: at least 1")
-    if args.seed < 0:
-        parser.error(f"--seed {args.seed}: 0 or more (the draws' and the noise's generators "
-                     "take non-negative seeds)")
+    if args.draws > MAX_DRAWS:
+        parser.error(f"--draws {args.draws}: at most {MAX_DRAWS:,} (each draw is held in "
+                     "memory; run more as several seeds)")
+    if not 0 <= args.seed <= MAX_SEED:
+        parser.error(f"--seed {args.seed}: must be an integer 0 .. {MAX_SEED}")
     if args.workers is not None and args.workers < 0:
         parser.error(f"--workers {args.workers}: 0 (in this process) or more")
     if args.scheduler is not None:
@@ -110,7 +118,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("robustness"), metavar="DIR",
                         help="directory of the plot (default: %(default)s)")
     parser.add_argument("--worst", type=int, default=5, metavar="K",
-                        help="show the K worst draws (default: %(default)s)")
+                        help="show each tier's K worst draws (default: %(default)s)")
+    parser.add_argument("--witnesses", metavar="CSV|none",
+                        help="a pisc_feasibility witness table (--csv) made with the fast "
+                        "tier's rules: the fast tier is also measured over its draws that "
+                        "have a witness (default: the table shipped for the distribution, "
+                        "if any; none: not measured)")
     quiet_threads()
     args = parser.parse_args(argv)
     criteria = check_run_arguments(parser, args)
@@ -153,6 +166,19 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     wall = time.perf_counter() - start
     print("\n".join(report(outcomes, criteria)))
+    try:
+        table = witness_table(args.witnesses, distribution, criteria)
+    except ValueError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
+    if table is not None:
+        path, meta, witnessed = table
+        wit_draws = distribution.draw(meta["draws"], meta["seed"])
+        with progress_bar(-(-wit_draws.n // CHUNK_DRAWS), "chunk") as bar, \
+                chunk_runner(workers, args.scheduler, bar) as map_chunks:
+            on_table = evaluate(config, plant, wit_draws, criteria, meta["seed"], map_chunks)
+        print("\n".join(witnessed_report(on_table, witnessed, f"{path.name}: the "
+                                          f"{meta['draws']} draws of seed {meta['seed']}")))
     print(f"wall time {wall:.1f} s ({describe_runner(workers, args.scheduler)}, {chunks} "
           f"chunk{'s' if chunks != 1 else ''}), "
           f"{args.draws * criteria.run_s / wall:.0f} simulated s per wall s")
@@ -205,6 +231,52 @@ def report(outcomes: Outcomes, criteria: Criteria) -> list[str]:
         "none" if rms.size == 0 else
         f"median {np.median(rms):.4f} A, p95 {np.percentile(rms, 95):.4f} A"))
     return lines
+
+
+def witness_table(choice: str | None, distribution: Distribution, criteria: Criteria
+                  ) -> tuple[Path, dict[str, Any], np.ndarray] | None:
+    """The witness table to measure the fast tier over: (path, header, witnessed mask);
+    None for ``none``, or by default when none is shipped for the distribution.
+
+    A table must be of the distribution's draws (its digest) and made with the fast
+    tier's rules (catch by, held from); ValueError names what differs."""
+    from pisc_analysis.witnesses import read_witness_csv
+    from pisc_msgs_py.config import package_dir
+
+    if choice == "none":
+        return None
+    if choice is None:
+        shipped = sorted((package_dir("pisc_bringup", "distributions") / "witnesses")
+                         .glob(f"{distribution.name}-*.csv"))
+        for path in shipped:
+            meta, _ = read_witness_csv(path)
+            if (meta["distribution_digest"] == distribution.digest
+                    and (meta["catch_by_s"], meta["hold_from_s"])
+                    == (criteria.fast_by_s, criteria.fast_hold_from_s)):
+                choice = str(path)
+                break
+        else:
+            return None
+    path = Path(choice)
+    if not path.is_file():
+        raise ValueError(f"--witnesses {choice}: no such file")
+    meta, rows = read_witness_csv(path)
+    if meta["distribution_digest"] != distribution.digest:
+        raise ValueError(f"--witnesses {path}: its draws are of a distribution with digest "
+                         f"{meta['distribution_digest']}, not {distribution.name}'s "
+                         f"{distribution.digest}")
+    rules = (meta["catch_by_s"], meta["hold_from_s"])
+    if rules != (criteria.fast_by_s, criteria.fast_hold_from_s):
+        raise ValueError(f"--witnesses {path}: made for a catch by {rules[0]:g} s held from "
+                         f"{rules[1]:g} s, not the fast tier's {criteria.fast_by_s:g} s and "
+                         f"{criteria.fast_hold_from_s:g} s")
+    if meta["searched"] != meta["draws"]:
+        raise ValueError(f"--witnesses {path}: searched {meta['searched']} of its "
+                         f"{meta['draws']} draws; the fast tier is measured over all of them")
+    witnessed = np.zeros(meta["draws"], dtype=bool)
+    for row in rows:
+        witnessed[row["draw"]] = row["feasible"]
+    return path, meta, witnessed
 
 
 def witnessed_report(outcomes: Outcomes, witnessed: np.ndarray, source: str) -> list[str]:

@@ -24,6 +24,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -41,6 +42,7 @@ from pisc_msgs_py.topics import (
     CURRENT_SETPOINT,
     JOINT_NAMES,
     JOINT_STATES,
+    FOREIGN,
     MODE,
     MOTOR_CURRENT,
     MOTOR_JOINT,
@@ -51,8 +53,8 @@ from pisc_msgs_py.topics import (
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
 
-__all__ = ["RunSummary", "RunTables", "Table", "member", "safe_range_of", "summarise",
-           "summarise_bag", "summarise_tables", "tables_of", "tables_of_bag"]
+__all__ = ["RunSummary", "RunTables", "Table", "foreign_in_bag", "member", "safe_range_of",
+           "summarise", "summarise_bag", "summarise_tables", "tables_of", "tables_of_bag"]
 
 #: The tier the ``result`` line and the exit status follow unless told otherwise
 VERDICT_TIER = "caught"
@@ -78,6 +80,13 @@ class RunSummary:
     latency_ms: dict[str, float] = field(default_factory=dict)
     deadline_misses: int = 0
     period_s: float = 0.005
+    # "TOPIC: publishers" for each publisher other than the graph's the bag marks
+    # (/pisc/recorder/foreign) or the run saw: such a run is never CAUGHT
+    foreign: list[str] = field(default_factory=list)
+    # cycles whose voltage was published before their sample: their times cannot be
+    # the graph's own (another publisher, or a clock that stepped back)
+    negative_latencies: int = 0
+
     criteria: Criteria = field(default_factory=Criteria)
     safe_range_m: tuple[float, float] = (-math.inf, math.inf)
     unheld_at_s: float = -math.inf  # the last sample outside the hold box; -inf if none
@@ -142,8 +151,14 @@ class RunSummary:
                 f"sample-to-voltage      median {lat['median']:.3f} ms, p90 {lat['p90']:.3f} ms, "
                 f"p99 {lat['p99']:.3f} ms, max {lat['max']:.3f} ms; "
                 f"{self.deadline_misses} cycles over the {self.period_s * 1e3:.0f} ms period")
+        if self.negative_latencies:
+            lines.append(f"TIMES                  {self.negative_latencies} cycles whose "
+                         "voltage was published before their sample: not the graph's own "
+                         "timing (another publisher, or a clock that stepped back)")
         for fault in self.faults:
             lines.append(f"FAULT                  {fault}")
+        for foreign in self.foreign:
+            lines.append(f"FOREIGN PUBLISHER      {foreign}")
         if experiment != "none":  # nothing was to be caught: what the experiment did
             lines.append(f"experiment             {experiment}: " + (
                 f"FAULT ({self.faults[0]})" if self.faults else "completed without a fault")
@@ -210,6 +225,8 @@ class RunTables:
     voltage: Table  # u
     true: Table  # position: x, theta (the simulator's; empty on the rig)
     modes: list[tuple[int, Mode, str]]  # (stamp, mode, reason) in file order
+    # "TOPIC: publishers" the recorder marked (/pisc/recorder/foreign), in file order
+    foreign: list[str] = field(default_factory=list)
 
 
 # topic -> (RunTables field, JointState field, number of joints read)
@@ -228,6 +245,7 @@ def tables_of(messages: Iterable[BagMessage], where: str = "") -> RunTables:
     ``where``)."""
     rows: dict[str, list[tuple[int, int, tuple[float, ...]]]] = {t: [] for t in TABLE_TOPICS}
     modes: list[tuple[int, Mode, str]] = []
+    foreign: list[str] = []
     for m in messages:
         try:
             if m.topic == JOINT_STATES.name:
@@ -246,6 +264,9 @@ def tables_of(messages: Iterable[BagMessage], where: str = "") -> RunTables:
                 r = mode_from_msg(m.message)
                 modes.append((r.stamp_ns, r.mode, r.reason))
                 continue
+            elif m.topic == FOREIGN.name:
+                _note_foreign(foreign, m.message)
+                continue
             else:
                 continue
         except MessageError as exc:
@@ -258,7 +279,33 @@ def tables_of(messages: Iterable[BagMessage], where: str = "") -> RunTables:
         tables[name] = Table(np.array([x[0] for x in r], dtype=np.int64),
                              np.array([x[1] for x in r], dtype=np.int64),
                              np.array([x[2] for x in r], dtype=np.float64).reshape(len(r), k))
-    return RunTables(**tables, modes=modes)
+    return RunTables(**tables, modes=modes, foreign=foreign)
+
+
+def _note_foreign(foreign: list[str], message: Any) -> None:
+    """A recorder's mark (:data:`pisc_msgs_py.topics.FOREIGN`): its ERROR statuses'
+    ``TOPIC: publishers``, once each."""
+    for status in message.status:
+        values = {kv.key: kv.value for kv in status.values}
+        level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
+        if level == 2 and "topic" in values:
+            topic, who = values["topic"], values.get("publishers", "unknown")
+            entry = f"{topic}: {who}"
+            unnamed = f"{topic}: a publisher the ROS graph does not name yet"
+            if unnamed in foreign:  # named now
+                foreign.remove(unnamed)
+            if entry not in foreign and not (entry == unnamed and any(
+                    f.startswith(f"{topic}: ") for f in foreign)):
+                foreign.append(entry)
+
+
+def foreign_in_bag(directory: str | Path) -> list[str]:
+    """``TOPIC: publishers`` for each foreign publisher the bag's recorder marked
+    (:data:`pisc_msgs_py.topics.FOREIGN`); empty for a bag without marks."""
+    foreign: list[str] = []
+    for m in read_bag(directory, [FOREIGN.name]):
+        _note_foreign(foreign, m.message)
+    return foreign
 
 
 def tables_of_bag(directory: str | Path) -> RunTables:
@@ -268,9 +315,10 @@ def tables_of_bag(directory: str | Path) -> RunTables:
     from pisc_bringup.bag_columns import FastPathRefused, read_columns
 
     try:
-        columns, others = read_columns(directory, list(TABLE_TOPICS), [MODE.name])
+        columns, others = read_columns(directory, list(TABLE_TOPICS), [MODE.name, FOREIGN.name])
     except FastPathRefused:
-        return tables_of(read_bag(directory, [*TABLE_TOPICS, MODE.name]), f"{directory}: ")
+        return tables_of(read_bag(directory, [*TABLE_TOPICS, MODE.name, FOREIGN.name]),
+                         f"{directory}: ")
     tables = {}
     for topic, (name, field_name, k) in TABLE_TOPICS.items():
         c = columns[topic]
@@ -280,18 +328,22 @@ def tables_of_bag(directory: str | Path) -> RunTables:
         needed = {"state": ("position", "velocity"), "true": ("position", "velocity", "effort")
                   }.get(name, (field_name,))
         if len(c) and (c.names != expected or any(f not in c.values for f in needed)):
-            return tables_of(read_bag(directory, [*TABLE_TOPICS, MODE.name]),
+            return tables_of(read_bag(directory, [*TABLE_TOPICS, MODE.name, FOREIGN.name]),
                              f"{directory}: ")
         values = (c.values[field_name][:, :k] if len(c) else np.zeros((0, k)))
         tables[name] = Table(c.stamp_ns, c.publish_ns, np.ascontiguousarray(values))
     modes = []
+    foreign: list[str] = []
     for topic, _, _, msg in others:
+        if topic == FOREIGN.name:
+            _note_foreign(foreign, msg)
+            continue
         try:
             r = mode_from_msg(msg)
         except MessageError as exc:
             raise BagError(f"{directory}: {topic}: {exc}") from None
         modes.append((r.stamp_ns, r.mode, r.reason))
-    return RunTables(**tables, modes=modes)
+    return RunTables(**tables, modes=modes, foreign=foreign)
 
 
 def summarise(
@@ -369,7 +421,7 @@ def summarise_tables(tables: RunTables, period_s: float, criteria: Criteria = Cr
     unheld_at = float(t[outside[-1]]) if len(outside) else -math.inf
     left = bool(np.any(xs < safe_range_m[0]) or np.any(xs > safe_range_m[1]))
     passed, why = _verdicts(criteria, bool(faults), left, caught_at, first_catch, unheld_at,
-                            float(np.max(np.abs(xs))), float(t[-1]))
+                            float(np.max(np.abs(xs))), float(t[-1]), bool(tables.foreign))
 
     s_stamps, s_index = tables.setpoint.pick("last")
     c_stamps, c_index = tables.current.pick("last")
@@ -408,14 +460,19 @@ def summarise_tables(tables: RunTables, period_s: float, criteria: Criteria = Cr
         passed=passed,
         why=why,
         tier=tier,
+        foreign=list(tables.foreign),
+        negative_latencies=int(np.sum(latencies < 0.0)),
     )
 
 
 def _verdicts(criteria: Criteria, faulted: bool, left: bool, caught_at: float | None,
               first_catch: float | None, unheld_at: float, largest_x: float,
-              duration: float) -> tuple[dict[str, bool], dict[str, str]]:
+              duration: float, foreign: bool = False
+              ) -> tuple[dict[str, bool], dict[str, str]]:
     """Each tier's verdict and why it failed, by the benchmark's own rule and words
-    (:func:`~pisc_bringup.robustness.judge`, :meth:`Outcomes.why`)."""
+    (:func:`~pisc_bringup.robustness.judge`, :meth:`Outcomes.why`). A run with a foreign
+    publisher on the graph's topics passes no tier: what moved the rig may not have been
+    the graph."""
     inf = math.inf
     one = Outcomes(*(np.array([v]) for v in (
         False, False, False, inf if caught_at is None else caught_at,
@@ -432,6 +489,8 @@ def _verdicts(criteria: Criteria, faulted: bool, left: bool, caught_at: float | 
             # a hold window the run never reached is not a hold
             ok, reason = False, (f"the run ended at {duration:.2f} s, before the hold "
                                  f"window from {criteria.rule(name)[1]:g} s")
+        if foreign:
+            ok, reason = False, "a foreign publisher on the graph's topics"
         passed[name], why[name] = ok, reason
     return passed, why
 

@@ -1,6 +1,6 @@
 """pisc_tune: search the controllers' parameters over a distribution, safe first, then
-caught, then fast (the benchmark's tiers), with Optuna, and write the best as a parameter
-file (docs/robustness.md).
+the catches (the benchmark's tiers: a caught draw counts one, a fast draw two), with
+Optuna, and write the best as a parameter file (docs/robustness.md).
 
     pisc_tune default --trials 40 --draws 400 --seed 1 --out tuned.yaml
 
@@ -45,6 +45,13 @@ def main(argv: list[str] | None = None) -> int:
                         "(default: %(default)s)")
     parser.add_argument("--storage", metavar="URL",
                         help="Optuna storage (default: sqlite:///<--out without .yaml>.db)")
+    parser.add_argument("--nominal-starts", type=int, default=0, metavar="N",
+                        help="N starts at rest, x0 evenly in [-0.1, 0.1] m, on the "
+                        "configuration's own plant, must all be fast; each one that is not "
+                        "costs as much as 1/N of half the draws' catches (default: none)")
+    parser.add_argument("--hold-rms", type=float, default=0.0, metavar="A",
+                        help="with --nominal-starts: a start whose set-point RMS from "
+                        "--fast-hold-from on is over this is not fast (default: no limit)")
     parser.add_argument("--out", type=Path, default=Path("tuned.yaml"), metavar="FILE",
                         help="the tuned parameter file (default: %(default)s)")
     quiet_threads()
@@ -80,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         distribution = load_distribution(args.distribution, config)
         space = load_space(args.space or space_for(flat), flat)
         tuning = Tuning(args.config, overrides, distribution, space, args.draws, args.seed,
-                        args.sampler, criteria, args.aim)
+                        args.sampler, criteria, args.nominal_starts, args.hold_rms,
+                        args.aim)
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2

@@ -20,6 +20,17 @@ times f, drawn uniformly in log f); ``offset`` and ``relative`` take a width w (
 range [-w, w]) or ``[low, high]``. Every value is uniform over its range, independent of
 the others. The nominal value is the configuration's (the plant the controllers assume).
 
+A ``joint`` block holds rigs whose values go together (a posterior, ``pisc_calibrate``):
+``names`` (parameters, none of them also in ``parameters``) and ``rows`` (one list of
+values a rig, in the order of ``names``); each draw takes one row, uniformly, all its
+values at once::
+
+      joint:
+        names: [motor.resistance_ohm, friction.pivot_viscous_nms]
+        rows:
+        - [14.3, 2.1e-06]
+        - [12.9, 8.0e-06]
+
 Parameters that can vary: every field of ``rig``, ``motor``, ``friction`` and ``noise``
 (the standard deviations), ``initial.*`` and ``actuator.command_delay_s``. Both ends of
 each range must satisfy the parameter's own rule, so no draw is a plant that a
@@ -47,6 +58,7 @@ from pisc_msgs_py.config import (
     flatten,
     from_flat,
     load_keyed_yaml,
+    load_yaml,
     package_dir,
     to_flat,
 )
@@ -65,7 +77,7 @@ __all__ = ["DISTRIBUTION_DIR", "Distribution", "Draws", "Range", "distribution_n
 
 DISTRIBUTION_DIR = package_dir("pisc_bringup", "distributions")
 KINDS = ("uniform", "offset", "relative", "factor")
-KEYS = ("description", "plant", "parameters")
+KEYS = ("description", "plant", "parameters", "joint")
 
 #: The sections whose fields a distribution may vary (plant parameters, one per rig),
 #: and the single field of ``actuator`` it may vary.
@@ -82,7 +94,7 @@ class Range:
     """One varied parameter: values uniform over [low, high] (in log for ``factor``)."""
 
     name: str
-    kind: str  # one of KINDS
+    kind: str  # one of KINDS, or "joint" (a column of the joint rows: [low, high] its span)
     low: float  # of the kind's quantity (absolute value, offset, relative change or factor)
     high: float
     nominal: float
@@ -93,7 +105,7 @@ class Range:
         return self.value(self.low), self.value(self.high)
 
     def value(self, q: Any) -> Any:
-        if self.kind == "uniform":
+        if self.kind in ("uniform", "joint"):
             return q
         if self.kind == "offset":
             return self.nominal + q
@@ -114,7 +126,7 @@ class Range:
                f"{self.high:+.6g})", "relative": f" (nominal {self.nominal:.6g} "
                f"{100 * self.low:+.0f} % .. {100 * self.high:+.0f} %)",
                "factor": f" (nominal {self.nominal:.6g} x{self.low:g} .. x{self.high:g}, "
-               "log-uniform)"}[self.kind]
+               "log-uniform)", "joint": " (joint rows)"}[self.kind]
         return f"{self.name} in [{lo:.6g}, {hi:.6g}]{how}"
 
 
@@ -140,13 +152,17 @@ class Distribution:
     plant: dict[str, Any]  # fixed flat plant overrides
     ranges: tuple[Range, ...]
     text: str  # the file as read, for provenance
+    # the joint block's rows (rigs x the "joint" ranges, in the order of those ranges)
+    rows: np.ndarray | None = None
 
     @property
     def digest(self) -> str:
         """A hash of the distribution's content (names, kinds, ranges, fixed overrides)."""
-        canon = yaml.safe_dump({"plant": self.plant, "ranges": [
-            (r.name, r.kind, r.low, r.high, r.nominal) for r in self.ranges]},
-            sort_keys=True)
+        content: dict[str, Any] = {"plant": self.plant, "ranges": [
+            (r.name, r.kind, r.low, r.high, r.nominal) for r in self.ranges]}
+        if self.rows is not None:
+            content["rows"] = self.rows.tolist()
+        canon = yaml.safe_dump(content, sort_keys=True)
         return hashlib.sha256(canon.encode()).hexdigest()[:16]
 
     def draw(self, n: int, seed: int) -> Draws:
@@ -157,8 +173,14 @@ class Distribution:
             raise ConfigError(f"seed = {seed!r}: an integer, 0 or more (numpy's generators "
                               "take non-negative seeds)")
         rng = np.random.default_rng(seed)
-        u = rng.random((len(self.ranges), n))
-        return Draws({r.name: r.sample(u[j]) for j, r in enumerate(self.ranges)}, n)
+        free = [r for r in self.ranges if r.kind != "joint"]
+        u = rng.random((len(free), n))
+        values = {r.name: r.sample(u[j]) for j, r in enumerate(free)}
+        if self.rows is not None:
+            picked = self.rows[rng.integers(0, len(self.rows), n)]
+            joint = [r for r in self.ranges if r.kind == "joint"]
+            values.update({r.name: picked[:, j].copy() for j, r in enumerate(joint)})
+        return Draws({r.name: values[r.name] for r in self.ranges}, n)
 
     def range(self, name: str) -> Range | None:
         return next((r for r in self.ranges if r.name == name), None)
@@ -173,7 +195,7 @@ def distribution_names() -> list[str]:
 def file_kind(path: Path) -> str | None:
     """The top-level key of a YAML file ('distribution', 'space'), None if it has none."""
     try:
-        document = yaml.safe_load(path.read_text())
+        document = load_yaml(path.read_text())
     except yaml.YAMLError:
         return None
     return next(iter(document), None) if isinstance(document, Mapping) else None
@@ -306,6 +328,48 @@ def load_distribution(name_or_path: str, config: GraphConfig) -> Distribution:
                               "(distribution.parameters)")
         ranges.append(parse_range(config, str(name), parameters[name],
                                   f"{path}: distribution.parameters."))
+    rows = None
+    if "joint" in body:
+        joint, rows = parse_joint(config, body["joint"], f"{path}: distribution.joint")
+        for r in joint:
+            if r.name in plant or r.name in parameters:
+                raise ConfigError(f"{path}: {r.name} is both in distribution.joint and in "
+                                  "distribution.plant or distribution.parameters")
+        ranges += joint
+        order = sorted(range(len(joint)), key=lambda j: joint[j].name)
+        rows = rows[:, order]
     _check_used(config, plant, ranges, path)
     return Distribution(path.stem, str(body.get("description", "")), dict(plant),
-                        tuple(ranges), text)
+                        tuple(sorted(ranges, key=lambda r: r.name)), text, rows)
+
+
+def parse_joint(config: GraphConfig, spec: Any, where: str) -> tuple[list[Range], np.ndarray]:
+    """A ``joint`` block: a "joint" range a name (its span) and the rows; ConfigError
+    naming the parameter, or the row, that is wrong."""
+    if not isinstance(spec, Mapping) or set(spec) != {"names", "rows"}:
+        raise ConfigError(f"{where}: expected {{names: [...], rows: [[...], ...]}}")
+    names, rows = spec["names"], spec["rows"]
+    if (not isinstance(names, list) or not names or len(set(names)) != len(names)
+            or not all(isinstance(n, str) for n in names)):
+        raise ConfigError(f"{where}.names: expected a list of distinct parameter names")
+    fields_ = []
+    for name in names:
+        try:
+            fields_.append(_field(name)[1])
+        except ConfigError as exc:
+            raise ConfigError(f"{where}.names: {exc}") from None
+    if not isinstance(rows, list) or not rows:
+        raise ConfigError(f"{where}.rows: expected a list of rows, one a rig")
+    for k, row in enumerate(rows):
+        if (not isinstance(row, list) or len(row) != len(names) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                for v in row)):
+            raise ConfigError(f"{where}.rows[{k}]: expected {len(names)} finite numbers "
+                              f"(one a name), got {row!r}")
+        for name, field, value in zip(names, fields_, row, strict=True):
+            problem = field.metadata["rule"](float(value))
+            if problem:
+                raise ConfigError(f"{where}.rows[{k}]: {name} = {value!r}, which {problem}")
+    table = np.array(rows, dtype=float)
+    return [Range(name, "joint", float(table[:, j].min()), float(table[:, j].max()),
+                  _nominal(config, name)) for j, name in enumerate(names)], table

@@ -66,8 +66,9 @@ def test_failures_are_told_apart_and_ranked_worst_first():
     assert o.rates() == {"safe": 6 / 8, "caught": 2 / 8, "fast": 1 / 8}
 
 
-def test_the_score_puts_safe_before_caught_before_fast():
-    """One safe draw more outweighs every caught one; one caught more every fast one."""
+def test_the_score_puts_safe_first_then_counts_the_catches():
+    """One safe draw more outweighs every catch; then a caught draw counts one, a fast draw
+    (caught too) two."""
     n = 10
 
     def score(safe: int, caught: int, fast: int) -> float:
@@ -76,8 +77,20 @@ def test_the_score_puts_safe_before_caught_before_fast():
 
     assert score(10, 10, 10) == 1.0
     assert score(6, 0, 0) > score(5, 5, 5)
-    assert score(5, 3, 0) > score(5, 2, 2)
+    assert score(5, 3, 0) > score(5, 2, 0)
     assert score(5, 3, 1) > score(5, 3, 0)
+    assert score(5, 2, 2) > score(5, 3, 0)  # two fast catches count more than three late
+    assert score(5, 3, 1) == score(5, 2, 2)
+    # with a target, safety beyond it no longer decides
+    n = 2000
+
+    def targeted(safe: int, caught: int) -> float:
+        return outcomes(safe=np.arange(n) < safe, caught=np.arange(n) < caught,
+                        fast=np.zeros(n, bool)).score(safe_target=0.999)
+
+    # 99.9 % of 2000 draws: 1998 safe meet the target
+    assert targeted(1998, 1500) == targeted(2000, 1500) < targeted(1998, 1501)
+    assert targeted(1997, 1999) < targeted(1998, 1)
     assert score(0, 0, 0) == 0.0
 
 

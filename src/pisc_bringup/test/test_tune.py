@@ -253,19 +253,21 @@ def test_a_bad_search_space_file_is_refused(tmp_path, text, message):
         load_space(str(path), load_graph_config("default")[1])
 
 
-@pytest.mark.parametrize("config, space", [("default", "tuning-space"),
+@pytest.mark.parametrize("config, space", [("default", "adaptive-space"),
+                                           ("fixed-pump", "tuning-space"),
                                            ("thesis", "lyapunov-space"),
                                            ("lyapunov-tuned", "lyapunov-space")])
 def test_each_shipped_configuration_has_its_space_and_refuses_the_others(config, space):
-    """tuning-space searches the energy pump (the default's law), lyapunov-space (3.30);
-    a space whose parameters the configuration's law does not read is refused, naming the
-    first such parameter and the setting that would read it."""
+    """adaptive-space searches the adaptive default (the energy pump with the adaptation,
+    the governor and the catch's guard), tuning-space the energy pump alone, lyapunov-space
+    (3.30); a space whose parameters the configuration's law does not read is refused,
+    naming the first such parameter and the setting that would read it."""
     flat = load_graph_config(config)[1]
     assert space_for(flat) == space
     names = [d.name for d in load_space(space, flat).dimensions]
-    assert ("swing_up.pump_gain" in names) == (space == "tuning-space")
+    assert ("swing_up.pump_gain" in names) == (space != "lyapunov-space")
     assert ("swing_up.k_x" in names) == (space == "lyapunov-space")
-    other = "lyapunov-space" if space == "tuning-space" else "tuning-space"
+    other = "tuning-space" if space == "lyapunov-space" else "lyapunov-space"
     with pytest.raises(ConfigError) as caught:
         load_space(other, flat)
     first, law = (("swing_up.k_x", "lyapunov") if other == "lyapunov-space"
@@ -276,11 +278,11 @@ def test_each_shipped_configuration_has_its_space_and_refuses_the_others(config,
 
 
 @pytest.mark.parametrize("entry, overrides, message", [
-    ("swing_up.loss_gain: {linear: [0, 2]}", {},
+    ("swing_up.loss_gain: {linear: [0, 2]}", {"adaptation.enabled": False},
      "swing_up.loss_gain: not searched: the controllers read it only with swing_up.law: "
      "energy_pump and adaptation.enabled: true; the configuration has adaptation.enabled: "
      "false"),
-    ("catch.governor_margin_m: {linear: [0, 0.05]}", {},
+    ("catch.governor_margin_m: {linear: [0, 0.05]}", {"catch.governor": False},
      "catch.governor_margin_m: not searched: the controllers read it only with "
      "catch.governor: true; the configuration has catch.governor: false"),
     ("catch.lqr_r: {log: [0.1, 10]}", {},
@@ -291,15 +293,16 @@ def test_each_shipped_configuration_has_its_space_and_refuses_the_others(config,
 def test_a_parameter_the_configuration_does_not_read_is_refused(tmp_path, entry, overrides,
                                                                 message):
     path = write(tmp_path / "space.yaml", f"space:\n  parameters:\n    {entry}\n")
+    config = "fixed-pump"  # the energy pump, the adaptation, governor and guard off
     with pytest.raises(ConfigError) as caught:
-        load_space(str(path), load_graph_config("default", overrides)[1])
+        load_space(str(path), load_graph_config(config, overrides)[1])
     assert message in str(caught.value)
     # with the setting that reads it, the same entry is searched
     read = {"swing_up.loss_gain": {"adaptation.enabled": True},
             "catch.governor_margin_m": {"catch.governor": True},
             "catch.lqr_r": {"catch.design": "lqr"},
             "catch.poles[1]": {}}[entry.split(":")[0]]
-    assert load_space(str(path), load_graph_config("default", read)[1]).dimensions
+    assert load_space(str(path), load_graph_config(config, read)[1]).dimensions
 
 
 def test_pisc_tune_writes_the_file_and_refuses_a_study_of_another_distribution(
@@ -338,7 +341,6 @@ def exit_code(argv: list[str]) -> int:
     (["default", "--draws", "0"], "--draws 0: at least 1"),
     (["default", "--sampler", "nosuch"], "invalid choice: 'nosuch'"),
     (["default", "--storage", "nosuch://x"], "nosuch://x: cannot open the study storage"),
-    (["default", "--seed", "-1"], "--seed -1: 0 or more"),
     (["default", "--scheduler", "notanaddress"],
      "--scheduler notanaddress: not a Dask scheduler's address (missing port number"),
     (["thesis", "--space", "tuning-space"], "swing_up.pump_gain: not searched"),

@@ -49,11 +49,12 @@ class AdaptationParams:
     enabled: bool = param(False, "estimate omega_0^2 and the pivot's loss online and use "
                           "them in the swing-up and the switching rule", "")
     spacing_periods: int = param(
-        6, "h: the differences' spacing; longer averages the sensors' steps more, shorter "
+        8, "h: the differences' spacing; longer averages the sensors' steps more, shorter "
         "follows the cart's changes of acceleration more closely", "", in_range(1, 40))
     ir_lag_periods: int = param(
-        3, "d: how many periods the IR reading lags the cart (its RC low-pass: 1 / (2 pi "
-        "10.26 Hz) = 15.5 ms)", "", in_range(0, 40))
+        2, "d: how many periods the IR reading lags the cart (its RC low-pass: 1 / (2 pi "
+        "10.26 Hz) = 15.5 ms; 2 gave the estimates closest to the truth over 30 drawn "
+        "rigs)", "", in_range(0, 40))
     omega_sq_std: float = param(
         0.15, "prior standard deviation of omega_0^2, relative to the model's", "",
         positive)
@@ -62,12 +63,21 @@ class AdaptationParams:
     damping_std_per_s: float = param(0.3, "prior standard deviation of beta", "1/s",
                                      positive)
     noise_radps2: float = param(
-        6.0, "standard deviation of one equation's error (the sensors' steps through the "
+        3.0, "standard deviation of one equation's error (the sensors' steps through the "
         "differences)", "rad/s^2", positive)
     omega_sq_bounds: float = param(
         0.4, "omega_0^2 stays within this fraction of the model's value", "",
         in_range(0.0, 0.95))
     damping_max_per_s: float = param(3.0, "beta stays within [0, this]", "1/s", positive)
+    stall_s: float = param(
+        0.0, "the swing-up gives up when the pendulum's energy has not risen by stall_rise_j "
+        "for this long while it stays more than stall_below_j below upright's (a rig too "
+        "weak or too lossy to be swung up): it stops pumping and says so (0 = never)", "s",
+        nonnegative)
+    stall_rise_j: float = param(0.0003, "what counts as a rise of the energy, for stall_s",
+                                "J", positive)
+    stall_below_j: float = param(0.002, "a plateau this far below upright's energy or more "
+                                 "counts as a stall, for stall_s", "J", positive)
 
     def __post_init__(self) -> None:
         if not self.omega_sq_bounds > 0.0:
@@ -76,9 +86,11 @@ class AdaptationParams:
 
 
 # places in the constants
-(A_H, A_D, A_HT2, A_2HT, A_G, A_NOISE2, A_W2_LO, A_W2_HI, A_B_MAX, A_ON, A_2T, N_A) = range(12)
+(A_H, A_D, A_HT2, A_2HT, A_G, A_NOISE2, A_W2_LO, A_W2_HI, A_B_MAX, A_ON, A_2T, A_STALL_N,
+ A_STALL_RISE, A_STALL_FLOOR, N_A) = range(15)
 # places in the state after the two histories of 2 h + d + 1 samples each
-ADAPT_SAMPLES, ADAPT_W2, ADAPT_BETA, ADAPT_P00, ADAPT_P01, ADAPT_P11, ADAPT_TAIL = range(7)
+(ADAPT_SAMPLES, ADAPT_W2, ADAPT_BETA, ADAPT_P00, ADAPT_P01, ADAPT_P11, ADAPT_BEST_E,
+ ADAPT_BEST_K, ADAPT_STALLED, ADAPT_HELD, ADAPT_TAIL) = range(11)
 
 
 def _window(params: AdaptationParams) -> int:
@@ -100,6 +112,9 @@ def adaptation_constants(params: AdaptationParams, rig: RigParams, period_s: flo
     c[A_HT2] = (h * period_s) * (h * period_s)
     c[A_2HT] = 2.0 * h * period_s
     c[A_2T] = 2.0 * period_s
+    c[A_STALL_N] = round(params.stall_s / period_s)
+    c[A_STALL_RISE] = params.stall_rise_j / rig.mgl  # energies in units of m g l
+    c[A_STALL_FLOOR] = -params.stall_below_j / rig.mgl
     c[A_G] = rig.gravity_mps2
     c[A_NOISE2] = params.noise_radps2 * params.noise_radps2
     w2 = rig.mgl / (rig.pendulum_inertia_kgm2 + rig.ml * rig.pendulum_com_m)
@@ -122,10 +137,14 @@ def adaptation_init(params: AdaptationParams, rig: RigParams, state) -> None:
     state[n + ADAPT_P00] = (params.omega_sq_std * w2) ** 2
     state[n + ADAPT_P01] = 0.0
     state[n + ADAPT_P11] = params.damping_std_per_s ** 2
+    state[n + ADAPT_BEST_E] = -math.inf
+    state[n + ADAPT_BEST_K] = 0.0
+    state[n + ADAPT_STALLED] = 0.0
+    state[n + ADAPT_HELD] = 0.0
 
 
 def adaptation_step(a: tuple[float, ...], state, x: float, theta: float, learn: bool
-                    ) -> tuple[float, float, float, float]:
+                    ) -> tuple[float, float, float, float, bool, float]:
     """Take one sample (the measured cart position and angle); (omega_0^2, beta) now, and
     the pendulum's angle one period ago with its rate by the central difference over the
     two periods around it, (theta_{k-1}, (theta_k - theta_{k-2}) / (2 Ts)) (the angle and a
@@ -160,8 +179,21 @@ def adaptation_step(a: tuple[float, ...], state, x: float, theta: float, learn: 
         rate = (theta - state[(count - 3) % window]) / a[A_2T]
     else:
         middle, rate = theta, 0.0
+    stalled = state[n + ADAPT_STALLED] > 0.0
+    held = 0.0 if learn else state[n + ADAPT_HELD] + 1.0
+    state[n + ADAPT_HELD] = held
+    if (learn and a[A_STALL_N] > 0.0 and count >= 3 and not stalled
+            and math.isfinite(middle) and math.isfinite(rate)):
+        energy = rate * rate / (2.0 * w2) + (math.cos(middle) - 1.0)
+        if energy > state[n + ADAPT_BEST_E] + a[A_STALL_RISE]:
+            state[n + ADAPT_BEST_E] = energy
+            state[n + ADAPT_BEST_K] = float(count)
+        elif (count - state[n + ADAPT_BEST_K] >= a[A_STALL_N]
+              and state[n + ADAPT_BEST_E] < a[A_STALL_FLOOR]):
+            stalled = True
+            state[n + ADAPT_STALLED] = 1.0
     if a[A_ON] == 0.0 or count < window or not learn:
-        return w2, beta, middle, rate
+        return w2, beta, middle, rate, stalled, held
 
     th0 = state[(count - 1 - d) % window]
     th1 = state[(count - 1 - h - d) % window]
@@ -169,6 +201,8 @@ def adaptation_step(a: tuple[float, ...], state, x: float, theta: float, learn: 
     x0 = state[window + (count - 1) % window]
     x1 = state[window + (count - 1 - h) % window]
     x2 = state[window + (count - 1 - 2 * h) % window]
+    if not (math.isfinite(th0) and math.isfinite(th1) and math.isfinite(th2)):
+        return w2, beta, middle, rate, stalled, held  # (math.sin raises on infinities)
     theta_ddot = (th0 - 2.0 * th1 + th2) / a[A_HT2]
     accel = (x0 - 2.0 * x1 + x2) / a[A_HT2]
     # the triangle's average of sin(theta) to second order, (f(-h) + 10 f(0) + f(h)) / 12
@@ -176,7 +210,7 @@ def adaptation_step(a: tuple[float, ...], state, x: float, theta: float, learn: 
     phi0 = sn - accel * math.cos(th1) / a[A_G]
     phi1 = -(th0 - th2) / a[A_2HT]
     if not (math.isfinite(theta_ddot) and math.isfinite(phi0) and math.isfinite(phi1)):
-        return w2, beta, middle, rate  # a sample not finite is in the window: nothing learnt
+        return w2, beta, middle, rate, stalled, held  # not finite: nothing learnt
     p00, p01, p11 = state[n + ADAPT_P00], state[n + ADAPT_P01], state[n + ADAPT_P11]
     # recursive least squares: gain k = P phi / (noise^2 + phi' P phi)
     pp0 = p00 * phi0 + p01 * phi1
@@ -193,7 +227,7 @@ def adaptation_step(a: tuple[float, ...], state, x: float, theta: float, learn: 
     beta = min(max(beta, 0.0), a[A_B_MAX])
     state[n + ADAPT_W2] = w2
     state[n + ADAPT_BETA] = beta
-    return w2, beta, middle, rate
+    return w2, beta, middle, rate, stalled, held
 
 
 def adaptation_estimates(state) -> tuple[float, float]:

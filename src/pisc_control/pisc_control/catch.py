@@ -44,6 +44,13 @@ class CatchParams:
     settle_rate_mps: float = param(
         0.0, "the catch's cart reference starts where the cart is when the catch begins and "
         "moves to x* at this speed (0 = x* at once, the thesis's law)", "m/s", nonnegative)
+    hold_poles: tuple[float, ...] = param(
+        [], "real poles of the gain that balances once the catch has held for hold_after_s "
+        "(design 'poles'; softer poles chatter less on the sensors' steps); empty: the "
+        "catch's gain throughout", "1/s")
+    hold_after_s: float = param(1.0, "hold_poles: the catch's gain gives way to the hold's "
+                                "after this long in the catch", "s", nonnegative)
+    hold_blend_s: float = param(0.5, "hold_poles: over this long, linearly", "s", positive)
     governor: bool = param(
         False, "a reference governor keeps the catch inside the track and the current limit: "
         "the catch starts only where the linear closed loop's prediction from the state "
@@ -57,9 +64,21 @@ class CatchParams:
     governor_current_a: float = param(
         0.8, "governor: the predicted current set-point stays within +- this", "A", positive)
     guard: bool = param(
-        False, "the swing-up's track guard (swing_up.guard_accel_mps2, guard_margin_m) also "
-        "watches the catch: where the cart, braked at the guard's rate, would stop beyond the "
-        "guard's limits, the catch lets go (or does not start) and the guard brakes", "")
+        False, "a track guard watches the catch: where the cart, moving on for "
+        "catch.guard_lead_s and then braked at catch.guard_accel_mps2, would stop beyond the "
+        "safe range less catch.guard_margin_m, "
+        "the catch lets go (or does not start) and the swing-up's guard brakes", "")
+    guard_accel_mps2: float = param(2.5, "guard: the braking acceleration it counts on",
+                                    "m/s^2", positive)
+    guard_margin_m: float = param(0.02, "guard: how far inside the safe range the cart must "
+                                  "stop", "m", nonnegative)
+    guard_lead_s: float = param(
+        0.04, "guard: the cart is taken to move on at its estimated velocity for this long "
+        "before it brakes (what the IR's low-pass and the estimator's differences lag)", "s",
+        nonnegative)
+    recorded_hold_gain: tuple[float, ...] = param(
+        [], "the hold's gain (hold_poles) as a recorded run computed it, used as "
+        "recorded_gain is", "N/m, N s/m, N/rad, N s/rad")
     recorded_gain: tuple[float, ...] = param(
         [], "K as a recorded run computed it (pisc_graph writes it into the bag's parameter "
         "file); used instead of the designed K only when the design gives the same K within "
@@ -87,12 +106,20 @@ class CatchParams:
                 raise ConfigError(
                     f"catch.poles_imag = {list(self.poles_imag)}: complex poles must come in "
                     "conjugate pairs (same real part, opposite imaginary parts)")
+        if self.hold_poles and (len(self.hold_poles) != 4
+                                or not all(p < 0.0 for p in self.hold_poles)):
+            raise ConfigError(f"catch.hold_poles = {list(self.hold_poles)}: expected 4 real "
+                              "poles with negative real parts, or none")
+        if self.hold_poles and self.design != "poles":
+            raise ConfigError("catch.hold_poles: the hold's gain is placed like the catch's "
+                              "(catch.design: poles)")
         if len(self.lqr_q) != 4:
             raise ConfigError(f"catch.lqr_q: expected 4 weights, got {len(self.lqr_q)}")
-        if self.recorded_gain and (len(self.recorded_gain) != 4
-                                   or not all(math.isfinite(k) for k in self.recorded_gain)):
-            raise ConfigError(f"catch.recorded_gain = {list(self.recorded_gain)}: expected "
-                              "4 finite gains, or none")
+        for name in ("recorded_gain", "recorded_hold_gain"):
+            gain = getattr(self, name)
+            if gain and (len(gain) != 4 or not all(math.isfinite(k) for k in gain)):
+                raise ConfigError(f"catch.{name} = {list(gain)}: expected 4 finite gains, "
+                                  "or none")
 
 
 def catch_gain(rig: RigParams, params: CatchParams) -> np.ndarray:
@@ -172,37 +199,108 @@ def catch_force(
 
 
 def governor_rows(rig: RigParams, gain: np.ndarray, period_s: float, horizon_s: float,
-                  force_per_amp: float) -> np.ndarray:
+                  force_per_amp: float, difference_periods: int = 1,
+                  velocity_filter_hz: float = 0.0, ir_filter_hz: float = 0.0) -> np.ndarray:
     """The catch's linear closed-loop prediction, one row per checked sample.
 
     Row j is ``(P_j, Q_j)`` (8 values): with ``w = [x - r, x_dot, theta, theta_dot]`` now
-    (theta from upright, r the catch's cart reference held constant), the cart after
-    ``k_j`` periods is ``r + P_j . w`` and the current set-point ``Q_j . w``, for
+    (as the supervisor sees them: positions as measured, velocities as estimated; theta
+    from upright; r the catch's cart reference held constant), the cart after ``k_j``
+    periods is ``r + P_j . w`` and the current set-point ``Q_j . w``, for
     ``k_j = 0, GOVERNOR_STRIDE, 2 GOVERNOR_STRIDE, ...`` up to ``horizon_s``.
 
     Notes
     -----
-    The linearisation (3.41)-(3.42) held over each period (zero-order hold, the
-    discrete model ``Phi = e^{A Ts}``, ``Gamma = int_0^Ts e^{A s} ds B``), under the catch
-    ``f = -K w`` (3.46), and the set-point (4.2) ``i_d = f / (k_m / r)`` before its
-    saturation: ``w_{k+1} = (Phi - Gamma K) w_k``, ``P_j = e_1^T (Phi - Gamma K)^{k_j}``,
-    ``Q_j = -K (Phi - Gamma K)^{k_j} / (k_m / r)``.
+    The plant is the linearisation (3.41)-(3.42) held over each period (zero-order hold,
+    ``Phi = e^{A Ts}``, ``Gamma = int_0^Ts e^{A s} ds B``) under the catch (3.46) and the
+    set-point (4.2) before its saturation, ``i_d = f / (k_m / r)``. The catch acts on
+    what the supervisor is given, so the prediction carries what lies between: the IR
+    reading of the cart through its RC low-pass (corner ``ir_filter_hz``, 0 = none,
+    sampled as ``x_ir(k+1) = c x_ir(k) + (1 - c) x(k)``, ``c = e^{-2 pi f Ts}``) and the
+    estimator's velocities, differences over N = ``difference_periods`` periods (4.7),
+    (4.9) low-passed at ``velocity_filter_hz`` (:func:`pisc_control.estimator.
+    estimator_update`). Its state is the plant's four, the IR reading, the N previous
+    readings of the cart and of the angle and the two velocity estimates; it starts as
+    if the rig had been moving at the estimated velocities: the reading where the cart
+    is, the previous readings ``p - i Ts v``, the estimates ``v``. Without filters and
+    with N = 1 the IR reading and the difference's lag are those of the model alone.
+    Every product is summed in a fixed order (:func:`_matmul`, :func:`_expm`): the rows
+    are the same bits on every CPU, as a replay on another machine needs.
     """
-    from scipy.linalg import expm
-
     a, b = linearise_upright(rig)
     block = np.zeros((5, 5))
     block[:4, :4] = a * period_s
     block[:4, 4:] = b * period_s
-    e = expm(block)
-    phi, gamma = e[:4, :4], e[:4, 4:]
-    k = np.asarray(gain, dtype=float).reshape(1, 4)
-    closed = phi - gamma @ k
+    e = _expm(block)
+    phi, gamma = e[:4, :4], e[:4, 4]
+    k = np.asarray(gain, dtype=float).reshape(4)
+    n = difference_periods
+    c_ir = math.exp(-2.0 * math.pi * ir_filter_hz * period_s) if ir_filter_hz > 0 else 0.0
+    c_v = (math.exp(-2.0 * math.pi * velocity_filter_hz * period_s)
+           if velocity_filter_hz > 0 else 0.0)
+    # state: x, x_dot, th, th_dot | x_ir | x history (1..n) | th history (1..n) | vx, vth
+    size = 4 + 1 + 2 * n + 2
+    X_IR, HX, HTH, VX, VTH = 4, 5, 5 + n, 5 + 2 * n, 6 + 2 * n
+
+    def step(s: np.ndarray) -> tuple[np.ndarray, float]:
+        """One period from state ``s``: (next state, set-point)."""
+        reading, angle = (s[X_IR] if c_ir > 0 else s[0]), s[2]
+        vx = c_v * s[VX] + (1.0 - c_v) * (reading - s[HX + n - 1]) / (n * period_s)
+        vth = c_v * s[VTH] + (1.0 - c_v) * (angle - s[HTH + n - 1]) / (n * period_s)
+        force = -(k[0] * reading + k[1] * vx + k[2] * angle + k[3] * vth)
+        out = np.zeros(size)
+        out[:4] = _matmul(phi, s[:4, None])[:, 0] + gamma * force
+        out[X_IR] = c_ir * s[X_IR] + (1.0 - c_ir) * s[0]
+        out[HX] = reading
+        out[HX + 1:HX + n] = s[HX:HX + n - 1]
+        out[HTH] = angle
+        out[HTH + 1:HTH + n] = s[HTH:HTH + n - 1]
+        out[VX], out[VTH] = vx, vth
+        return out, force / force_per_amp
+
+    # the step is linear: its matrix and its set-point's row, column by column
+    closed = np.zeros((size, size))
+    setpoint = np.zeros(size)
+    for column in range(size):
+        unit = np.zeros(size)
+        unit[column] = 1.0
+        closed[:, column], setpoint[column] = step(unit)
+    # the start from what the supervisor sees, w = [x - r, x_dot, th, th_dot]
+    embed = np.zeros((size, 4))
+    embed[:4, :4] = np.eye(4)
+    embed[X_IR, 0] = 1.0
+    for i in range(n):
+        embed[HX + i, 0], embed[HX + i, 1] = 1.0, -(i + 1) * period_s
+        embed[HTH + i, 2], embed[HTH + i, 3] = 1.0, -(i + 1) * period_s
+    embed[VX, 1] = embed[VTH, 3] = 1.0
     steps = int(round(horizon_s / period_s))
     rows = []
-    power = np.eye(4)
-    for step in range(steps + 1):
-        if step % GOVERNOR_STRIDE == 0:
-            rows.append(np.concatenate([power[0], -(k @ power)[0] / force_per_amp]))
-        power = closed @ power
+    power = embed
+    for index in range(steps + 1):
+        if index % GOVERNOR_STRIDE == 0:
+            rows.append(np.concatenate([power[0], _matmul(setpoint[None, :], power)[0]]))
+        power = _matmul(closed, power)
     return np.ascontiguousarray(rows, dtype=float)
+
+
+def _matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b by elementwise products summed in a fixed order: the same bits on every CPU
+    (a BLAS's kernels round differently from one CPU to another, and a replay on another
+    machine must give the recorded run's governor back exactly)."""
+    return np.add.reduce(a[:, :, None] * b[None, :, :], axis=1)
+
+
+def _expm(m: np.ndarray) -> np.ndarray:
+    """e^m by scaling and squaring of its Taylor series (:func:`_matmul` only, so the same
+    bits on every CPU); for the small norms of a period's linearisation."""
+    norm = float(np.max(np.sum(np.abs(m), axis=0)))
+    squarings = max(0, int(math.ceil(math.log2(norm / 0.25)))) if norm > 0.25 else 0
+    scaled = m / (2.0 ** squarings)
+    result = np.eye(len(m))
+    term = np.eye(len(m))
+    for order in range(1, 20):
+        term = _matmul(term, scaled) / order
+        result = result + term
+    for _ in range(squarings):
+        result = _matmul(result, result)
+    return result

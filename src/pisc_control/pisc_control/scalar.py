@@ -49,7 +49,7 @@ from pisc_control.supervisor import (
 from pisc_model.params import MotorParams
 from pisc_msgs_py.types import Mode
 
-__all__ = ["LAW_ENERGY_PUMP", "LAW_LYAPUNOV", "OneRigCurrentLoop", "OneRigEstimator",
+__all__ = ["ArraySupervisor", "LAW_ENERGY_PUMP", "LAW_LYAPUNOV", "OneRigCurrentLoop", "OneRigEstimator",
            "OneRigSupervisor", "current_loop_constants",
            "current_loop_step", "estimator_constants", "estimator_step", "governor_interval",
            "governor_rows", "supervisor_constants", "supervisor_step"]
@@ -64,7 +64,8 @@ LAW_LYAPUNOV, LAW_ENERGY_PUMP = 0, 1
  S_A1, S_A2, S_A1G, S_ML, S_HALF_A2, S_HALF_J, S_M_L, S_KV, S_KX, S_KDELTA, S_KE, S_E_REF,
  S_PUMP_ACCEL_NEG, S_PUMP_GAIN, S_TWO_MGL, S_OMEGA0, S_TRACK_KX, S_TRACK_KV, S_BRAKE,
  S_TWO_BRAKE, S_GUARD_LOW, S_GUARD_HIGH, S_LAW, S_GUARD, S_SETTLE, S_GOV, S_GOV_X_LO,
- S_GOV_X_HI, S_GOV_I, S_CATCH_GUARD, S_ADAPT, S_LOSS_GAIN, S_QUIET, N_S) = range(51)
+ S_GOV_X_HI, S_GOV_I, S_CATCH_GUARD, S_ADAPT, S_LOSS_GAIN, S_QUIET, S_CG_TWO_BRAKE, S_CG_LOW,
+ S_CG_HIGH, S_CG_LEAD, S_H1, S_H2, S_H3, S_H4, S_HOLD_AFTER, S_HOLD_BLEND, N_S) = range(61)
 # places in the current loop's constants
 C_FORCE_PER_AMP, C_I_LIMIT, C_VM, C_KII_TS, C_RESET, C_K_PI, N_C = range(7)
 
@@ -143,6 +144,14 @@ def supervisor_constants(supervisor: Supervisor) -> tuple[float, ...]:
     s[S_ADAPT] = 1.0 if c.adaptation.enabled else 0.0
     s[S_LOSS_GAIN] = su.loss_gain
     s[S_QUIET] = su.track_quiet
+    s[S_CG_TWO_BRAKE] = 2.0 * c.catch.guard_accel_mps2
+    s[S_CG_LOW] = c.safety.x_min_m + c.catch.guard_margin_m
+    s[S_CG_HIGH] = c.safety.x_max_m - c.catch.guard_margin_m
+    s[S_CG_LEAD] = c.catch.guard_lead_s
+    h1, h2, h3, h4 = supervisor.hold_gain
+    s[S_H1], s[S_H2], s[S_H3], s[S_H4] = float(h1), float(h2), float(h3), float(h4)
+    s[S_HOLD_AFTER] = c.catch.hold_after_s / c.loop.period_s if c.catch.hold_poles else -1.0
+    s[S_HOLD_BLEND] = c.catch.hold_blend_s / c.loop.period_s
     return tuple(s)
 
 
@@ -209,7 +218,8 @@ def _pendulum_energy(s: tuple[float, ...], c: float, theta_dot: float, w2: float
 
 def _energy_pump_force(s: tuple[float, ...], x: float, x_dot: float, sn: float, c: float,
                        theta_dot: float, target: float,
-                       pendulum: tuple[float, float, float, float, float]) -> float:
+                       pendulum: tuple[float, float, float, float, float],
+                       stalled: bool = False) -> float:
     """:func:`pisc_control.swing_up.energy_pump_force`; ``sn``, ``c``: the sine and cosine
     of the angle. ``pendulum``: (cos, rate, angle from upright) of the instant the energy
     is read at, and the online estimates omega_0^2 and beta = b / J. With the estimates,
@@ -217,7 +227,8 @@ def _energy_pump_force(s: tuple[float, ...], x: float, x_dot: float, sn: float, 
     difference, the pump acts on that instant's rate and angle, and the energy's target
     makes up for the pivot's loss still ahead on the way up, 4 b omega_0 (1 - |cos(th /
     2)|) (the loss int b theta_dot dtheta along the separatrix, theta_dot = 2 omega_0
-    sin(th / 2)), times ``swing_up.loss_gain``."""
+    sin(th / 2)), times ``swing_up.loss_gain``. ``stalled``: no pump, the track's terms
+    and its guard only."""
     e_c, e_rate, th, w2, beta = pendulum
     if s[S_ADAPT] > 0.0:
         e_p = _pendulum_energy(s, e_c, e_rate, w2)
@@ -231,6 +242,8 @@ def _energy_pump_force(s: tuple[float, ...], x: float, x_dot: float, sn: float, 
         error = (s[S_E_REF] - e_p) / s[S_TWO_MGL]
         pump = s[S_PUMP_ACCEL_NEG] * _clip(
             s[S_PUMP_GAIN] * error * theta_dot * c / s[S_OMEGA0], -1.0, 1.0)
+    if stalled:
+        pump = 0.0
     if s[S_QUIET] > 0.0:
         # the track's pull weighs less where it would change the pendulum's energy most
         # (dE_p/dt = -m l a theta_dot cos(theta))
@@ -280,8 +293,8 @@ def governor_interval(s: tuple[float, ...], rows, x: float, x_dot: float, th: fl
     return lo, hi
 
 
-def supervisor_step(s: tuple[float, ...], rows, pendulum: tuple[float, float, float, float],
-                    first: bool, x: float, x_dot: float, theta: float,
+def supervisor_step(s: tuple[float, ...], rows,
+                    pendulum: tuple[float, float, float, float, bool], first: bool, x: float, x_dot: float, theta: float,
                     theta_dot: float, mode: int, fault: int, caught: bool,
                     startup_target: float, reference: float
                     ) -> tuple[float, int, int, bool, float, float]:
@@ -313,7 +326,7 @@ def supervisor_step(s: tuple[float, ...], rows, pendulum: tuple[float, float, fl
     th = _wrap(theta)
     sn = _sin(theta)  # taken once: the band and the swing-up law use them
     c = _cos(theta)
-    w2, beta, middle, rate = pendulum
+    w2, beta, middle, rate, stalled, held = pendulum
     if s[S_ADAPT] > 0.0:  # the energy from the angle and rate of one instant
         e_c = _cos(middle)
         e_rate = rate
@@ -327,10 +340,14 @@ def supervisor_step(s: tuple[float, ...], rows, pendulum: tuple[float, float, fl
         e_p = _pendulum_energy(s, e_c, e_rate, w2)
         inside = inside and (catching or abs(e_p) < s[S_BAND])
     if inside and s[S_CATCH_GUARD] > 0.0:
-        stop = x + x_dot * abs(x_dot) / s[S_TWO_BRAKE]
-        if (stop > s[S_GUARD_HIGH] and x_dot > 0.0) or (stop < s[S_GUARD_LOW] and x_dot < 0.0):
+        stop = x + x_dot * (s[S_CG_LEAD] + abs(x_dot) / s[S_CG_TWO_BRAKE])
+        if (stop > s[S_CG_HIGH] and x_dot > 0.0) or (stop < s[S_CG_LOW] and x_dot < 0.0):
             inside = False  # the cart would not stop inside the guard's limits: brake
-    governed = s[S_GOV] > 0.0 and inside
+    # the hold's gain, blended in after hold_after_s in the catch (none: -1)
+    blend = 0.0
+    if s[S_HOLD_AFTER] >= 0.0 and catching:
+        blend = _clip((held - s[S_HOLD_AFTER]) / s[S_HOLD_BLEND], 0.0, 1.0)
+    governed = s[S_GOV] > 0.0 and inside and blend == 0.0
     lo = hi = 0.0
     if governed:
         lo, hi = governor_interval(s, rows, x, x_dot, th, theta_dot)
@@ -343,7 +360,7 @@ def supervisor_step(s: tuple[float, ...], rows, pendulum: tuple[float, float, fl
     target = s[S_SWING_TARGET] if now_caught else startup_target
     if s[S_LAW] == LAW_ENERGY_PUMP:
         f_swing = _energy_pump_force(s, x, x_dot, sn, c, theta_dot, target,
-                                     (e_c, e_rate, e_th, w2, beta))
+                                     (e_c, e_rate, e_th, w2, beta), stalled)
     else:
         f_swing = _lyapunov_force(s, x, x_dot, sn, c, theta_dot, target)
     if s[S_SETTLE] > 0.0:
@@ -354,7 +371,14 @@ def supervisor_step(s: tuple[float, ...], rows, pendulum: tuple[float, float, fl
         ref = s[S_CATCH_TARGET]
     if governed and new_mode == CATCH and lo <= hi:
         ref = _clip(ref, lo, hi)
-    f_catch = -(s[S_K1] * (x - ref) + s[S_K2] * x_dot + s[S_K3] * th + s[S_K4] * theta_dot)
+    if blend > 0.0:
+        k1 = s[S_K1] + blend * (s[S_H1] - s[S_K1])
+        k2 = s[S_K2] + blend * (s[S_H2] - s[S_K2])
+        k3 = s[S_K3] + blend * (s[S_H3] - s[S_K3])
+        k4 = s[S_K4] + blend * (s[S_H4] - s[S_K4])
+        f_catch = -(k1 * (x - ref) + k2 * x_dot + k3 * th + k4 * theta_dot)
+    else:
+        f_catch = -(s[S_K1] * (x - ref) + s[S_K2] * x_dot + s[S_K3] * th + s[S_K4] * theta_dot)
     if new_mode == CATCH:
         force = f_catch
     elif new_mode == SWING_UP:
@@ -439,6 +463,7 @@ class OneRigSupervisor:
         # (mode, fault, caught, start-up target, catch reference); None before a sample
         self._state: tuple[int, int, bool, float, float] | None = None
         self._numpy_state = SupervisorState()
+        self.stalled = False  # the swing-up has given up (adaptation.stall_s)
         self.configure(supervisor)
 
     def configure(self, supervisor: Supervisor) -> None:
@@ -499,18 +524,52 @@ class OneRigSupervisor:
                 self._numpy_state, x, x_dot, theta, theta_dot)
             return float(force), int(code)
         state = self._state
-        w2, beta, middle, rate = adaptation_step(
-            self._adapt, self._adapt_state, x, theta, state is None or state[0] != CATCH)
-        self.estimates = (w2, beta)
+        pendulum = adaptation_step(self._adapt, self._adapt_state, x, theta,
+                                   state is None or state[0] != CATCH)
+        self.estimates = pendulum[:2]
+        self.stalled = pendulum[4]
         if state is None:
-            force, *new = supervisor_step(self._constants, self._rows, (w2, beta, middle, rate),
-                                          True, x, x_dot, theta, theta_dot, SWING_UP,
-                                          FAULT_NONE, False, 0.0, 0.0)
+            force, *new = supervisor_step(self._constants, self._rows, pendulum, True, x,
+                                          x_dot, theta, theta_dot, SWING_UP, FAULT_NONE,
+                                          False, 0.0, 0.0)
         else:
-            force, *new = supervisor_step(self._constants, self._rows, (w2, beta, middle, rate),
-                                          False, x, x_dot, theta, theta_dot, *state)
+            force, *new = supervisor_step(self._constants, self._rows, pendulum, False, x,
+                                          x_dot, theta, theta_dot, *state)
         self._state = tuple(new)  # type: ignore[assignment]
         return force, new[0]
+
+
+class ArraySupervisor:
+    """:meth:`Supervisor.update` over arrays for any configuration: the numpy core's, or
+    for one whose laws are written for one rig at a time (:attr:`Supervisor.by_rig`) a
+    :class:`OneRigSupervisor` per rig. The state it returns holds the mode, fault, caught
+    and reference arrays; the one-rig supervisors keep the rest themselves, so a state is
+    good for one next call only."""
+
+    def __init__(self, supervisor: Supervisor) -> None:
+        self.supervisor = supervisor
+        self._rigs: list[OneRigSupervisor] | None = None
+
+    def update(self, state: SupervisorState, x, x_dot, theta, theta_dot
+               ) -> tuple[SupervisorState, np.ndarray, np.ndarray]:
+        if not self.supervisor.by_rig:
+            return self.supervisor.update(state, x, x_dot, theta, theta_dot)
+        values = [np.asarray(v, dtype=float) for v in (x, x_dot, theta, theta_dot)]
+        shape = np.broadcast_shapes(*(v.shape for v in values))
+        flat = [np.broadcast_to(v, shape).reshape(-1) for v in values]
+        size = flat[0].size
+        if state.mode is None or self._rigs is None:
+            self._rigs = [OneRigSupervisor(self.supervisor) for _ in range(size)]
+        force = np.empty(size)
+        mode = np.empty(size, dtype=np.int64)
+        for r, rig in enumerate(self._rigs):
+            force[r], mode[r] = rig.step(*(float(v[r]) for v in flat))
+        fault = np.array([rig.fault for rig in self._rigs], dtype=np.int64)
+        caught = np.array([rig.caught for rig in self._rigs], dtype=bool)
+        reference = np.array([rig.reference for rig in self._rigs])
+        new = SupervisorState(mode.reshape(shape), fault.reshape(shape), np.zeros(shape),
+                              caught.reshape(shape), reference.reshape(shape))
+        return new, force.reshape(shape), mode.reshape(shape)
 
 
 class OneRigCurrentLoop:

@@ -34,12 +34,13 @@ supervisor node or many in a batch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_control.adaptation import AdaptationParams
+from pisc_control.estimator import EstimatorParams
 from pisc_control.catch import CatchParams, catch_force, catch_gain, governor_rows
 from pisc_control.excitation import ExperimentParams, experiment_force
 from pisc_control.swing_up import (
@@ -50,7 +51,7 @@ from pisc_control.swing_up import (
     swing_up_force,
 )
 from pisc_model.dynamics import wrap_to_upright
-from pisc_model.params import LoopParams, MotorParams, RigParams
+from pisc_model.params import LoopParams, MotorParams, RigParams, SensorParams
 from pisc_msgs_py.config import ConfigError, nonnegative, param, positive
 from pisc_msgs_py.types import Mode
 
@@ -127,6 +128,9 @@ class SupervisorConfig:
     experiment: ExperimentParams = field(default_factory=ExperimentParams)
     motor: MotorParams = field(default_factory=MotorParams)
     adaptation: AdaptationParams = field(default_factory=AdaptationParams)
+    # what lies between the rig and the supervisor, for the governor's prediction
+    estimator: EstimatorParams = field(default_factory=EstimatorParams)
+    sensors: SensorParams = field(default_factory=SensorParams)
 
 
 @dataclass(frozen=True)
@@ -140,9 +144,6 @@ class SupervisorState:
     catch_reference_m: np.ndarray | None = None  # the catch's cart reference (settling)
     sample: np.ndarray | None = None  # experiments: index of the sample (their clock)
     origin_m: np.ndarray | None = None  # experiments: the first measured position
-    # the one-rig supervisors that run a configuration the numpy laws do not cover
-    # (:attr:`Supervisor.by_rig`), one per rig, flat; they hold their state themselves
-    rigs: tuple | None = None
 
 
 def switching_criterion(k_va: float, theta: ArrayLike, theta_dot: ArrayLike) -> np.ndarray:
@@ -164,6 +165,10 @@ class Supervisor:
         self.config = config
         self.gain = catch_gain(config.rig, config.catch)
         c = config.catch
+        #: the gain that balances once the catch has held (catch.hold_poles)
+        self.hold_gain = (catch_gain(config.rig, replace(
+            c, poles=tuple(c.hold_poles), poles_imag=(0.0,) * 4,
+            recorded_gain=c.recorded_hold_gain)) if c.hold_poles else self.gain)
         margin = 2.0 * c.governor_margin_m
         if c.governor and not margin < config.safety.x_max_m - config.safety.x_min_m:
             raise ConfigError(
@@ -171,20 +176,23 @@ class Supervisor:
                 f"range [{config.safety.x_min_m}, {config.safety.x_max_m}] m")
         #: the governor's prediction (:func:`pisc_control.catch.governor_rows`); none
         #: without the governor
-        self.governor_rows = (governor_rows(config.rig, self.gain, config.loop.period_s,
-                                            c.governor_horizon_s, config.motor.force_per_amp)
-                              if c.governor else np.zeros((0, 8)))
+        self.governor_rows = (governor_rows(
+            config.rig, self.gain, config.loop.period_s, c.governor_horizon_s,
+            config.motor.force_per_amp, config.estimator.difference_periods,
+            config.estimator.velocity_filter_hz, config.sensors.ir_filter_hz)
+            if c.governor else np.zeros((0, 8)))
         if c.guard and (config.swing_up.law != "energy_pump"
                         or config.swing_up.guard_accel_mps2 <= 0.0):
-            raise ConfigError("catch.guard: the catch's guard is the energy pump's track guard; "
-                              "it needs swing_up.law: energy_pump and swing_up.guard_accel_mps2 "
-                              "> 0")
+            raise ConfigError("catch.guard: when it lets the catch go, the energy pump's track "
+                              "guard brakes; it needs swing_up.law: energy_pump and "
+                              "swing_up.guard_accel_mps2 > 0")
         if config.adaptation.enabled and config.swing_up.law != "energy_pump":
             raise ConfigError("adaptation.enabled: the online estimates serve the energy pump "
                               "(swing_up.law: energy_pump), not (3.30)")
         #: the configuration uses a law written only for one rig at a time
         #: (:mod:`pisc_control.scalar`: the governor, the catch's guard, the online
-        #: estimates); :meth:`update` then runs that law rig by rig
+        #: estimates); :meth:`update` refuses it, :class:`pisc_control.scalar.
+        #: ArraySupervisor` runs it over arrays, rig by rig
         self.by_rig = config.experiment.kind == "none" and (
             c.governor or c.guard or config.adaptation.enabled)
 
@@ -204,7 +212,9 @@ class Supervisor:
         theta_dot = np.asarray(theta_dot, dtype=float)
         shape = np.broadcast_shapes(x.shape, x_dot.shape, theta.shape, theta_dot.shape)
         if self.by_rig:
-            return self._update_by_rig(state, x, x_dot, theta, theta_dot, shape)
+            raise ValueError("this configuration's laws are written for one rig at a time "
+                             "(the governor, the catch's guard, the online estimates): "
+                             "run them over arrays with pisc_control.scalar.ArraySupervisor")
 
         if state.mode is None:
             mode = np.full(shape, Mode.SWING_UP.code)
@@ -255,28 +265,6 @@ class Supervisor:
         force = np.where(np.isfinite(force), force, 0.0)
         return (SupervisorState(new_mode, new_fault, startup_target, caught, reference), force,
                 new_mode)
-
-    def _update_by_rig(self, state: SupervisorState, x: np.ndarray, x_dot: np.ndarray,
-                       theta: np.ndarray, theta_dot: np.ndarray, shape: tuple
-                       ) -> tuple[SupervisorState, np.ndarray, np.ndarray]:
-        """:meth:`update` by :class:`pisc_control.scalar.OneRigSupervisor`, rig by rig."""
-        from pisc_control.scalar import OneRigSupervisor
-
-        size = int(np.prod(shape))
-        rigs = state.rigs if state.rigs is not None else tuple(
-            OneRigSupervisor(self) for _ in range(size))
-        values = [np.broadcast_to(v, shape).reshape(-1) for v in (x, x_dot, theta, theta_dot)]
-        force = np.empty(size)
-        mode = np.empty(size, dtype=np.int64)
-        for r, rig in enumerate(rigs):
-            force[r], mode[r] = rig.step(*(float(v[r]) for v in values))
-        fault = np.array([rig.fault for rig in rigs], dtype=np.int64)
-        caught = np.array([rig.caught for rig in rigs], dtype=bool)
-        reference = np.array([rig.reference for rig in rigs])
-        new = SupervisorState(mode.reshape(shape), fault.reshape(shape),
-                              np.zeros(shape), caught.reshape(shape), reference.reshape(shape),
-                              rigs=rigs)
-        return new, force.reshape(shape), mode.reshape(shape)
 
     def _experiment(self, state: SupervisorState, fault: np.ndarray, startup_target: np.ndarray,
                     caught: np.ndarray, x: np.ndarray, x_dot: np.ndarray, shape: tuple

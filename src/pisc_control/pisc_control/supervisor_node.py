@@ -8,6 +8,7 @@ import numpy as np
 
 from pisc_control.adaptation import AdaptationParams
 from pisc_control.catch import CatchParams
+from pisc_control.estimator import EstimatorParams
 from pisc_control.excitation import ExperimentParams
 from pisc_control.supervisor import (
     SafetyParams,
@@ -18,8 +19,8 @@ from pisc_control.supervisor import (
 )
 from pisc_control.scalar import OneRigSupervisor
 from pisc_control.swing_up import SwingUpParams
-from pisc_model.params import LoopParams, MotorParams, RigParams
-from pisc_msgs_py.base_node import ERROR, OK, PiscNode, ResendCache, run_node
+from pisc_model.params import LoopParams, MotorParams, RigParams, SensorParams
+from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, ResendCache, run_node
 from pisc_msgs_py.convert import (
     cart_force_to_cdr,
     mode_to_msg,
@@ -40,6 +41,8 @@ SECTIONS = {
     "experiment": ExperimentParams,
     "motor": MotorParams,
     "adaptation": AdaptationParams,
+    "estimator": EstimatorParams,
+    "sensors": SensorParams,
 }
 
 
@@ -52,6 +55,7 @@ class SupervisorNode(PiscNode):
         self._force_pub = self.publisher(CART_FORCE)
         self._mode_pub = self.publisher(MODE)
         self._estimate_pub = self.publisher(PENDULUM_ESTIMATE)
+        self._stall_said = False
         self._sub = self.subscription(STATE, self._on_state, state_from_msg, "state")
         self.get_logger().info(f"catch gain K = {np.array2string(self.config.gain, precision=5)}")
 
@@ -69,6 +73,13 @@ class SupervisorNode(PiscNode):
         believed = self._supervisor.estimates
         force, code = self._supervisor.step(state.position_m, state.velocity_mps,
                                             state.angle_rad, state.rate_radps)
+        if self._supervisor.stalled and not self._stall_said:
+            self._stall_said = True
+            self.diagnose(WARN, "swing-up stopped: the pendulum's energy has not risen for "
+                          f"{supervisor.config.adaptation.stall_s:g} s and stays more than "
+                          f"{1e3 * supervisor.config.adaptation.stall_below_j:g} mJ below "
+                          "upright's (too much loss or too little force for this rig); the "
+                          "cart is kept near x*", state.stamp_ns)
         if self._supervisor.estimates != believed:
             self._estimate_pub.publish(pendulum_estimate_to_cdr(PendulumEstimate(
                 state.stamp_ns, *self._supervisor.estimates,

@@ -131,7 +131,30 @@ def test_the_energy_rate_is_the_central_difference_one_period_late():
     adaptation_init(params, RIG, state)
     a = adaptation_constants(params, RIG, PERIOD)
     angles = [3.0, 3.01, 3.03, 3.06]
-    got = [adaptation_step(a, state, 0.0, th, True)[2:] for th in angles]
+    got = [adaptation_step(a, state, 0.0, th, True)[2:4] for th in angles]
     assert got[0] == (3.0, 0.0) and got[1] == (3.01, 0.0)
     assert got[2] == (3.01, pytest.approx(0.03 / (2 * PERIOD)))
     assert got[3] == (3.03, pytest.approx(0.05 / (2 * PERIOD)))
+
+
+def test_a_swing_up_that_stalls_gives_up_and_one_that_rises_does_not():
+    """A pendulum that keeps swinging 1 rad about hanging (energy far below upright's, not
+    rising) stalls after stall_s; one shaken into larger swings does not."""
+    params = dataclasses.replace(EXACT, stall_s=1.0)
+    x, theta = _swing(NOMINAL, 0.0, lambda t: (0.0, 0.0), duration=1.6, theta0=math.pi - 1.0)
+    state = [0.0] * adaptation_size(params)
+    adaptation_init(params, RIG, state)
+    a = adaptation_constants(params, RIG, PERIOD)
+    stalled = [adaptation_step(a, state, float(xk), float(tk), True)[4]
+               for xk, tk in zip(x, theta)]
+    first = stalled.index(True)
+    assert 1.0 <= first * PERIOD <= 1.0 + 0.7  # a second after the best energy, once seen
+    assert all(stalled[first:])
+    # resonant shaking: after 1.2 s out of phase the swings grow
+    params = dataclasses.replace(EXACT, stall_s=1.5)
+    a = adaptation_constants(params, RIG, PERIOD)
+    x, theta = _swing(NOMINAL, 0.0, _shaking(0.03, math.sqrt(NOMINAL)), duration=3.0)
+    state = [0.0] * adaptation_size(params)
+    adaptation_init(params, RIG, state)
+    assert not any(adaptation_step(a, state, float(xk), float(tk), True)[4]
+                   for xk, tk in zip(x, theta))

@@ -92,25 +92,60 @@ def test_a_malformed_recorded_gain_is_refused(gain):
         CatchParams(recorded_gain=gain)
 
 
-def test_governor_rows_against_an_independent_discretisation():
-    """Row j is e_1 and -K / (k_m / r) times (Phi - Gamma K)^(3 j), with Phi, Gamma the
-    zero-order hold of the linearisation, here from scipy.signal.cont2discrete."""
+def test_governor_rows_against_a_simulation_of_the_sampled_loop():
+    """Row j gives the cart and the set-point after 3 j periods of a loop simulated here
+    period by period: the zero-order hold of the linearisation (scipy.signal.
+    cont2discrete), the IR reading through its RC low-pass, the estimator's numpy core
+    (differences over 7 periods, low-passed) and the catch f = -K z on what it gives; the
+    rig moving at the estimated velocities before the start."""
     from scipy.signal import cont2discrete
 
     from pisc_control.catch import GOVERNOR_STRIDE, governor_rows
+    from pisc_control.estimator import EstimatorParams, EstimatorState, estimator_update
     from pisc_model.params import MotorParams
 
-    k = catch_gain(RIG, CatchParams())
+    k = catch_gain(RIG, CatchParams(poles=(-14.0, -4.8, -4.0, -3.5)))
     a, b = linearise_upright(RIG)
-    phi, gamma, *_ = cont2discrete((a, b, np.eye(4), np.zeros((4, 1))), 0.005, "zoh")
-    closed = phi - gamma @ k.reshape(1, 4)
+    ts = 0.005
+    phi, gamma, *_ = cont2discrete((a, b, np.eye(4), np.zeros((4, 1))), ts, "zoh")
     fpa = MotorParams().force_per_amp
     assert fpa == pytest.approx(0.0637 / 0.032)
-    rows = governor_rows(RIG, k, 0.005, 1.5, fpa)
+    est = EstimatorParams(difference_periods=7, velocity_filter_hz=15.8)
+    ir_hz = 10.26
+    rows = governor_rows(RIG, k, ts, 1.5, fpa, 7, 15.8, ir_hz)
     assert rows.shape == (1 + 300 // GOVERNOR_STRIDE, 8)
     np.testing.assert_array_equal(rows[0, :4], [1.0, 0.0, 0.0, 0.0])
     np.testing.assert_allclose(rows[0, 4:], -k / fpa, rtol=1e-12)
-    for j in (1, 10, 100):
-        power = np.linalg.matrix_power(closed, GOVERNOR_STRIDE * j)
-        np.testing.assert_allclose(rows[j, :4], power[0], rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(rows[j, 4:], -(k @ power) / fpa, rtol=1e-9, atol=1e-12)
+
+    r = 0.03  # the catch's reference
+    w = np.array([0.02, 0.1, 0.05, -0.3])  # x - r, x_dot, theta, theta_dot as seen
+    z = w + np.array([r, 0.0, 0.0, 0.0])  # the true state, as the rows assume at the start
+    c_ir = math.exp(-2 * math.pi * ir_hz * ts)
+    reading = z[0]
+    past_x = tuple(z[0] - i * ts * z[1] for i in range(7, 0, -1))
+    past_th = tuple(z[2] - i * ts * z[3] for i in range(7, 0, -1))
+    state = EstimatorState(past_x[-1], past_th[-1], z[1], z[3], past_x[:-1], past_th[:-1])
+    for step in range(301):
+        state, v_x, v_th = estimator_update(est, ts, state, reading, z[2])
+        force = -(k[0] * (reading - r) + k[1] * v_x + k[2] * z[2] + k[3] * v_th)
+        if step % GOVERNOR_STRIDE == 0:
+            row = rows[step // GOVERNOR_STRIDE]
+            assert r + row[:4] @ w == pytest.approx(z[0], abs=1e-12)
+            assert row[4:] @ w == pytest.approx(force / fpa, abs=1e-12)
+        reading = c_ir * reading + (1 - c_ir) * z[0]
+        z = phi @ z + gamma[:, 0] * float(force)
+
+
+def test_the_governors_exponential_is_scipys():
+    """The fixed-order exponential the governor uses (the same bits on every CPU) agrees
+    with scipy's Pade approximant to the last digits, on the period's block of the thesis
+    rig and on a block 40 times larger (which needs squaring)."""
+    from scipy.linalg import expm
+
+    from pisc_control.catch import _expm
+
+    a, b = linearise_upright(RIG)
+    for period in (0.005, 0.2):
+        block = np.zeros((5, 5))
+        block[:4, :4], block[:4, 4:] = a * period, b * period
+        np.testing.assert_allclose(_expm(block), expm(block), rtol=1e-13, atol=1e-14)

@@ -67,8 +67,9 @@ class DriverNode(PiscNode):
         self._joint_pub = self.publisher(JOINT_STATES)
         self._current_pub = self.publisher(MOTOR_CURRENT)
         self._sent_pub = self.publisher(VOLTAGE_SENT)  # each byte as it is written
+        # pinned by the driver itself (_check_publishers): 0 V while another one is there
         self._sub = self.subscription(VOLTAGE, self._on_voltage, motor_sample_from_msg,
-                                      "voltage command", WARN)
+                                      "voltage command", WARN, guarded=False)
         # newest stamp out of each stage of the chain, to say which one stopped
         self._upstream = self.newest_stamps(CHAIN)
         self._pin = PublisherPin(self.config.params.command_node)
@@ -247,7 +248,7 @@ class DriverNode(PiscNode):
                 if not link.is_open:
                     time.sleep(core.params.reopen_interval_s)
                     link.open()
-                    self.diagnose(OK, f"{link.port} reopened")
+                    self.diagnose(OK, f"{link.port} reopened", port=link.port, link="reopened")
                 data = link.read(wait_s)
                 now = self._now_ns()
                 with self._lock:
@@ -289,8 +290,9 @@ class DriverNode(PiscNode):
                 with self._lock:
                     link.close()
                     core.silent = False  # report silence again after the port comes back
+                # (``link``: pisc_graph ends a run whose port stays gone, naming it)
                 self._report(ERROR, f"{exc}; retrying every {core.params.reopen_interval_s} s",
-                             self._now_ns())
+                             self._now_ns(), port=link.port, link="lost")
             except Exception as exc:  # a bug must not leave the motor driven
                 with self._lock:
                     self._send(ZERO)

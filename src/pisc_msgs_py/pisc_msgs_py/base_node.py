@@ -25,6 +25,16 @@ subscription it can wait until its publishers have matched the readers a runner 
 for them (:meth:`PiscNode.await_subscribers`). A thread that destroys a node leaves
 SCHED_FIFO first (:func:`leave_realtime`).
 
+**Inputs answer to the graph alone.** Each input topic with a publisher in
+``start.publishers`` (:data:`pisc_msgs_py.watchdog.GRAPH_PUBLISHERS` unless set; /clock
+too, for a node on simulated time) is guarded (:class:`pisc_msgs_py.watchdog.InputGuard`):
+the publisher of the node it names is pinned at the start, and while any other publisher
+is matched on any input the node uses no input at all (so the control chain answers
+nothing and the plant or the driver applies 0 V), and says so on /diagnostics naming the
+publisher and the topic. A message stamped before 0 and a /clock that goes backwards are
+refused and said (rclpy's own clock subscription raised on a negative time and ended the
+node).
+
 **Shell code said once.** :meth:`PiscNode.parse` turns a message into its core type or
 says on ``/diagnostics`` why it was rejected; :meth:`PiscNode.diagnose` publishes a
 status and logs an error, at most :class:`LogLimit`'s burst of one kind a window; :meth:`PiscNode.routine_diagnostics` is the
@@ -39,6 +49,7 @@ import gc
 import importlib
 import os
 import re
+import struct
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -57,6 +68,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
+from rosgraph_msgs.msg import Clock
 
 from pisc_msgs_py import cdr
 from pisc_msgs_py import config as cfg
@@ -67,7 +79,8 @@ from pisc_msgs_py.convert import (
     stamp_from_msg,
     stamp_to_msg,
 )
-from pisc_msgs_py.topics import DIAGNOSTICS, QosSpec, Topic
+from pisc_msgs_py.topics import CLOCK, DIAGNOSTICS, QosSpec, Topic
+from pisc_msgs_py.watchdog import GRAPH_PUBLISHERS, InputGuard, parse_publishers
 
 __all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "LogLimit", "NewestStamps", "Override",
            "PiscNode", "ResendCache", "StartError", "StartParams", "freeze_startup_objects",
@@ -106,9 +119,8 @@ def _ros_value(value: Any) -> Any:
 #: markers); test_nodes checks this against the nodes' own lists.
 PISC_SECTIONS = frozenset({
     "actuator", "adaptation", "catch", "current_loop", "driver", "estimator", "experiment",
-    "friction",
-    "initial", "integrator", "loop", "markers", "models", "motor", "noise", "rig", "safety",
-    "sensors", "simulation", "start", "startup", "swing_up", "switching", "track"})
+    "friction", "initial", "integrator", "loop", "markers", "models", "motor", "noise", "rig",
+    "safety", "sensors", "simulation", "start", "startup", "swing_up", "switching", "track"})
 
 
 def _await_entries(text: str) -> list[tuple[str, int]]:
@@ -135,6 +147,14 @@ def _await_rule(value: Any) -> str | None:
     return None
 
 
+def _publishers_rule(value: Any) -> str | None:
+    try:
+        parse_publishers(value)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
 @dataclass(frozen=True)
 class StartParams:
     """What every PISC node waits for before it takes its first input."""
@@ -150,6 +170,13 @@ class StartParams:
         30.0, "the longest wait for start.await_subscribers; after it the node does not "
         "start (exit status 1), naming each publication still short of its subscribers",
         "s", cfg.in_range(0.01, 600.0))
+    publishers: str = cfg.param(
+        "", "TOPIC=NODE[|NODE...][,TOPIC=...]: the node that publishes each input topic of "
+        "this node (and /clock); its publisher is pinned at the start, and while any other "
+        "publisher is there the node uses none of its inputs and says so on /diagnostics. "
+        "A topic not named keeps the graph's own name (the plant or the driver, estimator, "
+        "supervisor, current_loop); pisc_graph sets it from the launch file", "",
+        _publishers_rule)
 
 
 class StartError(RuntimeError):
@@ -257,6 +284,15 @@ def parse_ros_arguments(argv: Sequence[str]) -> tuple[Override, ...]:
 def _aims_at(target: str, fully_qualified_name: str) -> bool:
     pattern = target if target.startswith("/") else "/" + target
     return fnmatch.fnmatchcase(fully_qualified_name, pattern.replace("/**", "*"))
+
+
+def _header_stamp_ns(data: bytes) -> int | None:
+    """The stamp of a little-endian CDR message that starts with a std_msgs/Header (or a
+    builtin_interfaces/Time, as rosgraph_msgs/Clock), else None."""
+    if len(data) < 12 or data[1] not in (0x01, 0x03):  # CDR_LE or PL_CDR_LE
+        return None
+    sec, nanosec = struct.unpack_from("<iI", data, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 class ResendCache:
@@ -407,6 +443,12 @@ class PiscNode(Node):
         flat = self.flat_parameters()
         self.config = self.build(flat)
         self._start_params = self.section(flat, "start")
+        self._pinned_publishers = {**GRAPH_PUBLISHERS,
+                                   **parse_publishers(self._start_params.publishers)}
+        self._input_guards: list[InputGuard] = []
+        self._clock_ns = -1  # the newest /clock taken (simulated time)
+        if getattr(self._time_source, "_clock_sub", None) is not None:
+            self._guard_clock()
         self.add_on_set_parameters_callback(self._validate_change)
         self.add_post_set_parameters_callback(self._apply_change)
 
@@ -475,7 +517,7 @@ class PiscNode(Node):
 
     def subscription(self, topic: Topic, callback: Callable[..., None],
                      read: Callable[[Any], Any] | None = None, what: str = "",
-                     level: int = ERROR) -> Any:
+                     level: int = ERROR, guarded: bool = True) -> Any:
         """Subscribe ``callback`` to ``topic``. A type :mod:`pisc_msgs_py.cdr` reads is
         taken raw and handed over as a view with the message's fields (no rclpy message
         object is built, issue 16); bytes it cannot read are refused on /diagnostics
@@ -493,41 +535,106 @@ class PiscNode(Node):
         if not self._inputs_opened:
             self._inputs_opened = True
             self.await_subscribers()
+        owners = self._pinned_publishers.get(topic.name) if guarded else None
+        guard = None if owners is None else self._guard(topic.name, owners)
         decode = cdr.DECODERS.get(topic.type)
         if decode is None:
-            if read is None:
-                return self.create_subscription(
-                    message_class(topic.type), topic.name, callback, qos_profile(topic.qos))
-
             def on_msg(msg: Any) -> None:
+                header = getattr(msg, "header", None)
+                stamp = None if header is None else stamp_from_msg(header.stamp)
+                if not self._admit(topic, guard, stamp):
+                    return
+                if read is None:
+                    callback(msg)
+                    return
                 value = self.parse(msg, read, what, level)
                 if value is not None:
                     callback(value)
 
-            return self.create_subscription(
+            sub = self.create_subscription(
                 message_class(topic.type), topic.name, on_msg, qos_profile(topic.qos))
-
-        def on_bytes(data: bytes) -> None:
-            if read is not None:
-                value = fast_read(read, data)
-                if value is not None:
-                    callback(value)
+        else:
+            def on_bytes(data: bytes) -> None:
+                if not self._admit(topic, guard, _header_stamp_ns(data)):
                     return
-            try:
-                msg = decode(data)
-            except MessageError as exc:
-                self.diagnose(ERROR, f"rejected {topic.name}: {exc}")
-                return
-            if read is None:
-                callback(msg)
-                return
-            value = self.parse(msg, read, what, level)
-            if value is not None:
-                note_read(read, data)
-                callback(value)
+                if read is not None:
+                    value = fast_read(read, data)
+                    if value is not None:
+                        callback(value)
+                        return
+                try:
+                    msg = decode(data)
+                except MessageError as exc:
+                    self.diagnose(ERROR, f"rejected {topic.name}: {exc}")
+                    return
+                if read is None:
+                    callback(msg)
+                    return
+                value = self.parse(msg, read, what, level)
+                if value is not None:
+                    note_read(read, data)
+                    callback(value)
 
-        return self.create_subscription(message_class(topic.type), topic.name, on_bytes,
-                                        qos_profile(topic.qos), raw=True)
+            sub = self.create_subscription(message_class(topic.type), topic.name, on_bytes,
+                                           qos_profile(topic.qos), raw=True)
+        if guard is not None:
+            guard.subscription = sub
+        return sub
+
+    # -- inputs that answer to the graph alone ------------------------------------------
+
+    def _guard(self, topic: str, owners: Sequence[str]) -> InputGuard:
+        levels = {0: OK, 1: WARN, 2: ERROR}
+        guard = InputGuard(self, topic, owners, self.get_name(),
+                           lambda level, message, **values: self.diagnose(
+                               levels[level], message, **values))
+        self._input_guards.append(guard)
+        return guard
+
+    def _admit(self, topic: Topic, guard: InputGuard | None, stamp_ns: int | None) -> bool:
+        """Whether a message just taken on ``topic`` may be used: stamped at or after 0,
+        its topic's publisher the pinned one (``guard``), and no other input of the node
+        contested (module docstring, "Inputs answer to the graph alone")."""
+        if stamp_ns is not None and stamp_ns < 0:
+            self.diagnose(ERROR, f"rejected {topic.name}: stamp {stamp_ns * 1e-9:.9f} s is "
+                          "before 0", topic=topic.name)
+            return False
+        if not self._input_guards:
+            return True
+        ok = guard.admits(stamp_ns) if guard is not None else True
+        for other in self._input_guards:
+            if other is not guard:
+                other.check()
+        return ok and not self.inputs_contested()
+
+    def inputs_contested(self) -> bool:
+        """Whether another publisher than the pinned one is on any input of the node."""
+        return any(g.pin.intruders for g in self._input_guards)
+
+    def _guard_clock(self) -> None:
+        """Replace rclpy's /clock subscription (``use_sim_time``) by one that refuses a
+        negative or backwards time and answers to the pinned publisher of /clock alone."""
+        source = self._time_source
+        qos = source._clock_sub.qos_profile
+        self.destroy_subscription(source._clock_sub)
+        owners = self._pinned_publishers.get(CLOCK.name)
+        guard = None if owners is None else self._guard(CLOCK.name, owners)
+
+        def on_clock(msg: Any) -> None:
+            stamp = stamp_from_msg(msg.clock)
+            if not self._admit(CLOCK, guard, stamp):
+                return
+            if stamp < self._clock_ns:
+                self.diagnose(ERROR, f"rejected {CLOCK.name}: {stamp * 1e-9:.9f} s goes back "
+                              f"from {self._clock_ns * 1e-9:.9f} s; the clock stays there",
+                              topic=CLOCK.name)
+                return
+            self._clock_ns = stamp
+            source.clock_callback(msg)
+
+        source._clock_sub = self.create_subscription(Clock, CLOCK.name, on_clock, qos)
+        if guard is not None:
+            guard.subscription = source._clock_sub
 
     def await_subscribers(self) -> None:
         """Return once each publication ``start.await_subscribers`` names has matched its

@@ -21,6 +21,7 @@ import array
 import dataclasses
 import difflib
 import math
+import re
 import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -42,6 +43,7 @@ __all__ = [
     "in_range",
     "find_file",
     "load_keyed_yaml",
+    "load_yaml",
     "load_params_file",
     "nonnegative",
     "one_of",
@@ -265,17 +267,41 @@ def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader (YAML 1.1), which reads ``5e-1`` as a string: a float's
+    mantissa must have a dot there. ROS 2 reads parameter values as YAML 1.2 does (rcl's
+    parser takes any number ``strtod`` takes), so such a value is a float here too."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9]+)[eE][-+]?[0-9]+$"),
+    list("-+.0123456789"))
+
+
+def load_yaml(text: Any) -> Any:
+    """A YAML document (a string or a file) as ROS 2 reads parameters (:class:`_Loader`);
+    raises yaml.YAMLError as ``yaml.safe_load`` does."""
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader
+
+
 def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
     """``NAME=VALUE`` command-line overrides to flat parameters, values read as YAML.
 
-    Raises :class:`ConfigError` for an item without ``=`` or without a name.
+    Raises :class:`ConfigError` for an item without ``=`` or without a name, or whose
+    value is not YAML.
     """
     out: dict[str, Any] = {}
     for item in items:
         name, sep, value = item.partition("=")
         if not sep or not name.strip():
             raise ConfigError(f"--set {item!r}: expected NAME=VALUE")
-        out[name.strip()] = yaml.safe_load(value)
+        try:
+            out[name.strip()] = load_yaml(value)
+        except yaml.YAMLError as exc:
+            problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML ({problem})"
+                              ) from None
     return out
 
 
@@ -322,7 +348,7 @@ def load_keyed_yaml(path: Path, key: str, keys: Iterable[str], what: str) -> Map
     Raises :class:`ConfigError` naming the file, and the key when one is unknown.
     """
     try:
-        document = yaml.safe_load(path.read_text())
+        document = load_yaml(path.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
     if not isinstance(document, Mapping) or not isinstance(document.get(key), Mapping):
@@ -349,7 +375,7 @@ def load_params_file(path: str | Path, node_names: Sequence[str] = ("/**",)) -> 
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read parameter file ({exc.strerror})") from exc
     try:
-        tree = yaml.safe_load(text)
+        tree = load_yaml(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
     if not isinstance(tree, Mapping):

@@ -37,6 +37,7 @@ __all__ = [
     "CONTROL_QOS",
     "CURRENT_SETPOINT",
     "DIAGNOSTICS",
+    "FOREIGN",
     "GRAPH_TOPICS",
     "graph_topics_named",
     "JOINT_NAMES",
@@ -174,6 +175,16 @@ MARKERS = Topic(
 RECORDER_PROGRESS = Topic(
     "/pisc/recorder/progress", "rosgraph_msgs/msg/Clock", LATCHED_QOS,
     "the run's recorder: stamp of the newest sample it has written whole to the bag",
+)
+# The run's recorder marks in its bag the topics on which a publisher other than the
+# graph's was matched while it recorded (pisc_record --expect): one status when such a
+# publisher appears (ERROR, naming the topic and the publishers) and one when the topic
+# has only the graph's again (OK), at the log times it saw it. Written into the bag, not
+# published; the summary and replay refuse to call such a run CAUGHT or REPRODUCED.
+FOREIGN = Topic(
+    "/pisc/recorder/foreign", "diagnostic_msgs/msg/DiagnosticArray", QosSpec(depth=100),
+    "the recorder: another publisher than the graph's on a recorded topic, and its end "
+    "(status values: topic, publishers, contested messages); in the bag only",
 )
 #: Topics of nodes the graph runs only on request: recordable, not recorded by default.
 OPTIONAL_TOPICS = (MARKERS,)

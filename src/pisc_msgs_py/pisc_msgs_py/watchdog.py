@@ -3,9 +3,13 @@ driver, free of rclpy (docs/safety.md).
 
 * :class:`CommandWatchdog`: which recent sample a command answers, and from which
   sample 0 V applies once the chain stopped answering.
-* :class:`PublisherPin`: the graph's own command publisher, pinned when it is first
-  seen, and every other publisher on the command topic (an intruder) from what the ROS
-  graph lists; the node asks the graph only when :meth:`PublisherPin.needs_look` says so.
+* :class:`PublisherPin`: the graph's own publisher of a topic, pinned when it is first
+  seen, and every other publisher on the topic (an intruder) from what the ROS graph
+  lists; the node asks the graph only when :meth:`PublisherPin.needs_look` says so.
+* :class:`InputGuard`: one input of a node answering to its pinned publishers alone:
+  nothing on the topic is used while an intruder is there, and the node says so.
+  :data:`GRAPH_PUBLISHERS` names the node that publishes each topic of the graph as the
+  launch files name them; ``start.publishers`` (every node) replaces it.
 * :class:`StopWitness`: after a trip, the stage of the control chain that stopped,
   named once the evidence is in (a dead stage falls further behind the one before it
   every period; a slow one does not).
@@ -19,13 +23,28 @@ and pass plain values in.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping, Sequence
+import re
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from pisc_msgs_py.topics import CART_FORCE, STATE, Topic
+from pisc_msgs_py.topics import (
+    CART_FORCE,
+    CLOCK,
+    CURRENT_SETPOINT,
+    JOINT_STATES,
+    MODE,
+    MOTOR_CURRENT,
+    PENDULUM_ESTIMATE,
+    SIM_STATE,
+    STATE,
+    VOLTAGE,
+    VOLTAGE_SENT,
+    Topic,
+)
 
-__all__ = ["CHAIN", "CommandWatchdog", "Endpoint", "PinChange", "PublisherPin",
+__all__ = ["CHAIN", "CommandWatchdog", "Endpoint", "GRAPH_PUBLISHERS", "InputGuard",
+           "PinChange", "PublisherPin", "format_publishers", "parse_publishers",
            "StopVerdict", "StopWitness", "first_silent_stage", "listed_publishers",
            "named_trip", "silent_stage_report", "stop_sentence", "who_publishes"]
 
@@ -103,15 +122,17 @@ class PinChange:
 
 
 class PublisherPin:
-    """The one publisher allowed on a command topic: the endpoint of node ``owner``,
-    pinned the first time the graph lists exactly one of it; any other matched
-    publisher is an intruder while it is there (pure).
+    """The publishers allowed on a topic: one endpoint of each node named in ``owner``
+    (one name, or several: the alternatives a topic may have, e.g. the plant or the
+    driver, or every node of a graph on /diagnostics), each pinned the first time the
+    graph lists exactly one endpoint of that name; any other matched publisher is an
+    intruder while it is there (pure).
 
     rclpy on Jazzy gives no publisher GID with a message (ros2/rclpy#1466 came after),
     so messages cannot be sorted by sender: while an intruder is matched nothing on the
-    topic may drive the motor. The subscription's matched count is cheap to read on
-    every message; the graph is asked who the publishers are only when it changes, while
-    an intruder is there, or before the pin is set.
+    topic may be used. The subscription's matched count is cheap to read on every
+    message; the graph is asked who the publishers are only when it changes, while an
+    intruder is there, or before a pin is set.
 
     The matched count moves in DDS's discovery thread, not with the messages: a departed
     publisher's last messages can still be queued when the count has dropped, and
@@ -125,20 +146,28 @@ class PublisherPin:
     UNKNOWN = "publishers of unknown nodes"
     PLACEHOLDERS = frozenset({UNLISTED, UNKNOWN, UNNAMED_TEXT})
 
-    def __init__(self, owner: str) -> None:
-        self.owner = owner
-        self.pinned: bytes | None = None  # GID of the owner's publisher
+    def __init__(self, owner: str | Sequence[str]) -> None:
+        self.owners: tuple[str, ...] = (owner,) if isinstance(owner, str) else tuple(owner)
+        if not self.owners or not all(self.owners):
+            raise ValueError(f"owner {owner!r}: name at least one node")
+        self.owner = self.owners[0]
+        self.pins: dict[str, bytes] = {}  # node name -> GID of its pinned publisher
         self.matched = -1  # publishers matched when last looked
         self.intruders: tuple[str, ...] = ()
         self.named: list[str] = []  # the intruders named since the last had gone
         self.fence_ns = -1  # no message answering a sample up to this stamp is admitted
         self.refused = 0  # messages not admitted while no intruder was matched
 
+    @property
+    def pinned(self) -> bytes | None:
+        """The GID pinned for the first owner that has one (None: none yet)."""
+        return next((self.pins[o] for o in self.owners if o in self.pins), None)
+
     def admits(self, stamp_ns: int) -> bool:
-        """Whether a message answering the sample stamped ``stamp_ns`` may drive the
-        motor (call :meth:`look` first): not while an intruder is matched, and not when
-        it answers a sample no later than the newest one when an intruder's departure was
-        seen (``fence_ns``): the intruder's messages still queued answer those."""
+        """Whether a message answering the sample stamped ``stamp_ns`` may be used (call
+        :meth:`look` first): not while an intruder is matched, and not when it answers a
+        sample no later than the newest one when an intruder's departure was seen
+        (``fence_ns``): the intruder's messages still queued answer those."""
         if self.intruders:
             return False
         if stamp_ns <= self.fence_ns:
@@ -148,25 +177,27 @@ class PublisherPin:
 
     def needs_look(self, matched: int) -> bool:
         return not (matched == self.matched and not self.intruders
-                    and (self.pinned is not None or matched == 0))
+                    and (bool(self.pins) or matched == 0))
 
     def look(self, matched: int, listed: Sequence[Endpoint],
              newest_ns: int = -1) -> PinChange | None:
         """``matched`` publishers on the subscription, ``listed`` by the ROS graph: pin
-        the owner's, and say what changed (None: nothing). ``newest_ns`` is the stamp of
-        the newest sample published: when the intruders have gone, only answers to later
-        samples are admitted."""
+        the owners', and say what changed (None: nothing). ``newest_ns`` is the stamp of
+        the newest sample published (or seen): when the intruders have gone, only
+        messages of later samples are admitted."""
         self.matched = matched
-        if self.pinned is None:
-            ours = [e for e in listed if e.node == self.owner]
-            if len(ours) == 1:
-                self.pinned = ours[0].gid
-        others = [e for e in listed if e.gid != self.pinned]
+        for name in self.owners:
+            if name not in self.pins:
+                ours = [e for e in listed if e.node == name]
+                if len(ours) == 1:
+                    self.pins[name] = ours[0].gid
+        pinned = set(self.pins.values())
+        others = [e for e in listed if e.gid not in pinned]
         intruders = tuple(e.fully_qualified for e in others)
-        if (not intruders and self.pinned is not None
+        if (not intruders and self.pins
                 and matched > len(listed) - len(others)):
             intruders = (self.UNLISTED,)
-        if self.pinned is None and matched > 1:
+        if not self.pins and matched > len(self.owners):
             intruders = intruders or (self.UNKNOWN,)
         before, self.intruders = self.intruders, intruders
         named = [i for i in intruders if i not in self.PLACEHOLDERS]
@@ -181,6 +212,101 @@ class PublisherPin:
             left, self.named = tuple(self.named) or before, []
             return PinChange(left=left)
         return None
+
+
+#: The node that publishes each topic of the graph, as the launch files name them (the
+#: samples: the plant, or the driver on the rig). A node's ``start.publishers`` replaces
+#: an entry (pisc_graph gives every node the names of the graph it started).
+GRAPH_PUBLISHERS: dict[str, tuple[str, ...]] = {
+    JOINT_STATES.name: ("plant", "driver"),
+    MOTOR_CURRENT.name: ("plant", "driver"),
+    STATE.name: ("estimator",),
+    CART_FORCE.name: ("supervisor",),
+    MODE.name: ("supervisor",),
+    PENDULUM_ESTIMATE.name: ("supervisor",),
+    CURRENT_SETPOINT.name: ("current_loop",),
+    VOLTAGE.name: ("current_loop",),
+    VOLTAGE_SENT.name: ("driver",),
+    SIM_STATE.name: ("plant",),
+    CLOCK.name: ("plant",),
+}
+
+_NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def parse_publishers(text: str) -> dict[str, tuple[str, ...]]:
+    """``TOPIC=NODE[|NODE...][,TOPIC=...]`` (``start.publishers``) as a mapping; raises
+    ValueError naming the item that is not of that form."""
+    out: dict[str, tuple[str, ...]] = {}
+    if not text.strip():
+        return out
+    for item in text.split(","):
+        topic, sep, names = (part.strip() for part in item.partition("="))
+        nodes = tuple(n.strip() for n in names.split("|"))
+        if (not sep or not topic.startswith("/") or not all(_NODE_NAME.fullmatch(n)
+                                                            for n in nodes)):
+            raise ValueError(f"must list TOPIC=NODE[|NODE...] (an absolute topic name, node "
+                             f"names): {item.strip()!r} is not")
+        if topic in out:
+            raise ValueError(f"names {topic} twice")
+        out[topic] = nodes
+    return out
+
+
+def format_publishers(mapping: Mapping[str, Sequence[str]]) -> str:
+    """The text :func:`parse_publishers` reads."""
+    return ",".join(f"{topic}={'|'.join(nodes)}" for topic, nodes in mapping.items())
+
+
+class InputGuard:
+    """One input topic of a node that answers to the publishers of ``owners`` alone
+    (:class:`PublisherPin`): while another publisher is matched, no message of the topic
+    is used, and ``say(level, message, **values)`` names it and the topic once (level
+    2, an error) and says when it has gone (level 0). After it has gone, a message whose
+    stamp is no later than the newest one seen before is refused too (what it left
+    queued). ``subscription`` (anything with ``get_publisher_count``) is set once the
+    node has made it; ``node`` lists the publishers (``get_publishers_info_by_topic``)."""
+
+    def __init__(self, node: Any, topic: str, owners: Sequence[str], reader: str,
+                 say: Callable[..., None]) -> None:
+        self.node, self.topic, self.reader, self.say = node, topic, reader, say
+        self.pin = PublisherPin(owners)
+        self.subscription: Any = None
+        self.newest_ns = -1  # newest stamp seen on the topic, used or not
+        self.refused = 0  # messages not used
+
+    def admits(self, stamp_ns: int | None) -> bool:
+        """Whether the message just taken (header stamp ``stamp_ns``, None: none) may be
+        used."""
+        self.check()
+        ok = self.pin.admits(self.newest_ns + 1 if stamp_ns is None else stamp_ns)
+        if stamp_ns is not None and stamp_ns > self.newest_ns:
+            self.newest_ns = stamp_ns
+        if not ok:
+            self.refused += 1
+        return ok
+
+    def check(self) -> None:
+        """Look at the topic's publishers (cheap unless their count changed)."""
+        if self.subscription is None:
+            return
+        matched = self.subscription.get_publisher_count()
+        if not self.pin.needs_look(matched):
+            return
+        change = self.pin.look(matched, listed_publishers(self.node, self.topic),
+                               self.newest_ns)
+        if change is None:
+            return
+        owners = " or ".join(f"/{o}" for o in self.pin.owners)
+        if change.intruders:
+            intruders = ", ".join(change.intruders)
+            self.say(2, f"another publisher on {self.topic}: {intruders}; the {self.reader} "
+                     f"uses none of its messages while it is there, and the graph commands "
+                     f"0 V (only {owners}, pinned at the start, publishes it)",
+                     intruders=intruders, topic=self.topic, refused=self.refused)
+        else:
+            self.say(0, f"{', '.join(change.left)} left {self.topic}: the {self.reader} "
+                     "uses its messages again", topic=self.topic, refused=self.refused)
 
 
 def listed_publishers(node: Any, topic: str) -> list[Endpoint]:

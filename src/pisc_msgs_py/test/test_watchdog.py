@@ -7,14 +7,18 @@ import pytest
 
 from pisc_msgs_py.topics import CART_FORCE, STATE, VOLTAGE
 from pisc_msgs_py.watchdog import (
+    GRAPH_PUBLISHERS,
     CommandWatchdog,
     Endpoint,
+    InputGuard,
     PinChange,
     PublisherPin,
     StopVerdict,
     StopWitness,
     first_silent_stage,
+    format_publishers,
     named_trip,
+    parse_publishers,
     stop_sentence,
 )
 
@@ -252,3 +256,82 @@ def test_a_stage_never_heard_from_while_a_later_one_was_is_not_judged():
 def test_the_witness_refuses_a_margin_outside_its_deadline():
     with pytest.raises(ValueError, match=r"margin 30 must lie in 1 \.\. deadline - 1 \(29\)"):
         StopWitness(margin=30, deadline=30)
+
+
+# -- every input pinned: several owners, the guard of a node's input -----------------------
+
+DRIVER = Endpoint("driver", "/", b"\x03" * 16)
+SECOND_DRIVER = Endpoint("driver", "/", b"\x04" * 16)  # a visitor that took its name
+
+
+def test_a_pin_of_alternatives_takes_the_one_that_runs_and_names_a_second_of_its_name():
+    pin = PublisherPin(("plant", "driver"))
+    assert pin.look(1, [DRIVER]) is None and pin.pins == {"driver": DRIVER.gid}
+    assert pin.admits(10)
+    change = pin.look(2, [DRIVER, SECOND_DRIVER])
+    assert change == PinChange(intruders=("/driver",)) and not pin.admits(11)
+    # two endpoints of one name before either was pinned: neither is taken
+    fresh = PublisherPin(("plant", "driver"))
+    assert fresh.look(2, [DRIVER, SECOND_DRIVER]).intruders == ("/driver", "/driver")
+    assert fresh.pins == {}
+    # several owners matched, none listed yet (discovery): not an intruder until more
+    # are matched than there are owners
+    assert PublisherPin(("plant", "driver")).look(2, []) is None
+    assert PublisherPin(("plant", "driver")).look(3, []).intruders == (PublisherPin.UNKNOWN,)
+
+
+def test_the_publishers_parameter_reads_and_writes_its_form_and_names_a_bad_item():
+    text = "/pisc/joint_states=plant|driver,/clock=plant"
+    assert parse_publishers(text) == {"/pisc/joint_states": ("plant", "driver"),
+                                      "/clock": ("plant",)}
+    assert format_publishers(parse_publishers(text)) == text
+    assert parse_publishers("") == {}
+    for bad, why in [("pisc/state=estimator", "'pisc/state=estimator' is not"),
+                     ("/pisc/state", "'/pisc/state' is not"),
+                     ("/pisc/state=est-imator", "'/pisc/state=est-imator' is not"),
+                     ("/a=x,/a=y", "names /a twice")]:
+        with pytest.raises(ValueError, match=why):
+            parse_publishers(bad)
+    assert set(GRAPH_PUBLISHERS) >= {"/pisc/joint_states", "/pisc/state", "/clock"}
+
+
+class _Subscription:
+    def __init__(self) -> None:
+        self.count = 0
+
+    def get_publisher_count(self) -> int:
+        return self.count
+
+
+class _Graph:
+    def __init__(self) -> None:
+        self.listed: list[Endpoint] = []
+
+    def get_publishers_info_by_topic(self, topic):
+        class Info:
+            def __init__(self, e):
+                self.node_name, self.node_namespace, self.endpoint_gid = (
+                    e.node, e.namespace, e.gid)
+        return [Info(e) for e in self.listed]
+
+
+def test_an_input_guard_uses_nothing_while_a_visitor_is_there_and_says_so_once():
+    said: list[tuple[int, str, dict]] = []
+    graph, sub = _Graph(), _Subscription()
+    guard = InputGuard(graph, "/pisc/state", ("estimator",), "supervisor",
+                       lambda level, message, **values: said.append((level, message, values)))
+    guard.subscription = sub
+    estimator = Endpoint("estimator", "/", b"\x05" * 16)
+    graph.listed, sub.count = [estimator], 1
+    assert guard.admits(5) and guard.admits(10)
+    graph.listed, sub.count = [estimator, VISITOR], 2
+    assert not guard.admits(20) and not guard.admits(15) and guard.refused == 2
+    assert said == [(2, "another publisher on /pisc/state: /lab/visitor; the supervisor uses "
+                        "none of its messages while it is there, and the graph commands 0 V "
+                        "(only /estimator, pinned at the start, publishes it)",
+                     {"intruders": "/lab/visitor", "topic": "/pisc/state", "refused": 0})]
+    graph.listed, sub.count = [estimator], 1
+    # what it left queued (stamped up to the newest seen before it went) is not used
+    assert not guard.admits(20) and guard.admits(25)
+    assert said[-1][0] == 0 and said[-1][1] == ("/lab/visitor left /pisc/state: the "
+                                                "supervisor uses its messages again")

@@ -179,14 +179,17 @@ class PlantNode(PiscNode):
         self._current_pub = self.publisher(MOTOR_CURRENT)
         self._true_pub = self.publisher(SIM_STATE)
         self._clock_pub = self.publisher(CLOCK) if self._lockstep else None
-        self._sub = self.subscription(VOLTAGE, self._on_voltage)
+        # the command topics are pinned by the plant itself (_check_publishers): 0 V while
+        # another publisher is there, and lockstep goes on
+        self._sub = self.subscription(VOLTAGE, self._on_voltage, guarded=False)
         # An ideal current loop (models.current_loop = ideal) makes the current equal its
         # set-point: the plant is then driven by the set-point's force (plant_command),
         # and the voltage the current loop computes acts on nothing.
         self._command_topic: Topic = VOLTAGE
         self._command_sub = self._sub
         if plant.force_input:
-            self._setpoint_sub = self.subscription(CURRENT_SETPOINT, self._on_setpoint)
+            self._setpoint_sub = self.subscription(CURRENT_SETPOINT, self._on_setpoint,
+                                                   guarded=False)
             self._command_topic, self._command_sub = CURRENT_SETPOINT, self._setpoint_sub
         self._watchdog = CommandWatchdog(self._sim_params.watchdog_periods)
         self._answered_ns = -1  # stamp of the newest sample an admitted command answered

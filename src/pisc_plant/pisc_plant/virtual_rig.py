@@ -26,7 +26,7 @@ Faults on request, from the command line or as JSON lines on standard input::
 
     {"drop_rate": 0.01}   lose each sent byte with this probability (0..1)
     {"flip_rate": 0.001}  flip one bit of each sent byte with this probability (0..1)
-    {"silence_s": 0.1}    send nothing for this long (the device goes quiet; >= 0 s)
+    {"silence_s": 0.1}    send nothing for this long (the device goes quiet; 0 .. 3600 s)
     {"garbage": 20}       send this many random bytes before the next frame (0..1024)
     {"status": true}      print the rig's status as one JSON line
     {"quit": true}        stop
@@ -123,11 +123,16 @@ def _probability(key: str, value: Any) -> float:
     return number
 
 
+MAX_SILENCE_S = 3600.0  # a longer silence is no test of a link (1e308 was taken)
+
+
 def _silence(key: str, value: Any) -> float:
-    rule = "seconds without frames, >= 0"
+    rule = f"seconds without frames, 0 .. {MAX_SILENCE_S:g}"
     number = _number(key, value, rule)
     if number < 0.0:
         raise RequestError(f"{key} = {json.dumps(value)} must not be negative ({rule})")
+    if number > MAX_SILENCE_S:
+        raise RequestError(f"{key} = {json.dumps(value)} is too long ({rule})")
     return number
 
 

@@ -170,8 +170,11 @@ def test_fault_requests_are_checked():
     ({"garbage": -5}, 'garbage = -5 must be a whole number from 0 to 1024'),
     ({"garbage": 1e20}, 'garbage = 1e+20 must be a whole number from 0 to 1024'),
     ({"silence_s": "nan"}, 'silence_s = "nan" must be a number (seconds without frames, '
-                           '>= 0), not a string'),
-    ({"silence_s": -5}, 'silence_s = -5 must not be negative (seconds without frames, >= 0)'),
+                           '0 .. 3600), not a string'),
+    ({"silence_s": -5}, 'silence_s = -5 must not be negative (seconds without frames, '
+                        '0 .. 3600)'),
+    ({"silence_s": 1e308}, 'silence_s = 1e+308 is too long (seconds without frames, '
+                           '0 .. 3600)'),
     ({"silence_s": math.nan}, "silence_s = NaN must be a finite number"),
     ({"silence_s": math.inf}, "silence_s = Infinity must be a finite number"),
     ({"drop_rate": -0.1}, "drop_rate = -0.1 must lie in [0, 1] (a probability per byte"),

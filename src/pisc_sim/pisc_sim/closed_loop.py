@@ -18,7 +18,12 @@ from numpy.typing import ArrayLike
 from pisc_sim.configuration import GraphConfig
 from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
 from pisc_control.estimator import EstimatorState, estimator_update
-from pisc_control.scalar import OneRigCurrentLoop, OneRigEstimator, OneRigSupervisor
+from pisc_control.scalar import (
+    ArraySupervisor,
+    OneRigCurrentLoop,
+    OneRigEstimator,
+    OneRigSupervisor,
+)
 from pisc_control.supervisor import Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
@@ -270,14 +275,15 @@ def simulate_batch(
         x_min, x_max, hold_theta = book["x_min"], book["x_max"], book["hold_theta"]
         hold_x, hold_i2 = book["hold_x"], book["hold_i2"]
         unheld_at = book["unheld_at"]
-    else:  # the numpy cores over arrays
+    else:  # the numpy cores over arrays (the one-rig laws rig by rig)
+        arrays = ArraySupervisor(supervisor)
         for k in range(cycles):
             t = k * period
             draws = None if rng is None else rng.standard_normal(x0.shape + (3,))
             x, theta, current = sim.measurement(y, applied, draws)
             est_state, x_dot, theta_dot = estimator_update(
                 config.estimator, period, est_state, x, theta)
-            sup_state, force, mode = supervisor.update(sup_state, x, x_dot, theta, theta_dot)
+            sup_state, force, mode = arrays.update(sup_state, x, x_dot, theta, theta_dot)
             fault = mode == Mode.FAULT.code
             cl_state, i_d, voltage = current_loop_cycle(
                 config.plant.motor, config.current_loop, period, cl_state, force, current,

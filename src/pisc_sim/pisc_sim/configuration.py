@@ -141,7 +141,8 @@ def load_graph_config(
                                     switching=s["switching"], startup=s["startup"],
                                     safety=s["safety"], loop=s["loop"],
                                     experiment=s["experiment"], motor=s["motor"],
-                                    adaptation=s["adaptation"]),
+                                    adaptation=s["adaptation"], estimator=s["estimator"],
+                                    sensors=s["sensors"]),
         current_loop=s["current_loop"],
     )
     return config, flat

@@ -10,7 +10,12 @@ import pytest
 
 from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
 from pisc_control.estimator import EstimatorParams, EstimatorState, estimator_update
-from pisc_control.scalar import OneRigCurrentLoop, OneRigEstimator, OneRigSupervisor
+from pisc_control.scalar import (
+    ArraySupervisor,
+    OneRigCurrentLoop,
+    OneRigEstimator,
+    OneRigSupervisor,
+)
 from pisc_control.supervisor import Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_plant.command import plant_command
@@ -19,16 +24,21 @@ from pisc_sim.batch_controllers import BatchControllers, supported
 from pisc_sim.closed_loop import simulate_batch
 from pisc_sim.scene import load_scene
 
-# the default configuration has every option on (energy pump with its guard, N = 7
-# differences low-passed, settling catch reference, energy band, start-up distance); the
-# others switch them off one by one or take the thesis's law (3.30)
+# the default configuration has every option on (energy pump with its guard, online
+# estimates, N = 7 differences low-passed, governed and guarded catch with a settling
+# reference, energy band, start-up distance); the others switch them off one by one or
+# take the thesis's law (3.30)
 CONFIGS = {
     "default": {},
-    "thesis law": {"swing_up.law": "lyapunov", "switching.energy_band_j": 0.0},
+    "fixed pump": {"adaptation.enabled": False, "catch.governor": False,
+                   "catch.guard": False},
+    "thesis law": {"swing_up.law": "lyapunov", "switching.energy_band_j": 0.0,
+                   "adaptation.enabled": False, "catch.guard": False},
     "thesis scene": None,
     "plain differences": {"estimator.velocity_filter_hz": 0.0,
                           "estimator.difference_periods": 1},
     "no guard, no settling, no start-up": {"swing_up.guard_accel_mps2": 0.0,
+                                            "catch.guard": False,
                                             "catch.settle_rate_mps": 0.0,
                                             "startup.distance_m": 0.0},
 }
@@ -50,13 +60,14 @@ class _Cores:
     def __init__(self, config, rigs: int) -> None:
         self.config = config
         self.supervisor = Supervisor(config.supervisor)
+        self.arrays = ArraySupervisor(self.supervisor)
         self.est, self.sup = EstimatorState(), SupervisorState()
         self.cl = CurrentLoopState(np.zeros(rigs))
 
     def step(self, x, theta, current):
         c, period = self.config, self.config.loop.period_s
         self.est, x_dot, theta_dot = estimator_update(c.estimator, period, self.est, x, theta)
-        self.sup, force, mode = self.supervisor.update(self.sup, x, x_dot, theta, theta_dot)
+        self.sup, force, mode = self.arrays.update(self.sup, x, x_dot, theta, theta_dot)
         self.cl, i_d, voltage = current_loop_cycle(
             c.plant.motor, c.current_loop, period, self.cl, force, current,
             mode == Mode.FAULT.code)
