@@ -154,7 +154,11 @@ def test_the_tuned_file_and_the_report_name_every_input(commissioned):
     for name in ("numpy", "optuna", "numba", "scipy"):
         assert f"# version {name}: {metadata.version(name)}" in text
     assert "# version pisc: " in text and "# run: " in text
-    assert "# space: tuning-space (digest " in text  # the default's, chosen by its law
+    from pisc_bringup.tune import space_for
+    from pisc_sim.configuration import load_graph_config
+
+    chosen = space_for(load_graph_config("default")[1])  # the default's, by its settings
+    assert f"# space: {chosen} (digest " in text
     report = (plan.directory / "report.md").read_text()
     for section in ("## Runs", "## Identification", "## The rig's distribution", "## Tuning",
                     "## Verification on fresh draws", "## Provenance"):
