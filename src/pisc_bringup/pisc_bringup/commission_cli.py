@@ -122,12 +122,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         kind = ("driver" if args.driver else "virtual" if args.virtual_rig else "lockstep")
         rig = cm.Rig(kind, args.driver, args.plant_config, args.realtime)
-        plan = cm.Plan(args.dir, rig, args.config, parse_overrides(args.set), args.space,
-                       args.widen, args.noise_span, args.mass_tolerance,
-                       args.length_tolerance, args.start_x, args.start_theta, args.trials,
-                       args.draws, args.verify_draws, args.seed, args.sampler, args.aim,
-                       args.excitation_s, args.swing_s, args.prior, args.workers,
-                       args.scheduler)
+        plan = cm.Plan(
+            args.dir, rig, config=args.config, overrides=parse_overrides(args.set),
+            space=args.space, widen=args.widen, noise_span=args.noise_span,
+            mass_tolerance=args.mass_tolerance, length_tolerance=args.length_tolerance,
+            start_x_m=args.start_x, start_theta_rad=args.start_theta, trials=args.trials,
+            draws=args.draws, verify_draws=args.verify_draws, seed=args.seed,
+            sampler=args.sampler, aim=args.aim, excitation_s=args.excitation_s,
+            swing_s=args.swing_s, prior=args.prior, workers=args.workers,
+            scheduler=args.scheduler)
         _check_inputs(plan)
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
