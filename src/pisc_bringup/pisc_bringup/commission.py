@@ -524,9 +524,10 @@ def _tune(ctx: Context, where: Path) -> dict[str, Any]:
 
     with chunk_runner(workers, plan.scheduler) as map_chunks:
         result = tune(tuning, plan.trials, storage, map_chunks, progress)
+    tiers = ("safe", "caught", "fast")  # (the rates also hold the hold's RMS, in A)
     ctx.say("    start on the tuning draws: " + ", ".join(
-        f"{t} {100 * v:.2f} %" for t, v in result.start_rates.items())
-        + "; best: " + ", ".join(f"{t} {100 * v:.2f} %" for t, v in result.best_rates.items())
+        f"{t} {100 * result.start_rates[t]:.2f} %" for t in tiers)
+        + "; best: " + ", ".join(f"{t} {100 * result.best_rates[t]:.2f} %" for t in tiers)
         + f" (trial {result.best_trial})")
     date = datetime.date.today().isoformat()
     (where / "tuned.yaml").write_text(tuned_file_text(

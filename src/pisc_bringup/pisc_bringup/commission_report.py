@@ -242,6 +242,8 @@ def _table(tiers: Mapping[str, Any]) -> list[str]:
 
 def report(ctx: Any, where: Path) -> dict[str, Any]:
     """The commissioning's stage ``report`` (module docstring)."""
+    from pisc_bringup.robustness import TIERS
+
     plan, rec = ctx.plan, ctx.records
     top = plan.directory
     inputs = _inputs(ctx)
@@ -284,9 +286,9 @@ def report(ctx: Any, where: Path) -> dict[str, Any]:
            f"Space `{rec['tune']['outputs']['space']}`, {result['trials']} trials "
            f"({result['refused']} refused by the configuration) x {plan.draws} draws, seed "
            f"{plan.seed}. On the tuning draws: start " + ", ".join(
-               f"{t} {100 * v:.2f} %" for t, v in result["start_rates"].items())
-           + "; best " + ", ".join(f"{t} {100 * v:.2f} %" for t, v in
-                                   result["best_rates"].items())
+               f"{t} {100 * result['start_rates'][t]:.2f} %" for t in TIERS)
+           + "; best " + ", ".join(f"{t} {100 * result['best_rates'][t]:.2f} %"
+                                   for t in TIERS)
            + f" (trial {result['best_trial']}): " + ", ".join(
                f"{k} = {v:.6g}" for k, v in result["best_values"].items()) + ".", "",
            "## Verification on fresh draws", "",
