@@ -94,7 +94,7 @@ def plot_catch_times(path: Path, outcomes: Mapping[str, Any], criteria: Any,
     ax.set_ylabel("draws caught for good [%]")
     ax.set_ylim(0, 102)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="center right", fontsize=8)
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
