@@ -435,10 +435,12 @@ def test_another_subscriber_on_the_domain_does_not_pass_for_the_recorder(tmp_pat
 
 
 def test_an_experiment_run_exits_0_without_a_fault_and_says_so(tmp_path, domain_id, capfd):
-    """An identification run has nothing to catch: pisc_graph printed NOT CAUGHT and
-    exited 1 for every excitation run. It now exits 0 when the run did not fault."""
+    """An identification run has nothing to catch: it reports the experiment, not a
+    swing-up's verdict (once NOT CAUGHT with exit 1, then NOT CAUGHT with exit 0), and
+    exits 0 when the run did not fault."""
     status = main(["--scene", "excitation", "--duration", "1", "--bag", str(tmp_path / "bag"),
                    "--domain-id", str(domain_id)])
     out = capfd.readouterr().out
     assert status == 0, out
-    assert "experiment             excitation: completed without a fault" in out
+    assert "experiment             excitation: completed without a fault; cart within " in out
+    assert "CAUGHT" not in out and "result " not in out

@@ -573,7 +573,8 @@ def test_the_summary_flags_a_voltage_before_its_sample_and_a_foreign_publisher()
     nothing flagged it; a bag with a foreign publisher was CAUGHT."""
     import numpy as np
 
-    from pisc_bringup.summary import HoldCriteria, RunTables, Table, summarise_tables
+    from pisc_bringup.robustness import Criteria
+    from pisc_bringup.summary import RunTables, Table, summarise_tables
 
     n = 10
     stamps = np.arange(n, dtype=np.int64) * PERIOD_NS
@@ -592,7 +593,9 @@ def test_the_summary_flags_a_voltage_before_its_sample_and_a_foreign_publisher()
                       np.zeros((n, 1))),
         true=table(published, np.zeros((n, 2))),
         modes=[(0, Mode.CATCH, "")])
-    hold = HoldCriteria(start_s=0.0)
+    # caught at once and held from the second sample to the end of this 45 ms run
+    hold = Criteria(run_s=0.045, catch_by_s=0.005, hold_from_s=0.005, fast_by_s=0.005,
+                    fast_hold_from_s=0.005)
     summary = summarise_tables(tables, 0.005, hold)
     assert summary.negative_latencies == 3 and summary.caught
     assert ("TIMES                  3 cycles whose voltage was published before their "
@@ -603,7 +606,8 @@ def test_the_summary_flags_a_voltage_before_its_sample_and_a_foreign_publisher()
     assert not summary.caught
     lines = summary.format().splitlines()
     assert "FOREIGN PUBLISHER      /pisc/motor/current_setpoint: /visitor" in lines
-    assert lines[-1] == "result                 NOT CAUGHT"
+    assert lines[-1].startswith("result                 NOT CAUGHT (the caught tier")
+    assert summary.why["caught"] == "a foreign publisher on the graph's topics"
 
 
 @pytest.mark.parametrize("kind", [k for k in __import__("pisc_bringup.graph", fromlist=["x"])

@@ -92,6 +92,8 @@ NODES = {"plant": PlantNode, "estimator": EstimatorNode, "supervisor": Superviso
      r"/pisc/pendulum_estimate\)"),
     ("plant", {"start.await_timeout_s": 0.0},
      r"start.await_timeout_s = 0.0 must lie in \[0.01, 600"),
+    ("plant", {"friction.pivot_viscous_nms": 4e-5},
+     r"friction.pivot_viscous_nms = 4e-05 is not used: models.friction is 'none'"),
 ])
 def test_node_refuses_to_start_on_an_invalid_parameter(ros_context, node, overrides, message):
     params = [Parameter(k, value=v) for k, v in overrides.items()]

@@ -37,6 +37,8 @@ setup(
             'pisc_robustness = pisc_bringup.robustness_cli:main',
             'pisc_feasibility = pisc_bringup.feasibility_cli:main',
             'pisc_tune = pisc_bringup.tune_cli:main',
+            'pisc_commission = pisc_bringup.commission_cli:main',
+            'pisc_commission_bench = pisc_bringup.commission_bench:main',
             'pisc_calibrate = pisc_bringup.calibrate_cli:main',
             'pisc_experiment = pisc_bringup.experiment_cli:main',
             'pisc_identify = pisc_bringup.identify_cli:main',

@@ -37,11 +37,12 @@ from typing import Any
 import numpy as np
 
 from pisc_bringup.bag import BagError, BagMessage
+from pisc_bringup.robustness import Criteria
 from pisc_bringup.summary import (
-    HoldCriteria,
     RunSummary,
     RunTables,
     member,
+    safe_range_of,
     summarise_tables,
     tables_of,
     tables_of_bag,
@@ -160,7 +161,7 @@ class RunAnalysis:
             f"time to upright        {t(self.time_to_upright_s)} "
             f"(|theta| <= {UPRIGHT_RAD} rad after the first catch)",
             f"settle time            {t(self.settle_time_s)} (|theta| <= "
-            f"{HoldCriteria().theta_rad} rad and |x| <= {HoldCriteria().x_m} m to the end)",
+            f"{Criteria().theta_rad} rad and |x| <= {Criteria().x_m} m to the end)",
             f"current tracking peak  {self.current_peak_error_a:.4f} A (|i_d - i|)",
             f"voltage saturated      {self.voltage_saturated_s:.3f} s "
             f"(|u| at {self.voltage_limit_v} V)",
@@ -191,15 +192,16 @@ def _limits(bag: Path) -> tuple[float, float, float]:
 
 def analyse_messages(messages: Sequence[BagMessage], label: str, period_s: float,
                      voltage_limit_v: float, current_limit_a: float,
-                     hold: HoldCriteria = HoldCriteria()) -> RunAnalysis:
+                     hold: Criteria = Criteria()) -> RunAnalysis:
     return analyse_tables(tables_of(messages), label, period_s, voltage_limit_v,
                           current_limit_a, hold)
 
 
 def analyse_tables(tables: RunTables, label: str, period_s: float, voltage_limit_v: float,
-                   current_limit_a: float, hold: HoldCriteria = HoldCriteria()) -> RunAnalysis:
+                   current_limit_a: float, hold: Criteria = Criteria(),
+                   safe_range_m: tuple[float, float] | None = None) -> RunAnalysis:
     trace = trace_from_tables(tables, label)
-    summary = summarise_tables(tables, period_s, hold)
+    summary = summarise_tables(tables, period_s, hold, safe_range_m)
     # the state the summary judged by: the simulator's where recorded, else measured
     x = trace.true_x if summary.state_source == "true" else trace.x
     theta = trace.true_theta if summary.state_source == "true" else trace.theta
@@ -239,7 +241,8 @@ def analyse_bag(bag: str | Path, label: str | None = None) -> RunAnalysis:
     period, vm, im = _limits(bag)
     tables = tables_of_bag(bag)  # its errors name the bag
     try:
-        return analyse_tables(tables, label or bag.name, period, vm, im)
+        return analyse_tables(tables, label or bag.name, period, vm, im,
+                              safe_range_m=safe_range_of(bag))
     except BagError as exc:
         raise BagError(f"{bag}: {exc}") from None
 

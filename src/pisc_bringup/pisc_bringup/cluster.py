@@ -16,7 +16,11 @@ ways give the same numbers bit for bit.
   oversubscribing them, and the controllers' numpy work runs on every core too.
 - ``scheduler=ADDRESS``: the chunks go to an existing cluster (``dask scheduler`` and
   ``dask worker`` started elsewhere, with PISC installed on every worker); nothing is
-  started or stopped here.
+  started or stopped here. An address Dask cannot parse is refused before a client is
+  made (:func:`check_scheduler`: a client made from one hung for a minute on its way
+  out), and each worker whose numba would start more threads than the worker has
+  (``NUMBA_NUM_THREADS`` not set to 1: such workers ran 6-8 times slower) is named in a
+  warning.
 
 The commands' default (:func:`default_workers`) was chosen by measurement on the
 project's 2-core machine (``pisc_robustness default --seed 1``, docs/robustness.md,
@@ -44,8 +48,8 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["CLUSTER_FROM_CHUNKS", "chunk_runner", "core_count", "default_workers",
-           "describe_runner"]
+__all__ = ["CLUSTER_FROM_CHUNKS", "check_scheduler", "chunk_runner", "core_count",
+           "default_workers", "describe_runner", "worker_warnings"]
 
 #: Chunks from which a command's default is a local cluster (one worker per core).
 CLUSTER_FROM_CHUNKS = 5
@@ -87,6 +91,47 @@ def describe_runner(workers: int | None, scheduler: str | None) -> str:
     return f"local Dask cluster, {n} worker process{'es' if n != 1 else ''} x 1 thread"
 
 
+def check_scheduler(address: str) -> None:
+    """Refuse an address that is not a Dask scheduler's (``tcp://host:8786``) with a
+    :class:`ValueError` saying why, before any client is made."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            parse_host_port(location)
+    except ValueError as exc:
+        raise ValueError(f"{address}: not a Dask scheduler's address ({exc}); expected "
+                         "e.g. tcp://host:8786") from None
+
+
+def _worker_threads() -> dict[str, Any]:
+    """On a worker: how many threads its numba would use, and OpenMP's wait policy."""
+    import numba
+
+    return {"numba": int(numba.config.NUMBA_NUM_THREADS),
+            "omp_wait": os.environ.get("OMP_WAIT_POLICY", "")}
+
+
+def worker_warnings(client: Any) -> list[str]:
+    """A sentence for each worker of ``client``'s cluster whose numba would use more
+    threads than the worker has (workers started without ``NUMBA_NUM_THREADS=1``)."""
+    threads = {address: info.get("nthreads", 1)
+               for address, info in client.scheduler_info()["workers"].items()}
+    out = []
+    for address, got in sorted(client.run(_worker_threads).items()):
+        have = threads.get(address, 1)
+        if got["numba"] > have:
+            out.append(
+                f"Dask worker {address}: numba would run {got['numba']} threads beside its "
+                f"{have} (NUMBA_NUM_THREADS is not {have}"
+                + ("" if got["omp_wait"].upper() == "PASSIVE" else
+                   ", OMP_WAIT_POLICY not PASSIVE") + "); such workers ran 6-8 times "
+                f"slower: start them with NUMBA_NUM_THREADS={have} OMP_WAIT_POLICY=PASSIVE "
+                f"dask worker ... --nthreads {have}")
+    return out
+
+
 def _map_here(progress: Progress | None) -> MapChunks:
     def map_chunks(fn: Callable[..., Any], tasks: Sequence[tuple[Any, ...]]) -> list[Any]:
         out = []
@@ -116,9 +161,16 @@ def _map_on(client: Any, progress: Progress | None) -> MapChunks:
     return map_chunks
 
 
+def _warn(text: str) -> None:
+    import sys
+
+    print(f"warning: {text}", file=sys.stderr, flush=True)
+
+
 @contextmanager
 def chunk_runner(workers: int | None = None, scheduler: str | None = None,
-                 progress: Progress | None = None) -> Iterator[MapChunks]:
+                 progress: Progress | None = None,
+                 warn: Callable[[str], None] | None = None) -> Iterator[MapChunks]:
     """A ``map_chunks(fn, tasks)`` that runs chunks as the module's docstring says.
 
     Parameters
@@ -131,11 +183,15 @@ def chunk_runner(workers: int | None = None, scheduler: str | None = None,
         ``workers``.
     progress
         Called with 1 after each chunk finishes (in any order).
+    warn
+        Called with each of :func:`worker_warnings` of a scheduler's cluster (default:
+        printed on standard error).
 
     Raises
     ------
     ValueError
-        For a negative ``workers``, or both ``workers`` and ``scheduler``.
+        For a negative ``workers``, both ``workers`` and ``scheduler``, or an address
+        that is not a scheduler's (:func:`check_scheduler`).
     OSError
         When the scheduler cannot be reached (Dask's own error).
     """
@@ -150,7 +206,10 @@ def chunk_runner(workers: int | None = None, scheduler: str | None = None,
     from distributed import Client, LocalCluster
 
     if scheduler:
+        check_scheduler(scheduler)
         with Client(scheduler, set_as_default=False) as client:
+            for text in worker_warnings(client):
+                (warn or _warn)(text)
             yield _map_on(client, progress)
         return
     n = core_count() if workers is None else workers

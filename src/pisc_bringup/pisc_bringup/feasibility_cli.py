@@ -28,6 +28,7 @@ import shlex
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 PROG = "pisc_feasibility"
 PIVOT = "friction.pivot_viscous_nms"
@@ -145,10 +146,10 @@ def main(argv: list[str] | None = None) -> int:
 
     import numpy as np
 
-    from pisc_analysis.feasibility import (Limits, Transcription, clopper_pearson, exact_plant,
+    from pisc_analysis.feasibility import (Transcription, clopper_pearson, exact_plant,
                                            find_witness, make_rig)
     from pisc_analysis.witnesses import write_witness_csv
-    from pisc_bringup.robustness import Criteria, load_benchmark
+    from pisc_bringup.robustness import load_benchmark
     from pisc_msgs_py.config import ConfigError
 
     try:
@@ -157,17 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
-    criteria = Criteria()
-    sup = config.supervisor
     try:
-        limits = Limits(
-            voltage_v=min(config.current_loop.voltage_limit_v, base.actuator.full_scale_v),
-            current_a=(config.current_loop.current_limit_a if args.current_limit is None
-                       else None if math.isinf(args.current_limit) else args.current_limit),
-            x_min_m=sup.safety.x_min_m, x_max_m=sup.safety.x_max_m,
-            catch_by_s=args.catch_by, duration_s=args.run_s,
-            hold_start_s=args.hold_from, hold_theta_rad=criteria.theta_rad,
-            hold_x_m=criteria.x_m, k_va=sup.switching.k_va, delta_s=sup.switching.delta_s)
+        limits = witness_limits(config, base, args.current_limit, args.catch_by,
+                                args.hold_from, args.run_s)
     except ValueError as exc:
         print(f"{PROG}: the benchmark's rules: {exc}", file=sys.stderr)
         return 2
@@ -239,6 +232,28 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(summary(rows, lo, hi, clopper_pearson)))
     print(f"wall time {wall:.0f} s")
     return 0
+
+
+def witness_limits(config: Any, base: Any, current_limit: float | None = None,
+                   catch_by_s: float = 3.0, hold_from_s: float = 6.0,
+                   run_s: float = 10.0) -> Any:
+    """A witness's limits: the actuator's and the track's, the catch region (4.1) of the
+    configuration, the hold box of the benchmark (:class:`~pisc_bringup.robustness.Criteria`)
+    and the rules given. ``current_limit`` None: the configuration's; inf: none (the
+    voltage alone). :class:`ValueError` for rules that make no sense."""
+    from pisc_analysis.feasibility import Limits
+    from pisc_bringup.robustness import Criteria
+
+    criteria = Criteria()
+    sup = config.supervisor
+    return Limits(
+        voltage_v=min(config.current_loop.voltage_limit_v, base.actuator.full_scale_v),
+        current_a=(config.current_loop.current_limit_a if current_limit is None
+                   else None if math.isinf(current_limit) else current_limit),
+        x_min_m=sup.safety.x_min_m, x_max_m=sup.safety.x_max_m,
+        catch_by_s=catch_by_s, duration_s=run_s, hold_start_s=hold_from_s,
+        hold_theta_rad=criteria.theta_rad, hold_x_m=criteria.x_m, k_va=sup.switching.k_va,
+        delta_s=sup.switching.delta_s)
 
 
 def summary(rows: list[dict], lo: float, hi: float, interval) -> list[str]:

@@ -30,7 +30,7 @@ from pisc_model.params import InitialParams
 from pisc_plant.plant import PlantConfig, plant_set
 
 __all__ = ["CHUNK_DRAWS", "FAILURES", "TIERS", "Criteria", "Outcomes", "base_plant", "load_benchmark",
-           "binomial_interval", "evaluate", "evaluate_chunk", "prepare", "rerun_command",
+           "binomial_interval", "evaluate", "evaluate_chunk", "judge", "prepare", "rerun_command",
            "success_by_value"]
 
 CHUNK_DRAWS = 1000
@@ -227,16 +227,28 @@ def evaluate_chunk(config: GraphConfig, base_plant: PlantConfig, draws: Draws,
                          hold_box=(criteria.theta_rad, criteria.x_m))
     safety = config.supervisor.safety
     left = (out.x_min_m < safety.x_min_m) | (out.x_max_m > safety.x_max_m)
-    safe = ~out.faulted & ~left
+    safe, caught, fast = judge(criteria, out.faulted, left, out.caught_at_s, out.unheld_at_s)
+    largest = np.maximum(np.abs(out.x_min_m), np.abs(out.x_max_m))
+    return Outcomes(safe, caught, fast, out.caught_at_s, out.first_catch_s,
+                    largest, out.unheld_at_s, out.hold_theta_rad, out.hold_x_m,
+                    out.hold_setpoint_rms_a, out.faulted, left)
+
+
+def judge(criteria: Criteria, faulted: np.ndarray, left_range: np.ndarray,
+          caught_at_s: np.ndarray, unheld_at_s: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tiers' verdicts (safe, caught, fast) of runs, each by :class:`Criteria`'s rule:
+    safe, no fault and never outside the safe range; caught and fast, safe, caught for good
+    (``caught_at_s``, inf if never) by the tier's deadline and no sample outside the hold
+    box (the last at ``unheld_at_s``, -inf if none) from its hold window on. The one rule
+    of the benchmark, the graph's run summary and the commissioning's report."""
+    safe = ~np.asarray(faulted, dtype=bool) & ~np.asarray(left_range, dtype=bool)
 
     def tier(name: str) -> np.ndarray:
         by, hold = criteria.rule(name)
-        return safe & (out.caught_at_s <= by) & (out.unheld_at_s < hold)
+        return safe & (np.asarray(caught_at_s) <= by) & (np.asarray(unheld_at_s) < hold)
 
-    largest = np.maximum(np.abs(out.x_min_m), np.abs(out.x_max_m))
-    return Outcomes(safe, tier("caught"), tier("fast"), out.caught_at_s, out.first_catch_s,
-                    largest, out.unheld_at_s, out.hold_theta_rad, out.hold_x_m,
-                    out.hold_setpoint_rms_a, out.faulted, left)
+    return safe, tier("caught"), tier("fast")
 
 
 MapChunks = Callable[[Callable[..., Outcomes], Sequence[tuple[Any, ...]]], list[Outcomes]]

@@ -88,6 +88,8 @@ def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespac
     """Refuse what makes no sense, naming it; the tiers' rules as :class:`Criteria`."""
     from pisc_bringup.robustness import Criteria
 
+    from pisc_bringup.cluster import check_scheduler
+
     if args.draws < 1:
         parser.error(f"--draws {args.draws}: at least 1")
     if args.draws > MAX_DRAWS:
@@ -97,6 +99,11 @@ def check_run_arguments(parser: argparse.ArgumentParser, args: argparse.Namespac
         parser.error(f"--seed {args.seed}: must be an integer 0 .. {MAX_SEED}")
     if args.workers is not None and args.workers < 0:
         parser.error(f"--workers {args.workers}: 0 (in this process) or more")
+    if args.scheduler is not None:
+        try:
+            check_scheduler(args.scheduler)
+        except ValueError as exc:
+            parser.error(f"--scheduler {exc}")
     try:
         return Criteria(run_s=args.run_s, catch_by_s=args.catch_by,
                         hold_from_s=args.hold_from, fast_by_s=args.fast_by,
@@ -154,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # the scheduler cannot be reached
         print(f"{PROG}: {args.scheduler}: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; nothing written", file=sys.stderr)
+        return 130
     wall = time.perf_counter() - start
     print("\n".join(report(outcomes, criteria)))
     try:

@@ -3,7 +3,7 @@
     pisc_scene list                         the shipped scenes and what they model
     pisc_scene params NAME [-o FILE]        the scene's parameters for ros2 run --params-file
                       [--plant]             (the controllers'; --plant: the plant's, with
-                                            the scene's plant: block)
+                                            the scene's plant: block, its sections only)
     pisc_scene run NAME [--set N=V] [--duration S]
                                             simulate the scene in this process (the pure
                                             closed loop, or open loop for controller: none)
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pisc_sim.closed_loop import simulate
-from pisc_sim.configuration import params_file_text
+from pisc_sim.configuration import params_file_text, plant_only
 from pisc_sim.scene import load_scene, scene_names, write_scene_params
 from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_model.dynamics import energy, wrap_to_upright
@@ -103,8 +103,8 @@ def main(argv: list[str] | None = None) -> int:
         scene = load_scene(args.scene, overrides)
         if args.command == "params":
             if args.output is None:
-                sys.stdout.write(params_file_text(scene.plant_flat if args.plant
-                                                  else scene.flat))
+                sys.stdout.write(params_file_text(plant_only(scene.plant_flat)
+                                                  if args.plant else scene.flat))
             else:
                 write_scene_params(scene, args.output, plant=args.plant)
             return 0

@@ -4,6 +4,14 @@ Everything is computed from the recorded messages, keyed by the header stamp of 
 cycle, so it works the same for a simulated run and for the rig. Run time ``t`` is the
 stamp minus the first sample's stamp.
 
+**The verdict** is the robustness benchmark's (:class:`pisc_bringup.robustness.Criteria`,
+:func:`pisc_bringup.robustness.judge`), judged on the simulator's true state where the bag
+has it, else on the measured one: *safe* (no fault, never outside the safe range),
+*caught* (safe, caught for good by 8 s, held from 9 s to the end of the run) and *fast*
+(by 3 s, held from 6 s). The summary prints each tier's verdict with its rule; its
+``result`` line and the runner's exit status follow one tier (``caught`` unless told).
+A run that ends before a tier's hold window starts does not pass that tier.
+
 Latency of a cycle is the time from the plant (or driver) sending sample k to the
 current loop sending the voltage stamped k, from the DDS source timestamps the bag
 keeps as ``publish_time``: it is measured in wall-clock time in both lockstep and
@@ -14,13 +22,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from pisc_bringup.bag import BagError, BagMessage, read_bag
+from pisc_bringup.robustness import TIERS, Criteria, Outcomes, judge
 from pisc_msgs_py.convert import (
     MessageError,
     joint_sample_from_msg,
@@ -44,17 +53,11 @@ from pisc_msgs_py.topics import (
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
 
-__all__ = ["foreign_in_bag", "HoldCriteria", "RunSummary", "RunTables", "Table", "member", "summarise",
-           "summarise_bag", "summarise_tables", "tables_of", "tables_of_bag"]
+__all__ = ["RunSummary", "RunTables", "Table", "foreign_in_bag", "member", "safe_range_of",
+           "summarise", "summarise_bag", "summarise_tables", "tables_of", "tables_of_bag"]
 
-
-@dataclass(frozen=True)
-class HoldCriteria:
-    """Balance requirement: from ``start_s`` on, |theta| and |x| stay below the limits."""
-
-    start_s: float = 6.0
-    theta_rad: float = 0.05
-    x_m: float = 0.02
+#: The tier the ``result`` line and the exit status follow unless told otherwise
+VERDICT_TIER = "caught"
 
 
 @dataclass(frozen=True)
@@ -69,9 +72,9 @@ class RunSummary:
     final_x_m: float
     max_abs_x_m: float
     x_range_m: tuple[float, float]
-    hold_theta_rad: float  # largest |theta| from hold.start_s on
+    hold_theta_rad: float  # largest |theta| from the fast tier's hold window (6 s) on
     hold_x_m: float
-    held: bool
+    held: bool  # inside the hold box from the fast tier's hold window to the end
     state_source: str  # 'true' (simulator) or 'measured'
     current_rms_error_a: float
     latency_ms: dict[str, float] = field(default_factory=dict)
@@ -84,11 +87,47 @@ class RunSummary:
     # the graph's own (another publisher, or a clock that stepped back)
     negative_latencies: int = 0
 
+    criteria: Criteria = field(default_factory=Criteria)
+    safe_range_m: tuple[float, float] = (-math.inf, math.inf)
+    unheld_at_s: float = -math.inf  # the last sample outside the hold box; -inf if none
+    left_range: bool = False  # outside the safe range at some sample
+    passed: dict[str, bool] = field(default_factory=dict)  # each tier's verdict
+    why: dict[str, str] = field(default_factory=dict)  # why a tier failed ('' if it passed)
+    tier: str = VERDICT_TIER  # the tier of ``caught`` and the result line
+
     @property
     def caught(self) -> bool:
-        return self.caught_at_s is not None and self.held and not self.foreign
+        """Whether the run passes :attr:`tier` (the benchmark's rule)."""
+        return self.passed.get(self.tier, False)
 
-    def format(self) -> str:
+    def rules(self) -> dict[str, str]:
+        """Each tier's rule in words, for this run's length."""
+        c = self.criteria
+        box = f"|theta| < {c.theta_rad:g} rad, |x| < {c.x_m:g} m"
+        out = {"safe": f"no fault, inside the safe range {self.safe_range_m[0]:+.3f} .. "
+                       f"{self.safe_range_m[1]:+.3f} m"}
+        for name in ("caught", "fast"):
+            by, hold = c.rule(name)
+            out[name] = (f"caught for good by {by:g} s, held ({box}) from {hold:g} s to "
+                         f"the end ({self.duration_s:.3g} s)")
+        return out
+
+    def verdict_lines(self, tier: str | None = None) -> list[str]:
+        """Each tier's verdict with its rule, and the result line of ``tier``."""
+        tier = tier or self.tier
+        rules = self.rules()
+        lines = [f"{name:<23}{'yes' if self.passed[name] else 'NO'}: {rules[name]}"
+                 + ("" if self.passed[name] else f" ({self.why[name]})")
+                 for name in TIERS]
+        word = "CAUGHT" if tier != "safe" else "SAFE"
+        result = word if self.passed[tier] else f"NOT {word}"
+        lines.append(f"result                 {result} (the {tier} tier: {rules[tier]})")
+        return lines
+
+    def format(self, tier: str | None = None, experiment: str = "none") -> str:
+        """The summary; its verdict by ``tier`` (default :attr:`tier`), or for an
+        experiment run (``experiment.kind``) what the experiment did instead of a
+        swing-up's verdict."""
         def t(v: float | None) -> str:
             return "never" if v is None else f"{v:.3f} s"
 
@@ -102,8 +141,9 @@ class RunSummary:
             f"{abs(self.final_x_m):.4f} m ({self.state_source} state)",
             f"largest |x|            {self.max_abs_x_m:.4f} m (range {self.x_range_m[0]:+.4f} .."
             f" {self.x_range_m[1]:+.4f} m)",
-            f"balance from 6 s       |theta| <= {self.hold_theta_rad:.4f} rad, |x| <= "
-            f"{self.hold_x_m:.4f} m: {'held' if self.held else 'NOT held'}",
+            f"balance from {self.criteria.fast_hold_from_s:g} s       |theta| <= "
+            f"{self.hold_theta_rad:.4f} rad, |x| <= {self.hold_x_m:.4f} m: "
+            f"{'held' if self.held else 'NOT held'}",
             f"current tracking RMS   {self.current_rms_error_a:.4f} A (i_d - i, same cycle)",
         ]
         if lat:
@@ -119,8 +159,12 @@ class RunSummary:
             lines.append(f"FAULT                  {fault}")
         for foreign in self.foreign:
             lines.append(f"FOREIGN PUBLISHER      {foreign}")
-        lines.append("result                 " + ("CAUGHT" if self.caught else "NOT CAUGHT"))
-        return "\n".join(lines)
+        if experiment != "none":  # nothing was to be caught: what the experiment did
+            lines.append(f"experiment             {experiment}: " + (
+                f"FAULT ({self.faults[0]})" if self.faults else "completed without a fault")
+                + f"; cart within {self.x_range_m[0]:+.4f} .. {self.x_range_m[1]:+.4f} m")
+            return "\n".join(lines)
+        return "\n".join(lines + self.verdict_lines(tier))
 
 
 def _percentiles(values: np.ndarray) -> dict[str, float]:
@@ -303,10 +347,11 @@ def tables_of_bag(directory: str | Path) -> RunTables:
 
 
 def summarise(
-    messages: Iterable[BagMessage], period_s: float, hold: HoldCriteria = HoldCriteria()
+    messages: Iterable[BagMessage], period_s: float, criteria: Criteria = Criteria(),
+    safe_range_m: tuple[float, float] | None = None, tier: str = VERDICT_TIER,
 ) -> RunSummary:
     """The summary of a run's decoded messages (:func:`summarise_tables`)."""
-    return summarise_tables(tables_of(messages), period_s, hold)
+    return summarise_tables(tables_of(messages), period_s, criteria, safe_range_m, tier)
 
 
 def _at(unique: np.ndarray, index: np.ndarray, stamps: np.ndarray) -> np.ndarray:
@@ -314,8 +359,33 @@ def _at(unique: np.ndarray, index: np.ndarray, stamps: np.ndarray) -> np.ndarray
     return index[np.searchsorted(unique, stamps)]
 
 
-def summarise_tables(tables: RunTables, period_s: float,
-                     hold: HoldCriteria = HoldCriteria()) -> RunSummary:
+def safe_range_of(bag: str | Path | None) -> tuple[float, float]:
+    """The safe range of a run: its bag's ``pisc_params.yaml`` (``safety.*``), else the
+    controllers' defaults."""
+    from pisc_control.supervisor import SafetyParams
+    from pisc_msgs_py.config import ConfigError, from_flat, load_params_file
+
+    flat: dict = {}
+    params = None if bag is None else Path(bag) / "pisc_params.yaml"
+    if params is not None and params.is_file():
+        try:
+            flat = load_params_file(params)
+        except ConfigError as exc:
+            raise BagError(f"{params}: {exc}") from None
+    safety = from_flat(SafetyParams, {k: v for k, v in flat.items()
+                                      if k.startswith("safety.")}, "safety")
+    return safety.x_min_m, safety.x_max_m
+
+
+def summarise_tables(tables: RunTables, period_s: float, criteria: Criteria = Criteria(),
+                     safe_range_m: tuple[float, float] | None = None,
+                     tier: str = VERDICT_TIER) -> RunSummary:
+    """The summary of a run's tables, judged by ``criteria``'s tiers with the safe range
+    ``safe_range_m`` (default: the controllers' default safety limits)."""
+    if tier not in TIERS:
+        raise ValueError(f"tier {tier!r}: one of {', '.join(TIERS)}")
+    if safe_range_m is None:
+        safe_range_m = safe_range_of(None)
     # the last message of each stamp counts
     j_stamps, j_index = tables.joints.pick("last")
     v_stamps, v_index = tables.voltage.pick("last")
@@ -343,10 +413,15 @@ def summarise_tables(tables: RunTables, period_s: float,
     changes = sum(1 for a, b in zip(modes, modes[1:], strict=False) if a[1] is not b[1])
     faults = [reason for _, mode, reason in modes if mode is Mode.FAULT]
 
-    late = t >= hold.start_s
+    late = t >= criteria.fast_hold_from_s
     hold_theta = float(np.max(np.abs(th_up[late]))) if late.any() else math.inf
     hold_x = float(np.max(np.abs(xs[late]))) if late.any() else math.inf
-    held = bool(late.any() and hold_theta < hold.theta_rad and hold_x < hold.x_m)
+    held = bool(late.any() and hold_theta < criteria.theta_rad and hold_x < criteria.x_m)
+    outside = np.flatnonzero((np.abs(th_up) >= criteria.theta_rad) | (np.abs(xs) >= criteria.x_m))
+    unheld_at = float(t[outside[-1]]) if len(outside) else -math.inf
+    left = bool(np.any(xs < safe_range_m[0]) or np.any(xs > safe_range_m[1]))
+    passed, why = _verdicts(criteria, bool(faults), left, caught_at, first_catch, unheld_at,
+                            float(np.max(np.abs(xs))), float(t[-1]), bool(tables.foreign))
 
     s_stamps, s_index = tables.setpoint.pick("last")
     c_stamps, c_index = tables.current.pick("last")
@@ -378,12 +453,53 @@ def summarise_tables(tables: RunTables, period_s: float,
         latency_ms=_percentiles(latencies),
         deadline_misses=int(np.sum(latencies > period_s * 1e3)),
         period_s=period_s,
+        criteria=criteria,
+        safe_range_m=(float(safe_range_m[0]), float(safe_range_m[1])),
+        unheld_at_s=unheld_at,
+        left_range=left,
+        passed=passed,
+        why=why,
+        tier=tier,
         foreign=list(tables.foreign),
         negative_latencies=int(np.sum(latencies < 0.0)),
     )
 
 
-def summarise_bag(directory: str | Path, period_s: float,
-                  hold: HoldCriteria = HoldCriteria()) -> RunSummary:
-    """The summary of a bag, read as columns where it can be (:func:`tables_of_bag`)."""
-    return summarise_tables(tables_of_bag(directory), period_s, hold)
+def _verdicts(criteria: Criteria, faulted: bool, left: bool, caught_at: float | None,
+              first_catch: float | None, unheld_at: float, largest_x: float,
+              duration: float, foreign: bool = False
+              ) -> tuple[dict[str, bool], dict[str, str]]:
+    """Each tier's verdict and why it failed, by the benchmark's own rule and words
+    (:func:`~pisc_bringup.robustness.judge`, :meth:`Outcomes.why`). A run with a foreign
+    publisher on the graph's topics passes no tier: what moved the rig may not have been
+    the graph."""
+    inf = math.inf
+    one = Outcomes(*(np.array([v]) for v in (
+        False, False, False, inf if caught_at is None else caught_at,
+        inf if first_catch is None else first_catch, largest_x, unheld_at, 0.0, 0.0, 0.0,
+        faulted, left)))
+    safe, caught, fast = judge(criteria, one.faulted, one.left_range, one.caught_at_s,
+                               one.unheld_at_s)
+    one = replace(one, safe=safe, caught=caught, fast=fast)
+    passed, why = {}, {}
+    for name in TIERS:
+        ok = bool(one.passed(name)[0])
+        reason = one.why(0, criteria, name)
+        if ok and name != "safe" and duration <= criteria.rule(name)[1]:
+            # a hold window the run never reached is not a hold
+            ok, reason = False, (f"the run ended at {duration:.2f} s, before the hold "
+                                 f"window from {criteria.rule(name)[1]:g} s")
+        if foreign:
+            ok, reason = False, "a foreign publisher on the graph's topics"
+        passed[name], why[name] = ok, reason
+    return passed, why
+
+
+def summarise_bag(directory: str | Path, period_s: float, criteria: Criteria = Criteria(),
+                  safe_range_m: tuple[float, float] | None = None,
+                  tier: str = VERDICT_TIER) -> RunSummary:
+    """The summary of a bag, read as columns where it can be (:func:`tables_of_bag`); the
+    safe range, unless given, is the bag's parameter file's (:func:`safe_range_of`)."""
+    if safe_range_m is None:
+        safe_range_m = safe_range_of(directory)
+    return summarise_tables(tables_of_bag(directory), period_s, criteria, safe_range_m, tier)

@@ -13,7 +13,11 @@ Each entry takes exactly one of ``linear: [low, high]`` and ``log: [low, high]``
 bounds positive), with low below high; both bounds must satisfy the parameter's own rule.
 Parameters come from the controllers' sections (:data:`TUNABLE_SECTIONS`): a number, or
 one element ``name[i]`` of a list of numbers. The plant's sections (the model the
-controllers assume) and ``safety`` (the track's limits) are not searched.
+controllers assume) and ``safety`` (the track's limits) are not searched, and neither is a
+parameter the configuration's controllers do not read under its settings
+(:data:`READ_ONLY_WHEN`: the energy pump's gains under the thesis's law, the governor's
+with the governor off...): a search over it would change nothing.
+:func:`space_for` picks the shipped space for a configuration.
 
 :func:`tune` runs an Optuna study (TPE by default, or CMA-ES, seeded): every trial scores
 a candidate by :func:`pisc_bringup.robustness.evaluate` over the **same** draws (the
@@ -55,15 +59,63 @@ from pisc_msgs_py.config import (
     to_flat,
 )
 
-__all__ = ["SAMPLERS", "SPACE_DIR", "TUNABLE_SECTIONS", "Dimension", "Space", "StudyMismatch",
-           "TuneResult", "Tuning", "load_space", "space_names", "tune", "tuned_file_text"]
+__all__ = ["AIMS", "READ_ONLY_WHEN", "SAMPLERS", "SPACE_DIR", "TUNABLE_SECTIONS", "Dimension",
+           "Space", "StudyMismatch", "TuneResult", "Tuning", "load_space", "space_for",
+           "space_names", "trials_kept", "tune", "tuned_file_text", "unread"]
 
 SPACE_DIR = package_dir("pisc_bringup", "distributions")
 DEFAULT_SPACE = "tuning-space"
 SAMPLERS = ("tpe", "cmaes")
+#: What a trial's score puts first: ``safe`` (:meth:`Outcomes.score`: one more safe draw
+#: outweighs any number of catches) or ``fast`` (one more draw of the fast tier, caught for
+#: good by 3 s and held, and so safe, outweighs any number of safe ones: a candidate that
+#: never swings up is safe on every draw, and wins ``safe``'s order wherever the start
+#: leaves the safe range on a few)
+AIMS = ("safe", "fast")
 SCALES = ("linear", "log")
 TUNABLE_SECTIONS = ("estimator", "swing_up", "catch", "switching", "startup", "current_loop")
 NAME = re.compile(r"^(?P<parameter>[a-z_]+\.[a-z0-9_]+)(\[(?P<index>\d+)\])?$")
+
+
+#: Parameters the controllers read only under a setting of the configuration: (names, a
+#: name ending in ``*`` standing for every name it begins, the settings that make the
+#: controllers read them, as (parameter, the values that do)). Every other parameter of the
+#: tunable sections is read whatever the settings (pisc_control's cores: the laws (3.30)
+#: and the energy pump, :func:`pisc_control.scalar.supervisor_constants`).
+READ_ONLY_WHEN: tuple[tuple[tuple[str, ...], tuple[tuple[str, tuple[Any, ...]], ...]], ...] = (
+    (("swing_up.k_v", "swing_up.k_x", "swing_up.k_delta", "swing_up.k_e"),
+     (("swing_up.law", ("lyapunov",)),)),
+    (("swing_up.pump_gain", "swing_up.pump_accel_mps2", "swing_up.track_k_x",
+      "swing_up.track_k_v", "swing_up.guard_accel_mps2", "swing_up.guard_margin_m",
+      "swing_up.track_quiet"), (("swing_up.law", ("energy_pump",)),)),
+    (("swing_up.loss_gain",),
+     (("swing_up.law", ("energy_pump",)), ("adaptation.enabled", (True,)))),
+    (("catch.poles", "catch.poles_imag"), (("catch.design", ("poles",)),)),
+    (("catch.lqr_q", "catch.lqr_r"), (("catch.design", ("lqr",)),)),
+    (("catch.governor_*",), (("catch.governor", (True,)),)),
+    (("catch.guard_*",), (("catch.guard", (True,)),)),
+    (("adaptation.*",), (("adaptation.enabled", (True,)),)),
+)
+
+
+def unread(parameter: str, flat: Mapping[str, Any]) -> str:
+    """Why the controllers of a configuration (``flat``: every parameter, defaults
+    included) do not read ``parameter``; empty when they do (:data:`READ_ONLY_WHEN`)."""
+    for names, settings in READ_ONLY_WHEN:
+        if not any(parameter == n or (n.endswith("*") and parameter.startswith(n[:-1])
+                                      and parameter not in (s for s, _ in settings))
+                   for n in names):
+            continue
+        wrong = [(s, values) for s, values in settings if flat.get(s) not in values]
+        if wrong:
+            def show(v: Any) -> str:
+                return str(v).lower() if isinstance(v, bool) else str(v)
+
+            needs = " and ".join(f"{s}: {' or '.join(show(v) for v in values)}"
+                                 for s, values in settings)
+            has = ", ".join(f"{s}: {show(flat.get(s))}" for s, _ in wrong)
+            return f"the controllers read it only with {needs}; the configuration has {has}"
+    return ""
 
 
 class StudyMismatch(ConfigError):
@@ -202,7 +254,38 @@ def load_space(name_or_path: str, flat: Mapping[str, Any]) -> Space:
     where = f"{path}: space.parameters."
     dimensions = tuple(_dimension(str(name), spec, full, where)
                        for name, spec in parameters.items())
+    for d in dimensions:
+        why = unread(d.parameter, full)
+        if why:
+            raise ConfigError(f"{where}{d.name}: not searched: {why} (a search over it "
+                              "would change nothing; pisc_tune --space names a space for "
+                              f"this configuration, e.g. {space_for(flat, default='')})"
+                              .replace(", e.g. )", ")"))
     return Space(path.stem, str(body.get("description", "")), dimensions)
+
+
+def space_for(flat: Mapping[str, Any], default: str | None = None) -> str:
+    """The shipped search space for a configuration (``flat``): of the spaces whose every
+    parameter its controllers read, the one with the most parameters (the first by name
+    of equals). ``default`` when none fits, else :class:`ConfigError`."""
+    full = full_flat(flat)
+    fits = []
+    for name in space_names():
+        try:
+            body = load_keyed_yaml(space_path(name), "space", ("description", "parameters"),
+                                   "search space")
+        except ConfigError:
+            continue
+        names = [NAME.match(str(n)) for n in body.get("parameters") or {}]
+        if names and all(m and m["parameter"] in full and not unread(m["parameter"], full)
+                         for m in names):
+            fits.append((-len(names), name))
+    if fits:
+        return min(fits)[1]
+    if default is not None:
+        return default
+    raise ConfigError("no shipped search space fits this configuration (each searches a "
+                      "parameter its controllers do not read); give one with --space")
 
 
 @dataclass(frozen=True)
@@ -223,10 +306,13 @@ class Tuning:
     #: and their set-point RMS in the fast tier's hold window at most this (a hold that
     #: chatters); 0: no limit
     hold_rms_a: float = 0.0
+    aim: str = "safe"  # AIMS: what a trial's score puts first
 
     def __post_init__(self) -> None:
         if self.sampler not in SAMPLERS:
             raise ConfigError(f"sampler {self.sampler!r}: one of {', '.join(SAMPLERS)}")
+        if self.aim not in AIMS:
+            raise ConfigError(f"aim {self.aim!r}: one of {', '.join(AIMS)}")
         if self.draws < 1:
             raise ConfigError(f"draws = {self.draws}: at least one draw")
         if not (math.isfinite(self.hold_rms_a) and self.hold_rms_a >= 0.0):
@@ -254,6 +340,7 @@ class Tuning:
             "nominal_starts": self.nominal_starts,
             "hold_rms_a": self.hold_rms_a,
             "sampler": self.sampler,
+            **({} if self.aim == "safe" else {"aim": self.aim}),
         }
 
     @property
@@ -327,6 +414,42 @@ def open_study(tuning: Tuning, storage: str) -> Any:
     return study
 
 
+def score_for(aim: str, outcomes: Any, penalty: float = 0.0) -> float:
+    """A trial's score by ``aim`` (:data:`AIMS`), at most 1; ``penalty`` (in draws) is
+    taken off the catches (``safe``: :meth:`Outcomes.score`, safe first up to
+    :data:`SAFE_TARGET`) or off the fast draws (``fast``)."""
+    if aim == "safe":
+        return outcomes.score(penalty, SAFE_TARGET)
+    n = len(outcomes)
+    fast, safe = (int(np.sum(outcomes.passed(t))) for t in ("fast", "safe"))
+    return ((fast - penalty) * (n + 1.0) + safe) / (n * (n + 2.0))
+
+
+def trials_kept(tuning: Tuning, storage: str) -> int:
+    """The complete trials of ``tuning``'s study in ``storage`` (0 if it has none)."""
+    import optuna
+    from optuna.trial import TrialState
+
+    try:
+        study = optuna.load_study(study_name=tuning.study_name, storage=storage)
+    except KeyError:
+        return 0
+    return len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
+
+
+class _NoInterruptTraceback:
+    """A logging filter for Optuna's two warnings about a trial that an exception ended
+    (its traceback, then its value None): the exception goes on to the caller (no trial
+    error is caught), which reports it, Ctrl-C in a line rather than a traceback."""
+
+    @staticmethod
+    def filter(record: Any) -> bool:
+        info = record.exc_info
+        if info and isinstance(info[1], KeyboardInterrupt):
+            return False
+        return not str(record.msg).endswith("failed with value None.")
+
+
 def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None = None,
          progress: Callable[[int, dict[str, float]], None] | None = None) -> TuneResult:
     """Run the study of ``tuning`` until it holds ``trials`` complete trials.
@@ -361,7 +484,7 @@ def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None
         if nominal is not None:
             rates["nominal_fast"] = nominal
             penalty += 0.5 * len(outcomes) * (1.0 - nominal)
-        return outcomes.score(penalty, SAFE_TARGET), rates, ""
+        return score_for(tuning.aim, outcomes, penalty), rates, ""
 
     def objective(trial: Any) -> float:
         values = {d.name: trial.suggest_float(d.name, d.low, d.high, log=d.log)
@@ -386,7 +509,14 @@ def tune(tuning: Tuning, trials: int, storage: str, map_chunks: MapChunks | None
 
     remaining = trials - len(complete())
     if remaining > 0:
-        study.optimize(objective, n_trials=remaining, callbacks=[callback], catch=())
+        import logging
+
+        quiet = logging.getLogger("optuna.study._optimize")
+        quiet.addFilter(_NoInterruptTraceback)
+        try:
+            study.optimize(objective, n_trials=remaining, callbacks=[callback], catch=())
+        finally:
+            quiet.removeFilter(_NoInterruptTraceback)
     done = complete()
     accepted = [t for t in done if "refused" not in t.user_attrs]
     if not accepted:
@@ -452,7 +582,8 @@ def provenance(result: TuneResult, tuning: Tuning, command: str, date: str,
         f"distribution: {tuning.distribution.name} (digest {tuning.distribution.digest})",
         f"space: {tuning.space.name} (digest {tuning.space.digest}): "
         + ", ".join(d.name for d in tuning.space.dimensions),
-        f"draws {tuning.draws}, seed {tuning.seed}, sampler {tuning.sampler}, trials "
+        f"draws {tuning.draws}, seed {tuning.seed}, sampler {tuning.sampler}"
+        f"{', aim fast' if tuning.aim == 'fast' else ''}, trials "
         f"{result.trials} ({result.refused} refused by the configuration), study in {storage}",
         f"constraints: {tuning.nominal_starts} nominal starts fast"
         + (f", their hold's set-point RMS at most {tuning.hold_rms_a:g} A"

@@ -7,6 +7,9 @@ Optuna, and write the best as a parameter file (docs/robustness.md).
 Every trial scores a candidate on the same draws (the seed's). The study is kept in
 ``--storage`` (default: an SQLite file beside ``--out``); the same command resumes it,
 and a storage that holds another tuning (distribution, draws, seed, space) is refused.
+Interrupted (Ctrl-C), it says how many trials the study keeps and exits 130; the same
+command resumes from there. ``--space`` defaults to the shipped space for the
+configuration's settings (:func:`pisc_bringup.tune.space_for`).
 """
 
 from __future__ import annotations
@@ -29,13 +32,17 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     add_run_arguments(parser, draws=400)
-    parser.add_argument("--space", default="tuning-space", metavar="FILE",
-                        help="the search space: a shipped name or a file (default: "
-                        "%(default)s)")
+    parser.add_argument("--space", metavar="FILE",
+                        help="the search space: a shipped name or a file (default: the "
+                        "shipped space for the configuration's law and settings)")
     parser.add_argument("--trials", type=int, default=40, metavar="N",
                         help="complete trials the study should hold (default: %(default)s)")
     parser.add_argument("--sampler", choices=("tpe", "cmaes"), default="tpe",
                         help="Optuna's sampler, seeded by --seed (default: %(default)s)")
+    parser.add_argument("--aim", choices=("safe", "fast"), default="safe",
+                        help="what the score puts first: safe (then the catches), or fast "
+                        "(the draws caught by the fast tier, each safe; then the safe ones) "
+                        "(default: %(default)s)")
     parser.add_argument("--storage", metavar="URL",
                         help="Optuna storage (default: sqlite:///<--out without .yaml>.db)")
     parser.add_argument("--nominal-starts", type=int, default=0, metavar="N",
@@ -58,7 +65,15 @@ def main(argv: list[str] | None = None) -> int:
     from pisc_sim.configuration import load_graph_config
     from pisc_bringup.robustness import CHUNK_DRAWS
     from pisc_bringup.robustness_cli import describe_distribution
-    from pisc_bringup.tune import Tuning, load_space, provenance, tune, tuned_file_text
+    from pisc_bringup.tune import (
+        Tuning,
+        load_space,
+        provenance,
+        space_for,
+        trials_kept,
+        tune,
+        tuned_file_text,
+    )
     from pisc_bringup.uncertainty import load_distribution
     from pisc_control.supervisor import Supervisor
     from pisc_msgs_py.config import ConfigError, parse_overrides
@@ -70,9 +85,10 @@ def main(argv: list[str] | None = None) -> int:
         config, flat = load_graph_config(args.config, overrides)
         Supervisor(config.supervisor)  # the gain condition (3.29) and the catch design
         distribution = load_distribution(args.distribution, config)
-        space = load_space(args.space, flat)
+        space = load_space(args.space or space_for(flat), flat)
         tuning = Tuning(args.config, overrides, distribution, space, args.draws, args.seed,
-                        args.sampler, criteria, args.nominal_starts, args.hold_rms)
+                        args.sampler, criteria, args.nominal_starts, args.hold_rms,
+                        args.aim)
     except ConfigError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
@@ -102,6 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # the scheduler cannot be reached
         print(f"{PROG}: {args.scheduler}: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"\n{PROG}: interrupted; {trials_kept(tuning, storage)} trials kept in "
+              f"{storage}, rerun the same command to resume", file=sys.stderr)
+        return 130
     date = datetime.date.today().isoformat()
     print("\n".join(provenance(result, tuning, command, date, storage)))
     args.out.write_text(tuned_file_text(result, tuning, command, date, storage))

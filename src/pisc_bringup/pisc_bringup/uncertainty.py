@@ -60,6 +60,7 @@ from pisc_msgs_py.config import (
     load_keyed_yaml,
     load_yaml,
     package_dir,
+    to_flat,
 )
 from pisc_model.params import (
     ActuatorParams,
@@ -68,6 +69,7 @@ from pisc_model.params import (
     MotorParams,
     NoiseParams,
     RigParams,
+    unused_by_models,
 )
 
 __all__ = ["DISTRIBUTION_DIR", "Distribution", "Draws", "Range", "distribution_names",
@@ -167,6 +169,9 @@ class Distribution:
         """``n`` draws from ``seed``; the same seed gives the same draws."""
         if n < 1:
             raise ConfigError(f"draws = {n}: at least one draw")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ConfigError(f"seed = {seed!r}: an integer, 0 or more (numpy's generators "
+                              "take non-negative seeds)")
         rng = np.random.default_rng(seed)
         free = [r for r in self.ranges if r.kind != "joint"]
         u = rng.random((len(free), n))
@@ -274,6 +279,29 @@ def parse_range(config: GraphConfig, name: str, spec: Any, where: str = "") -> R
     return r
 
 
+def _check_used(config: GraphConfig, plant: Mapping[str, Any], ranges: list[Range],
+                path: Path) -> None:
+    """Refuse a fixed value or a varied parameter that the plant's sub-models (the
+    configuration's ``models`` with the distribution's ``plant:`` on top) leave out: its
+    draws would all be the same plant."""
+    models = {**to_flat(config.simulated_plant.models, "models"),
+              **{k: v for k, v in plant.items() if k.startswith("models.")}}
+    fixed = unused_by_models({**models, **plant})
+    if fixed:
+        raise ConfigError(f"{path}: distribution.plant: " + "; ".join(fixed))
+    # a varied parameter is probed at the far end of its range from the default
+    probe = {r.name: max(r.value_range, key=lambda v, r=r: abs(v - _default(r.name)))
+             for r in ranges}
+    varied = [text.replace(" is not used", " (varied) is not used", 1)
+              for text in unused_by_models({**models, **probe})]
+    if varied:
+        raise ConfigError(f"{path}: distribution.parameters: " + "; ".join(varied))
+
+
+def _default(name: str) -> float:
+    return float(_field(name)[1].default)
+
+
 def load_distribution(name_or_path: str, config: GraphConfig) -> Distribution:
     """Read and check a distribution around ``config``'s plant; ConfigError on bad input."""
     path = distribution_path(name_or_path)
@@ -310,6 +338,7 @@ def load_distribution(name_or_path: str, config: GraphConfig) -> Distribution:
         ranges += joint
         order = sorted(range(len(joint)), key=lambda j: joint[j].name)
         rows = rows[:, order]
+    _check_used(config, plant, ranges, path)
     return Distribution(path.stem, str(body.get("description", "")), dict(plant),
                         tuple(sorted(ranges, key=lambda r: r.name)), text, rows)
 

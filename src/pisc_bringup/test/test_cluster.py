@@ -81,3 +81,43 @@ def test_the_default_runs_few_chunks_here_and_many_on_a_worker_per_core():
 def test_a_bad_runner_is_refused(workers, scheduler):
     with pytest.raises(ValueError), chunk_runner(workers, scheduler):
         pass
+
+
+def test_a_scheduler_address_that_is_none_is_refused_before_a_client_is_made(monkeypatch):
+    import distributed
+
+    from pisc_bringup.cluster import check_scheduler
+
+    def no_client(*args, **kwargs):  # a client made from it hung for a minute on exit
+        raise AssertionError("a Dask client was made")
+
+    monkeypatch.setattr(distributed, "Client", no_client)
+    for address in ("notanaddress", "tcp://host", "tcp://host:port"):
+        with pytest.raises(ValueError, match=f"^{address}: not a Dask scheduler's address"):
+            with chunk_runner(scheduler=address):
+                pass
+    check_scheduler("tcp://127.0.0.1:8786")  # a well-formed one is not judged further
+
+
+@pytest.mark.skipif(core_count() < 2, reason="one core: numba starts one thread anyway")
+def test_workers_whose_numba_would_oversubscribe_them_are_named(setup, monkeypatch):
+    """A cluster's workers started without NUMBA_NUM_THREADS=1 (each would run one numba
+    thread per core beside its one Dask thread: 6-8 times slower): each is named in a
+    warning; started as the local cluster starts them, none is."""
+    from distributed import LocalCluster
+
+    config, plant, draws = setup
+    monkeypatch.setattr(robustness, "CHUNK_DRAWS", 20)
+    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    for env, expected in (({}, 1), (dict(WORKER_ENV), 0)):
+        said: list[str] = []
+        with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                          dashboard_address=None, env=env) as cluster, \
+                chunk_runner(scheduler=cluster.scheduler_address, warn=said.append) as run:
+            evaluate(config, plant, draws[:20], SHORT, seed=2, map_chunks=run)
+        assert len(said) == expected, said
+        if expected:
+            assert said[0].startswith("Dask worker tcp://") and (
+                f"numba would run {core_count()} threads beside its 1 (NUMBA_NUM_THREADS is "
+                "not 1") in said[0]
+            assert "start them with NUMBA_NUM_THREADS=1 OMP_WAIT_POLICY=PASSIVE" in said[0]

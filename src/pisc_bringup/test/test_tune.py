@@ -4,6 +4,7 @@ seed, resumes only its own study, and refuses a bad search space by name."""
 from __future__ import annotations
 
 import textwrap
+from dataclasses import replace
 
 import optuna
 import pytest
@@ -16,6 +17,7 @@ from pisc_bringup.tune import (
     Tuning,
     load_space,
     open_study,
+    space_for,
     tune,
     tuned_file_text,
 )
@@ -257,14 +259,56 @@ def test_a_bad_search_space_file_is_refused(tmp_path, text, message):
         load_space(str(path), load_graph_config("default")[1])
 
 
-@pytest.mark.parametrize("config", ["default", "thesis", "lyapunov-tuned"])
-def test_the_shipped_search_spaces_fit_the_shipped_configurations(config):
-    """tuning-space searches the energy pump (the default's law), lyapunov-space (3.30)."""
-    pump = [d.name for d in load_space("tuning-space", load_graph_config(config)[1]).dimensions]
-    assert "swing_up.pump_gain" in pump and "catch.poles[2]" in pump
-    assert "swing_up.k_x" not in pump
-    lyapunov = load_space("lyapunov-space", load_graph_config(config)[1]).dimensions
-    assert "swing_up.k_x" in [d.name for d in lyapunov]
+@pytest.mark.parametrize("config, space", [("default", "adaptive-space"),
+                                           ("fixed-pump", "tuning-space"),
+                                           ("thesis", "lyapunov-space"),
+                                           ("lyapunov-tuned", "lyapunov-space")])
+def test_each_shipped_configuration_has_its_space_and_refuses_the_others(config, space):
+    """adaptive-space searches the adaptive default (the energy pump with the adaptation,
+    the governor and the catch's guard), tuning-space the energy pump alone, lyapunov-space
+    (3.30); a space whose parameters the configuration's law does not read is refused,
+    naming the first such parameter and the setting that would read it."""
+    flat = load_graph_config(config)[1]
+    assert space_for(flat) == space
+    names = [d.name for d in load_space(space, flat).dimensions]
+    assert ("swing_up.pump_gain" in names) == (space != "lyapunov-space")
+    assert ("swing_up.k_x" in names) == (space == "lyapunov-space")
+    other = "tuning-space" if space == "lyapunov-space" else "lyapunov-space"
+    with pytest.raises(ConfigError) as caught:
+        load_space(other, flat)
+    first, law = (("swing_up.k_x", "lyapunov") if other == "lyapunov-space"
+                  else ("swing_up.pump_gain", "energy_pump"))
+    assert f"space.parameters.{first}: not searched: the controllers read it only with " \
+        f"swing_up.law: {law}; the configuration has swing_up.law: " in str(caught.value)
+    assert f"e.g. {space})" in str(caught.value)
+
+
+@pytest.mark.parametrize("entry, overrides, message", [
+    ("swing_up.loss_gain: {linear: [0, 2]}", {"adaptation.enabled": False},
+     "swing_up.loss_gain: not searched: the controllers read it only with swing_up.law: "
+     "energy_pump and adaptation.enabled: true; the configuration has adaptation.enabled: "
+     "false"),
+    ("catch.governor_margin_m: {linear: [0, 0.05]}", {"catch.governor": False},
+     "catch.governor_margin_m: not searched: the controllers read it only with "
+     "catch.governor: true; the configuration has catch.governor: false"),
+    ("catch.lqr_r: {log: [0.1, 10]}", {},
+     "catch.lqr_r: not searched: the controllers read it only with catch.design: lqr"),
+    ("catch.poles[1]: {linear: [-12, -2]}", {"catch.design": "lqr"},
+     "catch.poles[1]: not searched: the controllers read it only with catch.design: poles"),
+])
+def test_a_parameter_the_configuration_does_not_read_is_refused(tmp_path, entry, overrides,
+                                                                message):
+    path = write(tmp_path / "space.yaml", f"space:\n  parameters:\n    {entry}\n")
+    config = "fixed-pump"  # the energy pump, the adaptation, governor and guard off
+    with pytest.raises(ConfigError) as caught:
+        load_space(str(path), load_graph_config(config, overrides)[1])
+    assert message in str(caught.value)
+    # with the setting that reads it, the same entry is searched
+    read = {"swing_up.loss_gain": {"adaptation.enabled": True},
+            "catch.governor_margin_m": {"catch.governor": True},
+            "catch.lqr_r": {"catch.design": "lqr"},
+            "catch.poles[1]": {}}[entry.split(":")[0]]
+    assert load_space(str(path), load_graph_config(config, read)[1]).dimensions
 
 
 def test_pisc_tune_writes_the_file_and_refuses_a_study_of_another_distribution(
@@ -303,8 +347,102 @@ def exit_code(argv: list[str]) -> int:
     (["default", "--draws", "0"], "--draws 0: at least 1"),
     (["default", "--sampler", "nosuch"], "invalid choice: 'nosuch'"),
     (["default", "--storage", "nosuch://x"], "nosuch://x: cannot open the study storage"),
+    (["default", "--scheduler", "notanaddress"],
+     "--scheduler notanaddress: not a Dask scheduler's address (missing port number"),
+    (["thesis", "--space", "tuning-space"], "swing_up.pump_gain: not searched"),
 ])
-def test_pisc_tune_refuses_bad_arguments_with_exit_2(tmp_path, capsys, argv, message):
+def test_pisc_tune_refuses_bad_arguments_with_exit_2(tmp_path, capsys, argv, message,
+                                                     monkeypatch):
+    import distributed
+
+    def no_client(*args, **kwargs):  # a client made from a bad address hung for a minute
+        raise AssertionError("a Dask client was made")
+
+    monkeypatch.setattr(distributed, "Client", no_client)
     assert exit_code([*argv, "--out", str(tmp_path / "t.yaml")]) == 2
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
     assert not (tmp_path / "t.db").exists()
+
+
+def test_ctrl_c_keeps_the_trials_says_how_many_and_the_same_study_resumes(files, tmp_path):
+    """SIGINT (Ctrl-C) in the middle of a study: exit 130, one line that says how many
+    trials the study keeps (no traceback); run again, the study goes on from them."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    rig, space = files
+    storage = f"sqlite:///{tmp_path / 'tuned.db'}"
+
+    def command(trials: int) -> list[str]:
+        return [sys.executable, "-m", "pisc_bringup.tune_cli", "thesis", "--set",
+                "swing_up.k_x=2.0", "--distribution", str(rig), "--space", str(space),
+                "--trials", str(trials), "--draws", "10", "--workers", "0", "--run-s", "5",
+                "--catch-by", "3", "--hold-from", "4.5", "--fast-hold-from", "4.5",
+                "--out", str(tmp_path / "tuned.yaml")]
+
+    def complete() -> int:
+        try:
+            study = optuna.load_study(study_name=None, storage=storage)
+        except (KeyError, ValueError):  # no study yet
+            return 0
+        return len(study.get_trials(states=(optuna.trial.TrialState.COMPLETE,)))
+
+    child = subprocess.Popen(command(500), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+    try:
+        while complete() < 2:
+            assert child.poll() is None, child.communicate()
+            time.sleep(0.2)
+        child.send_signal(signal.SIGINT)
+        _, err = child.communicate(timeout=300)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == 130, err
+    kept = complete()
+    assert kept >= 2
+    assert (f"pisc_tune: interrupted; {kept} trials kept in {storage}, rerun the same "
+            "command to resume") in err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
+    assert not (tmp_path / "tuned.yaml").exists()
+    done = subprocess.run(command(kept + 1), capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert complete() == kept + 1
+
+
+def test_aim_fast_puts_the_fast_draws_first_and_safe_second():
+    """With --aim fast a candidate that never swings up (safe on every draw, caught on
+    none) scores below one that is fast on 87 of 100 draws and safe on 88; with the
+    default aim it is the other way round (one more safe draw outweighs any catch)."""
+    import numpy as np
+
+    from pisc_bringup.robustness import Outcomes
+    from pisc_bringup.tune import score_for
+
+    def outcomes(safe: int, caught: int, fast: int, n: int = 100) -> Outcomes:
+        k = np.arange(n)
+        arrays = [k < safe, k < caught, k < fast] + [np.zeros(n)] * 7 + [
+            np.zeros(n, bool), k >= safe]
+        return Outcomes(*arrays)
+
+    idle, swinging = outcomes(100, 0, 0), outcomes(88, 88, 87)
+    assert score_for("fast", swinging) > score_for("fast", idle)
+    assert score_for("safe", swinging) < score_for("safe", idle)
+    # fast first, then safe: one more fast draw outweighs every safe one
+    assert score_for("fast", outcomes(87, 87, 87)) > score_for("fast", outcomes(100, 86, 86))
+    assert score_for("fast", outcomes(100, 100, 100)) == 1.0
+    assert score_for("fast", outcomes(90, 87, 87)) > score_for("fast", outcomes(88, 87, 87))
+
+
+def test_the_aim_is_part_of_the_study_so_two_aims_never_mix(files, tmp_path):
+    safe, fast = tuning(files, draws=5), replace(tuning(files, draws=5), aim="fast")
+    assert "aim" not in safe.key() and fast.key()["aim"] == "fast"
+    storage = f"sqlite:///{tmp_path / 'a.db'}"
+    open_study(safe, storage)
+    with pytest.raises(StudyMismatch, match="aim None \\(now 'fast'\\)"):
+        open_study(fast, storage)
+    with pytest.raises(ConfigError, match="aim 'slow': one of safe, fast"):
+        replace(safe, aim="slow")

@@ -27,6 +27,9 @@ __all__ = [
     "RigParams",
     "SensorParams",
     "TrackParams",
+    "UNUSED_UNDER",
+    "check_models_use",
+    "unused_by_models",
 ]
 
 
@@ -316,3 +319,62 @@ class NoiseParams:
         return bool(np.any(np.asarray(self.x_std_m) > 0.0)
                     or np.any(np.asarray(self.theta_std_rad) > 0.0)
                     or np.any(np.asarray(self.current_std_a) > 0.0))
+
+
+#: Parameters the plant leaves out under a choice of sub-model: (``models`` field, the
+#: choices that leave them out, the parameters, what the plant does instead, the choice
+#: that uses them). A value of one of them other than its default, under such a choice,
+#: is a value the file states and the plant ignores (:func:`unused_by_models`).
+UNUSED_UNDER: tuple[tuple[str, tuple[object, ...], tuple[str, ...], str, str], ...] = (
+    ("friction", ("none",), ("friction.cart_viscous_ns_per_m", "friction.pivot_viscous_nms",
+                             "friction.cart_coulomb_n", "friction.coulomb_velocity_mps"),
+     "no friction besides the motor's b_m", "coulomb (or viscous, without the Coulomb term)"),
+    ("friction", ("viscous",), ("friction.cart_coulomb_n", "friction.coulomb_velocity_mps"),
+     "viscous friction only", "coulomb"),
+    ("sensor_filters", (False,), ("sensors.ir_filter_hz", "sensors.current_filter_hz"),
+     "no RC filter states", "true"),
+    ("armature", ("quasi_static", "ideal_force"), ("motor.inductance_h",),
+     "no armature transient, L di/dt = 0", "full"),
+    ("armature", ("ideal_force",), ("motor.resistance_ohm", "motor.rotor_inertia_kgm2"),
+     "the cart force is the input, no motor", "full"),
+)
+
+
+def unused_by_models(flat: dict[str, object]) -> list[str]:
+    """What a parameter file (flat ``section.name`` values, overrides included) states and
+    the plant ignores under its ``models``: one sentence a parameter, naming it, empty when
+    nothing is; a value equal to the parameter's default is not counted (it changes
+    nothing either way)."""
+    from dataclasses import fields
+
+    from pisc_msgs_py.config import from_flat
+
+    models = from_flat(ModelParams, flat, "models")
+    classes = {"friction": FrictionParams, "sensors": SensorParams, "motor": MotorParams}
+    out = []
+    for choice, leave_out, names, meaning, remedy in UNUSED_UNDER:
+        chosen = getattr(models, choice)
+        if chosen not in leave_out:
+            continue
+        for name in names:
+            if name not in flat:
+                continue
+            section, leaf = name.split(".")
+            default = next(f.default for f in fields(classes[section]) if f.name == leaf)
+            value = flat[name]
+            if isinstance(value, (int, float)) and not isinstance(value, bool) \
+                    and float(value) == float(default):
+                continue
+            setting = str(chosen).lower() if isinstance(chosen, bool) else repr(chosen)
+            out.append(f"{name} = {value!r} is not used: models.{choice} is {setting} "
+                       f"({meaning}); set models.{choice}: {remedy} to use it, or "
+                       "leave it out")
+    return out
+
+
+def check_models_use(flat: dict[str, object], where: str = "") -> None:
+    """Refuse a parameter file whose values the plant would ignore
+    (:func:`unused_by_models`): :class:`ConfigError` naming every such parameter."""
+    unused = unused_by_models(flat)
+    if unused:
+        raise ConfigError(where + "; ".join(unused))

@@ -88,6 +88,7 @@ from pisc_msgs_py.watchdog import (
 )
 from pisc_model.params import (
     InitialParams,
+    check_models_use,
 )
 from pisc_plant.command import plant_command
 from pisc_plant.plant import PLANT_SECTIONS, Plant, PlantConfig
@@ -216,6 +217,7 @@ class PlantNode(PiscNode):
 
     def build(self, flat: dict[str, Any]) -> tuple[PlantConfig, InitialParams, SimulationParams]:
         config = PlantConfig(**{n: self.section(flat, n) for n in PLANT_SECTIONS})
+        check_models_use(dict(flat))  # a value the plant would ignore is refused
         initial = self.section(flat, "initial")
         if not config.track.min_m <= initial.x_m <= config.track.max_m:
             raise ConfigError(f"initial.x_m = {initial.x_m} lies outside the track "

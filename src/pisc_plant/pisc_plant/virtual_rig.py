@@ -68,6 +68,7 @@ import numpy as np
 from pisc_msgs_py.config import ConfigError, from_flat, load_params_file, parse_overrides
 from pisc_model.params import (
     InitialParams,
+    check_models_use,
 )
 from pisc_plant.plant import (
     PLANT_SECTIONS,
@@ -313,6 +314,7 @@ def load_plant(params_file: str | None, overrides: dict[str, Any]
                           f"{', '.join(sections)})")
     values = {name: from_flat(cls, {k: flat[k] for k in known}, name)
               for name, cls in sections.items()}
+    check_models_use({k: flat[k] for k in known})  # a value the plant would ignore
     initial = values.pop("initial")
     config = PlantConfig(**values)
     if config.models.force_input:

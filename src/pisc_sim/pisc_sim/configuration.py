@@ -45,11 +45,13 @@ from pisc_model.params import (
     RigParams,
     SensorParams,
     TrackParams,
+    check_models_use,
 )
 from pisc_plant.plant import IntegratorParams, PlantConfig
 
 __all__ = ["CONFIG_DIR", "PLANT_READS", "GraphConfig", "check_plant_overrides", "config_path",
-           "load_graph_config", "load_run_config", "params_file_text", "write_params_file"]
+           "load_graph_config", "load_run_config", "params_file_text", "plant_only",
+           "write_params_file"]
 
 CONFIG_DIR = package_dir("pisc_sim", "config")  # the named configurations
 
@@ -101,7 +103,10 @@ def _sections(flat: Mapping[str, Any]) -> dict[str, Any]:
     if unknown:
         raise ConfigError(f"{unknown[0]}: unknown parameter section "
                           f"(known: {', '.join(SECTIONS)})")
-    return {name: from_flat(cls, flat, name) for name, cls in SECTIONS.items()}
+    sections = {name: from_flat(cls, flat, name) for name, cls in SECTIONS.items()}
+    # a value the selected sub-models leave out is refused, not silently ignored
+    check_models_use(dict(flat))
+    return sections
 
 
 def _plant_config(s: Mapping[str, Any]) -> PlantConfig:
@@ -177,6 +182,12 @@ def load_run_config(
             f"controllers' {config.loop.period_s}: the plant is sampled at the control period")
     config = replace(config, initial=s["initial"], true_plant=true_plant)
     return config, flat, plant_flat
+
+
+def plant_only(flat: Mapping[str, Any]) -> dict[str, Any]:
+    """The parameters of the sections the plant reads (:data:`PLANT_READS`): what a file
+    written for the plant alone holds."""
+    return {k: v for k, v in flat.items() if k.split(".", 1)[0] in PLANT_READS}
 
 
 def params_file_text(flat: Mapping[str, Any]) -> str:

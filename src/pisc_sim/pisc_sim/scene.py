@@ -40,6 +40,7 @@ from pisc_sim.configuration import (
     PLANT_READS,
     GraphConfig,
     load_run_config,
+    plant_only,
     write_params_file,
 )
 from pisc_control.supervisor import Supervisor
@@ -144,5 +145,6 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None,
 
 def write_scene_params(scene: Scene, path: Path, plant: bool = False) -> None:
     """The scene as a ROS 2 parameter file: the one the controllers read, or with
-    ``plant`` the plant's (its ``plant:`` block on top)."""
-    write_params_file(path, scene.plant_flat if plant else scene.flat)
+    ``plant`` the plant's (its ``plant:`` block on top, the sections the plant reads
+    only)."""
+    write_params_file(path, plant_only(scene.plant_flat) if plant else scene.flat)

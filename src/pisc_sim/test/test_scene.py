@@ -5,8 +5,10 @@ import textwrap
 
 import numpy as np
 import pytest
+import yaml
 
 from pisc_sim.closed_loop import simulate, simulate_batch
+from pisc_sim.configuration import PLANT_READS
 from pisc_sim.scene import DEFAULT_SCENE, load_scene, scene_names
 from pisc_bringup.scene_cli import main as scene_main
 from pisc_msgs_py.config import ConfigError
@@ -138,6 +140,12 @@ def test_a_scenes_plant_block_sets_the_plant_only(tmp_path, capsys):
         out = tmp_path / "p.yaml"
         assert scene_main(["params", path, "-o", str(out), *plant]) == 0
         assert f"resistance_ohm: {value}" in out.read_text()
+    # the plant's file holds the plant's sections only, on a file and on standard output
+    assert scene_main(["params", path, "--plant"]) == 0
+    for text in (out.read_text(), capsys.readouterr().out):
+        sections = set(yaml.safe_load(text)["/**"]["ros__parameters"])
+        assert sections <= set(PLANT_READS) and {"rig", "motor", "initial"} <= sections
+        assert "swing_up.law" in scene.flat and "swing_up" not in sections
     assert scene_main(["run", path, "--duration", "0.5"]) == 0
     assert "plant (model error): motor.resistance_ohm=18.2" in capsys.readouterr().out
 
