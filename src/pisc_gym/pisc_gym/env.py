@@ -72,20 +72,18 @@ class PiscEnv(gym.Env):
         super().reset(seed=seed)
         if options:
             raise ValueError(f"reset options {sorted(options)}: none are known")
-        draw = self.task.draw(self.np_random)
-        self._rigs.reset([0], [draw])
+        draws = self.task.draw_many([self.np_random])
+        self._rigs.reset([0], draws)
         self._rigs.observe()
         self._started = True
         return self._rigs.observation()[0], {"true_state": self._rigs.true_state()[0],
-                                             "rig": draw.as_overrides()}
+                                             "rig": draws[0].as_overrides()}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if not self._started:
             raise RuntimeError("step before reset: call reset() first")
         rigs = self._rigs
-        rigs.advance(rigs.command(np.asarray(action, dtype=float).reshape(1)))
-        reward, terminated, truncated = rigs.outcome()
-        rigs.observe()
+        reward, terminated, truncated = rigs.step(np.asarray(action, dtype=float).reshape(1))
         info: dict[str, Any] = {"true_state": rigs.true_state()[0],
                                 "voltage_v": float(rigs.voltage[0])}
         if self.task.action == "current":

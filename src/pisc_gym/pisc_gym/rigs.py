@@ -1,20 +1,22 @@
 """N rigs stepped together: the plant's compiled kernel, the sensors, the latency, the
-estimator and the current loop, each rig with its own constants, reset one at a time.
+estimator and the current loop, each rig with its own constants, reset a few at a time.
 
 :class:`Rigs` is what both environments run: the single environment is one rig of it,
-the vector environment N. A step is the graph's cycle after the controllers: the
+the vector environment N. A step (:meth:`Rigs.step`) is the graph's cycle after the
+controllers, in one compiled pass over the rigs (:func:`pisc_gym.compiled.step`): the
 command answering the last sample takes effect each rig's latency into the period (the
 input held before it until then, as :class:`pisc_plant.sampled.SampledPlant` does),
-the plant integrates to the next sample, and the sensors measure it.
+the plant integrates to the next sample, the reward is taken and the sensors measure.
 
 The rigs are a plant set (:func:`pisc_plant.plant.plant_set`): every rig has its own
 column of the kernel's constants (:func:`pisc_plant.plant.pack_constants`) and its own
-operator tables for its steps, in the kernel's blocks (:func:`pisc_plant.kernel.lanes`);
-a reset writes the new rig's column and recomputes the tables of the blocks whose rigs
-changed, so a vector environment that resets a few rigs a step does not redo the rest.
-The kernel gives a rig of a set the same bits as a plant of its own, and each rig takes
-the substeps a plant of its own would take for its durations (rigs whose numbers
-differ step in separate calls), so a rig here gives the pure closed loop's bits.
+operator tables for its steps, in the kernel's blocks (:func:`pisc_plant.kernel.lanes`).
+Each rig takes, in each part of the period, the substeps a plant of its own takes for
+that part's duration (:meth:`pisc_plant.plant.Plant.advance`); the rigs of one number of
+substeps step together (a group), the others keep their state in that call. A reset
+writes the new rigs' columns and computes their tables alone. The kernel gives a rig of
+a set the same bits as a plant of its own, so a rig here gives the pure closed loop's
+bits.
 
 Measurement noise: each rig has its own generator, seeded by its draw
 (:attr:`pisc_gym.task.RigDraw.noise_seed`), three standard normal values a sample as
@@ -24,22 +26,20 @@ Measurement noise: each rig has its own generator, seeded by its draw
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
 
 from pisc_control import scalar
 from pisc_gym import compiled
-from pisc_gym.task import RigDraw, Task
-from pisc_model.dynamics import wrap_to_upright
+from pisc_gym.task import RigDraws, Task
 from pisc_plant import kernel, layout
 from pisc_plant.plant import Plant, pack_constants, plant_set
 
 __all__ = ["NOISE_BLOCK", "Rigs"]
 
-#: samples of noise drawn at once per rig (fewer for many rigs: at most ~32 MB in all)
-NOISE_BLOCK = 256
+#: samples of noise drawn at once per rig (fewer for many rigs: at most ~64 MB in all)
+NOISE_BLOCK = 512
 
 
 class Rigs:
@@ -51,9 +51,9 @@ class Rigs:
         self.task = task
         self.n = n
         base = task.plant
-        self.plant = Plant(base)  # the uniform plant: layout, start states, kernels
+        self.plant = Plant(base)  # the uniform plant: layout, start states
         lay = self.plant.layout
-        self._kernels = kernel.for_layout(lay)
+        self._layout = (lay.armature, lay.filters)
         self._stops = lay.end_stops
         self._method = layout.METHODS.index(base.integrator.method)
         self._nominal = self.plant.nominal_substep_s
@@ -68,32 +68,52 @@ class Rigs:
         filters = base.models.sensor_filters
         self._w = (p0[layout.P_WIR] if filters else 0.0, p0[layout.P_WCUR] if filters else 0.0,
                    p0[layout.P_WCUR] / p0[layout.P_CURSCALE])
-        # operator tables by (part, substeps); the durations' groups of the two parts of a
-        # period (None: to be made); the blocks whose rigs were reset since the last step
-        self._tables: dict[tuple[int, int], np.ndarray] = {}
-        self._parts: tuple[dict[int, np.ndarray], dict[int, np.ndarray]] | None = None
-        self._stale: set[int] = set()
         self.latency_s = np.full(n, base.actuator.command_delay_s)
+        # each part's substeps (0: no step) and step per rig, and its groups: (counts (G,),
+        # steps (G, n), operator tables (G, blocks, N_TABLE * BLOCK))
+        self._substeps = [np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)]
+        self._steps = [np.zeros(n), np.zeros(n)]
+        self._groups = [self._no_groups(), self._no_groups()]
+        self._set_parts(np.arange(n))
         self.y = np.ascontiguousarray(self.plant.initial_state(np.zeros(n)))
         self.applied = np.zeros(n)  # the input held, through the actuator
         self.steps = np.zeros(n, dtype=np.int64)
-        # sensors and noise
+        # the action, and the task's constants for the compiled step
         models = base.models
+        if task.action == "voltage":
+            self._kind = compiled.ACTION_VOLTAGE
+        else:
+            self._kind = compiled.ACTION_FORCE if models.force_input else compiled.ACTION_CURRENT
+        c = np.zeros(compiled.N_T)
+        c[compiled.T_MIDDLE] = task.middle_m
+        c[compiled.T_X_WEIGHT], c[compiled.T_VOLTAGE_WEIGHT] = task.x_weight, task.voltage_weight
+        c[compiled.T_SHARE_LIMIT] = (task.current_limit_a if models.force_input
+                                     else task.voltage_limit_v)
+        c[compiled.T_LOW], c[compiled.T_HIGH] = task.safe_range
+        c[compiled.T_FALL] = task.fall_rad
+        c[compiled.T_CURRENT_LIMIT] = task.current_limit_a
+        actuator = base.actuator
+        c[compiled.T_FULL_SCALE] = actuator.full_scale_v
+        c[compiled.T_LEVELS] = float(actuator.command_levels)
+        c[compiled.T_STEP_V] = actuator.step_v
+        self._task_constants = c
+        # sensors and noise
         self._sensors = (compiled.SENSORS_IDEAL if models.sensors == "ideal"
                          else compiled.SENSORS_QUANTISED)
-        self._armature = lay.armature
+        self._indices = (lay.current_index, lay.ir_index, lay.current_sensor_index)
         self._sensor_m, self._ir_table = compiled.sensor_constants(base.sensors)
         self.noise_std = np.zeros((n, 3))
         self.noisy = np.zeros(n, dtype=np.bool_)
         self._generators: list[np.random.Generator | None] = [None] * n
-        self._block = int(min(NOISE_BLOCK, max(16, 1_400_000 // n)))
+        self._block = int(min(NOISE_BLOCK, max(16, 2_800_000 // n)))
         self._noise = np.zeros((n, self._block, 3))
         self._noise_at = np.zeros(n, dtype=np.int64)
         self.measured = np.zeros((n, 3))  # x, theta, i of the last sample
         self.true_current = np.zeros(n)
         # the estimator's differences (4.7), (4.9)
         est = task.config.estimator
-        self._est_a, self._est_b = scalar.estimator_constants(est, self.period_s)
+        a, b = scalar.estimator_constants(est, self.period_s)
+        self._est = np.array([a, b, self.period_s])
         self._est_n = est.difference_periods
         self._seen = np.zeros(n, dtype=np.int64)
         self._x_hist = np.zeros((n, self._est_n))
@@ -101,27 +121,91 @@ class Rigs:
         self._v = np.zeros((2, n))
         self.velocity = np.zeros((n, 2))
         # the current loop (3.47) for a set-point action: k_m / r = 1 makes i_d the action
-        c = list(scalar.current_loop_constants(base.motor, task.config.current_loop,
-                                               self.period_s))
-        c[scalar.C_FORCE_PER_AMP] = 1.0
-        self._loop_constants = tuple(c)
+        c_loop = list(scalar.current_loop_constants(base.motor, task.config.current_loop,
+                                                    self.period_s))
+        c_loop[scalar.C_FORCE_PER_AMP] = 1.0
+        self._loop_constants = tuple(c_loop)
         self.integral = np.zeros(n)
         self.voltage = np.zeros(n)  # the voltage commanded at the last step
         self.setpoint = np.zeros(n)  # the set-point of the last step (current action)
+        self._not_done = np.zeros(n, dtype=np.bool_)
+        self._obs = np.zeros((n, 5 if task.velocities else 3))
+        self._true_state = np.zeros((n, 5))
+
+    # -- the parts of a period -----------------------------------------------------------
+
+    def _no_groups(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        width = kernel.N_TABLE * kernel.BLOCK if self._method == layout.EXPRK4 else 0
+        blocks = self._lanes.shape[0]
+        return (np.zeros(0, dtype=np.int64), np.zeros((0, self.n)),
+                np.zeros((0, blocks, width)))
+
+    def _set_parts(self, idx: np.ndarray) -> None:
+        """The parts' substeps, steps and operator tables of rigs ``idx`` (new latencies
+        or constants): each part's duration cut as :meth:`Plant.advance` cuts it."""
+        period = self.period_s
+        latency = self.latency_s[idx]
+        late = latency >= period  # the command misses the period
+        for part, durations in enumerate((np.where(late, period, latency),
+                                          np.where(late, 0.0, period - latency))):
+            count = np.maximum(1, np.ceil(durations / self._nominal - 1e-9)).astype(np.int64)
+            count[durations == 0.0] = 0  # no step: the rig keeps its state
+            self._substeps[part][idx] = count
+            self._steps[part][idx] = np.where(count > 0, durations / np.maximum(count, 1), 0.0)
+            self._regroup(part, idx)
+
+    def _regroup(self, part: int, idx: np.ndarray) -> None:
+        counts, steps, tables = self._groups[part]
+        substeps = self._substeps[part]
+        present = np.flatnonzero(np.bincount(substeps)[1:]) + 1
+        if not np.array_equal(present, counts):  # a number of substeps came or went
+            kept = {int(c): g for g, c in enumerate(counts)}
+            new_steps = np.zeros((len(present), self.n))
+            new_tables = np.zeros((len(present),) + tables.shape[1:])
+            for g, c in enumerate(present.tolist()):
+                if c in kept:
+                    new_steps[g] = steps[kept[c]]
+                    new_tables[g] = tables[kept[c]]
+                else:  # a new group: its tables for every rig in it
+                    members = np.flatnonzero(substeps == c)
+                    new_steps[g, members] = self._steps[part][members]
+                    self._tables_of(new_tables[g], members, self._steps[part][members])
+            counts, steps, tables = present, new_steps, new_tables
+            self._groups[part] = (counts, steps, tables)
+        mine = substeps[idx]
+        for g, c in enumerate(counts.tolist()):
+            steps[g, idx] = np.where(mine == c, self._steps[part][idx], 0.0)
+            members = idx[mine == c]
+            if len(members):
+                self._tables_of(tables[g], members, self._steps[part][members])
+
+    def _tables_of(self, tables: np.ndarray, rigs: np.ndarray, steps: np.ndarray) -> None:
+        """The exponential scheme's operators of ``rigs`` for their ``steps``
+        (:func:`pisc_plant.kernel.exp_tables`, the same numbers a plant of its own uses)
+        into their lanes of ``tables`` (blocks, N_TABLE * BLOCK)."""
+        if self._method != layout.EXPRK4:
+            return
+        m = len(rigs)
+        block = kernel.BLOCK
+        out = np.empty((-(-m // block), kernel.N_TABLE * block))
+        kernel.exp_tables(*self._w, np.ascontiguousarray(self._rates[rigs]),
+                          np.ascontiguousarray(steps, dtype=float), out)
+        j = np.arange(m)
+        values = out.reshape(-1, kernel.N_TABLE, block)[j // block, :, j % block]
+        tables.reshape(-1, kernel.N_TABLE, block)[rigs // block, :, rigs % block] = values
 
     # -- resets --------------------------------------------------------------------------
 
-    def reset(self, rigs: Sequence[int] | np.ndarray, draws: Sequence[RigDraw]) -> None:
+    def reset(self, rigs: Sequence[int] | np.ndarray, draws: RigDraws) -> None:
         """Put new rigs ``draws`` in the places ``rigs``, at their starts, with nothing
-        held, the estimator and the current loop cleared; then :meth:`observe`."""
+        held, the estimator and the current loop cleared (observe them with
+        :meth:`observe`, or step them with :meth:`step` as ``done``)."""
         idx = np.asarray(rigs, dtype=np.int64)
         m = len(idx)
         if m == 0:
             return
-        names = self.task.physical_names
-        if names:
-            values = {name: np.array([d.physical[name] for d in draws]) for name in names}
-            columns = pack_constants(plant_set(self.task.plant, values))
+        if self.task.physical_names:
+            columns = pack_constants(plant_set(self.task.plant, draws.physical))
         else:
             columns = np.repeat(pack_constants(self.task.plant)[:, None], m, axis=1)
         self.constants[:, idx] = columns
@@ -131,165 +215,82 @@ class Rigs:
             rates = np.zeros(m)
             kernel.armature_rates(np.ascontiguousarray(columns), rates)
             self._rates[idx] = rates
-        latency = np.array([d.latency_s for d in draws], dtype=float)
-        if not np.array_equal(latency, self.latency_s[idx]):
-            self.latency_s[idx] = latency
-            self._parts = None
-        self._stale.update((idx // kernel.BLOCK).tolist())
-        std = np.array([d.noise_std for d in draws], dtype=float).reshape(m, 3)
-        self.noise_std[idx] = std
-        self.noisy[idx] = (std > 0.0).any(axis=1)
-        for k, d in zip(idx.tolist(), draws):
-            if self.noisy[k]:
-                generator = np.random.default_rng(d.noise_seed)
+        self.latency_s[idx] = draws.latency_s
+        self._set_parts(idx)
+        self.noise_std[idx] = draws.noise_std
+        self.noisy[idx] = (draws.noise_std > 0.0).any(axis=1)
+        for k, seed, noisy in zip(idx.tolist(), draws.noise_seed.tolist(),
+                                  self.noisy[idx].tolist()):
+            if noisy:
+                generator = np.random.default_rng(seed)
                 generator.standard_normal(out=self._noise[k])
                 self._generators[k] = generator
             else:
                 self._generators[k] = None
-            self._noise_at[k] = 0
-        start = np.array([d.start for d in draws], dtype=float).reshape(m, 4)
-        self.y[idx] = self.plant.initial_state(*start.T)
-        self.applied[idx] = 0.0
+        self._noise_at[idx] = 0
+        self.y[idx] = self.plant.initial_state(*draws.start.T)
+        for array in (self.applied, self.integral, self.voltage, self.setpoint):
+            array[idx] = 0.0
         self.steps[idx] = 0
         self._seen[idx] = 0
         self._v[:, idx] = 0.0
-        self.integral[idx] = 0.0
-        self.voltage[idx] = 0.0
-        self.setpoint[idx] = 0.0
 
     # -- stepping ------------------------------------------------------------------------
 
-    def command(self, action: np.ndarray) -> np.ndarray:
-        """The plant's input for each rig's action (the task's ``action``): the voltage
-        commanded (kept in :attr:`voltage`) and what the plant gets for it."""
-        action = np.asarray(action, dtype=float).reshape(self.n)
-        plant = self.task.plant
-        if self.task.action == "voltage":
-            self.voltage[:] = action
-            return plant.actuator.apply(action)
-        limit = self.task.current_limit_a
-        if plant.models.force_input:  # an ideal force source: the set-point's force (4.2)
-            self.setpoint[:] = np.clip(action, -limit, limit)
-            self.voltage[:] = 0.0
-            return self.constants[layout.P_KF] * self.setpoint
-        self.setpoint[:] = np.clip(action, -limit, limit)
-        current = np.ascontiguousarray(self.measured[:, 2])
-        compiled.current_loop(self._loop_constants, np.ascontiguousarray(action, dtype=float),
-                              current, self.integral, self.voltage)
-        return plant.actuator.apply(self.voltage)
+    def _sample_arguments(self, obs: np.ndarray, true_state: np.ndarray) -> tuple:
+        ii, vir, vcur = self._indices
+        return (self._sensors, ii, vir, vcur, self.constants, self.noisy, self.noise_std,
+                self._noise, self._noise_at, self._sensor_m, self._ir_table, self.measured,
+                self.true_current, self.task.velocities, self._est, self._est_n, self._seen,
+                self._x_hist, self._theta_hist, self._v, self.velocity, obs, true_state)
 
-    def advance(self, applied: np.ndarray) -> None:
-        """One period: the held input until each rig's latency, then ``applied``."""
-        if self._parts is None:
-            period = self.period_s
-            late = self.latency_s >= period  # the command misses the period
-            self._parts = (self._groups(np.where(late, period, self.latency_s)),
-                           self._groups(np.where(late, 0.0, period - self.latency_s)))
-        stale, self._stale = self._stale, set()
-        for part, inputs in enumerate((self.applied, applied)):
-            groups = self._parts[part]
-            for key in [k for k in self._tables if k[0] == part and k[1] not in groups]:
-                del self._tables[key]
-            for count, steps in groups.items():
-                tables = self._operator_tables(part, count, steps, stale)
-                inputs = np.ascontiguousarray(inputs, dtype=float)
-                if self.n <= kernel.CHUNK:
-                    self._kernels.advance_set(self.y, inputs, 0, self.n, self._lanes,
-                                              self._stops, self._method, count, steps, tables)
-                else:
-                    self._kernels.advance_set_many(self.y, inputs, self._lanes, self._stops,
-                                                   self._method, count, steps, tables)
-        self.applied = np.array(applied, dtype=float)
-        self.steps += 1
-
-    def _groups(self, durations: np.ndarray) -> dict[int, np.ndarray]:
-        """Substeps -> each rig's step (0 for the rigs that take another number): the
-        substeps a plant of its own takes for each rig's duration (Plant.advance)."""
-        substeps = np.maximum(1, np.ceil(durations / self._nominal - 1e-9)).astype(np.int64)
-        groups = {}
-        for count in np.unique(substeps).tolist():
-            steps = np.where(substeps == count, durations / count, 0.0)
-            if steps.any():
-                groups[count] = steps
-        return groups
-
-    def _operator_tables(self, part: int, count: int, steps: np.ndarray,
-                         stale: set[int]) -> np.ndarray:
-        """The exponential scheme's operators of every rig for its step, in the kernel's
-        blocks (:meth:`pisc_plant.plant.Plant.rig_coefficients`), made again only for
-        the blocks ``stale`` (whose rigs were reset since the last step)."""
-        blocks = self._lanes.shape[0]
-        if self._method != layout.EXPRK4:
-            return np.empty((blocks, 0))
-        key = (part, count)
-        tables = self._tables.get(key)
-        if tables is None:
-            tables = self._tables[key] = np.empty((blocks, kernel.N_TABLE * kernel.BLOCK))
-            changed = np.arange(blocks)
-        elif stale:
-            changed = np.array(sorted(stale))
-        else:
-            return tables
-        lanes = (changed[:, None] * kernel.BLOCK + np.arange(kernel.BLOCK)).ravel()
-        inside = lanes < self.n
-        rates = np.zeros(len(lanes))
-        rates[inside] = self._rates[lanes[inside]]
-        rig_steps = np.zeros(len(lanes))
-        rig_steps[inside] = steps[lanes[inside]]
-        part_tables = np.empty((len(changed), kernel.N_TABLE * kernel.BLOCK))
-        kernel.exp_tables(*self._w, rates, rig_steps, part_tables)
-        tables[changed] = part_tables
-        return tables
-
-    # -- sampling ------------------------------------------------------------------------
-
-    def observe(self) -> None:
-        """Every rig's sample: :attr:`measured`, :attr:`true_current` and (with the
-        task's ``velocities``) the estimator's :attr:`velocity`."""
-        compiled.measure(self.y, self.applied, self._sensors, self._armature,
-                         self.plant.layout.current_index, self.plant.layout.ir_index,
-                         self.plant.layout.current_sensor_index,
-                         self.constants[layout.P_KER], self.constants[layout.P_R],
-                         self.constants[layout.P_KF], self.noisy, self.noise_std, self._noise,
-                         self._noise_at, self._sensor_m, self._ir_table, self.measured,
-                         self.true_current)
+    def _refill(self) -> None:
         for k in np.flatnonzero(self._noise_at >= self._block).tolist():
             self._generators[k].standard_normal(out=self._noise[k])  # type: ignore[union-attr]
             self._noise_at[k] = 0
-        if self.task.velocities:
-            compiled.estimate(np.ascontiguousarray(self.measured[:, 0]),
-                              np.ascontiguousarray(self.measured[:, 1]), self._est_a,
-                              self._est_b, self.period_s, self._est_n, self._seen,
-                              self._x_hist, self._theta_hist, self._v[0], self._v[1],
-                              self.velocity)
+
+    def observe(self) -> None:
+        """Every rig's sample without a step (after a reset): :meth:`observation`,
+        :meth:`true_state`."""
+        obs, true_state = np.empty_like(self._obs), np.empty((self.n, 5))
+        args = self._sample_arguments(obs, true_state)
+        compiled.observe(self.y, self.applied, args[0], self._layout[0], *args[1:])
+        self._obs, self._true_state = obs, true_state
+        self._refill()
+
+    def step(self, action: np.ndarray, done: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One period of every rig for its ``action`` (the task's ``action``), except the
+        rigs ``done`` (a mask: reset for this step, only observed): (reward, terminated,
+        truncated) of the step, each rig's sample in :meth:`observation`,
+        :meth:`true_state`, :attr:`voltage`."""
+        action = np.ascontiguousarray(action, dtype=float).reshape(self.n)
+        if not np.isfinite(action).all():
+            k = int(np.flatnonzero(~np.isfinite(action))[0])
+            raise ValueError(f"action {action[k]} (rig {k} of {self.n}): an action must be a "
+                             "finite number")
+        n = self.n
+        reward = np.empty(n)
+        terminated = np.empty(n, dtype=np.bool_)
+        truncated = np.empty(n, dtype=np.bool_)
+        obs, true_state = np.empty_like(self._obs), np.empty((n, 5))
+        (counts1, hs1, tables1), (counts2, hs2, tables2) = self._groups
+        compiled.step(*self._layout, self._not_done if done is None else done, action,
+                      self._kind, self._task_constants, self._loop_constants, self.y,
+                      self.applied, self._lanes, self._stops, self._method, counts1, hs1,
+                      tables1, counts2, hs2, tables2, self.integral, self.voltage,
+                      self.setpoint, self.steps, self.task.episode_steps, reward, terminated,
+                      truncated, *self._sample_arguments(obs, true_state))
+        self._obs, self._true_state = obs, true_state
+        self._refill()
+        return reward, terminated, truncated
 
     def observation(self) -> np.ndarray:
-        """(n, 3) or with velocities (n, 5): x, theta, i as measured (x_dot, theta_dot)."""
-        if self.task.velocities:
-            return np.concatenate([self.measured, self.velocity], axis=1)
-        return self.measured.copy()
+        """(n, 3) or with velocities (n, 5): x, theta, i as measured (x_dot, theta_dot)
+        at the last sample (a new array each sample)."""
+        return self._obs
 
     def true_state(self) -> np.ndarray:
-        """(n, 5): x, x_dot, theta, theta_dot, i (true)."""
-        return np.concatenate([self.y[:, :4], self.true_current[:, None]], axis=1)
+        """(n, 5): x, x_dot, theta, theta_dot, i (true) at the last sample."""
+        return self._true_state
 
-    def outcome(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(reward, terminated, truncated) of the last step (:mod:`pisc_gym.task`)."""
-        task = self.task
-        x = self.y[:, 0]
-        off = x - task.middle_m
-        theta = self.y[:, 2]
-        if task.plant.models.force_input:
-            share = self.setpoint / task.current_limit_a
-        else:
-            share = self.voltage / task.voltage_limit_v
-        with np.errstate(invalid="ignore", over="ignore"):
-            reward = (0.5 * (1.0 + np.cos(theta)) - task.x_weight * off * off
-                      - task.voltage_weight * share * share)
-            low, high = task.safe_range
-            terminated = ~((x >= low) & (x <= high)) | ~np.isfinite(self.y).all(axis=1)
-            if math.isfinite(task.fall_rad):
-                terminated |= ~(np.abs(wrap_to_upright(theta)) <= task.fall_rad)
-        reward = np.where(np.isfinite(reward), reward, 0.0)
-        truncated = self.steps >= task.episode_steps
-        return reward, terminated, truncated

@@ -38,6 +38,7 @@ episode terminates when the true cart position leaves the supervisor's safe rang
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,7 +46,7 @@ import numpy as np
 
 from pisc_msgs_py.config import ConfigError
 
-__all__ = ["ACTIONS", "TASKS", "RigDraw", "Task", "make_task"]
+__all__ = ["ACTIONS", "TASKS", "RigDraw", "RigDraws", "Task", "make_task"]
 
 TASKS = ("swing_up", "catch")
 ACTIONS = ("voltage", "current")
@@ -75,6 +76,37 @@ class RigDraw:
         out[LATENCY] = self.latency_s
         out.update(zip(NOISE, self.noise_std))
         out.update(zip(INITIAL, self.start))
+        out["noise.seed"] = self.noise_seed
+        return out
+
+
+@dataclass(frozen=True)
+class RigDraws:
+    """Rigs drawn together (:meth:`Task.draw_many`): the fields of :class:`RigDraw`, one
+    row a rig."""
+
+    physical: dict[str, np.ndarray]  # (m,) a name
+    latency_s: np.ndarray  # (m,)
+    noise_std: np.ndarray  # (m, 3)
+    start: np.ndarray  # (m, 4)
+    noise_seed: np.ndarray  # (m,) int64
+
+    def __len__(self) -> int:
+        return len(self.latency_s)
+
+    def __getitem__(self, k: int) -> RigDraw:
+        return RigDraw({name: float(v[k]) for name, v in self.physical.items()},
+                       float(self.latency_s[k]),
+                       tuple(float(v) for v in self.noise_std[k]),  # type: ignore[arg-type]
+                       tuple(float(v) for v in self.start[k]),  # type: ignore[arg-type]
+                       int(self.noise_seed[k]))
+
+    def as_overrides(self) -> dict[str, np.ndarray]:
+        """:meth:`RigDraw.as_overrides` of every rig: (m,) a name."""
+        out: dict[str, np.ndarray] = dict(self.physical)
+        out[LATENCY] = self.latency_s
+        out.update(zip(NOISE, self.noise_std.T))
+        out.update(zip(INITIAL, self.start.T))
         out["noise.seed"] = self.noise_seed
         return out
 
@@ -121,29 +153,45 @@ class Task:
         return self.config.current_loop.current_limit_a
 
     def draw(self, rng: np.random.Generator) -> RigDraw:
-        """One rig from ``rng``: the distribution's uniform draws (one per varied
+        """One rig from ``rng`` (:meth:`draw_many` of one generator)."""
+        return self.draw_many([rng])[0]
+
+    def draw_many(self, generators: Sequence[np.random.Generator]) -> RigDraws:
+        """One rig from each generator: the distribution's uniform draws (one per varied
         parameter, in the file's sorted order, as
         :meth:`pisc_bringup.uncertainty.Distribution.draw` orders them), then the
-        catch's start angle, then the noise seed."""
-        values: dict[str, float] = {}
-        if self.distribution is not None:
-            u = rng.random(len(self.distribution.ranges))
-            for j, r in enumerate(self.distribution.ranges):
-                values[r.name] = float(r.sample(u[j:j + 1])[0])
+        catch's start angle, then the noise seed. The values are computed for all rigs
+        at once, each from its own uniform draws, with the same numbers as one at a
+        time (numpy's elementwise functions do not depend on the array's length)."""
+        m = len(generators)
+        ranges = self.distribution.ranges if self.distribution is not None else ()
+        u = np.empty((m, len(ranges)))
+        angle = np.zeros(m)
+        seed = np.empty(m, dtype=np.int64)
+        catch = self.task == "catch"
+        for k, rng in enumerate(generators):
+            if ranges:
+                u[k] = rng.random(len(ranges))
+            if catch:
+                angle[k] = rng.uniform(-self.start_angle_rad, self.start_angle_rad)
+            seed[k] = rng.integers(NOISE_SEED_RANGE)
+        values = {r.name: np.asarray(r.sample(np.ascontiguousarray(u[:, j])), dtype=float)
+                  for j, r in enumerate(ranges)}
         i0 = self.config.initial
-        nominal = (i0.x_m, i0.x_dot_mps, i0.theta_rad, i0.theta_dot_radps)
-        if self.task == "catch":
-            angle = float(rng.uniform(-self.start_angle_rad, self.start_angle_rad))
-            start = (self.middle_m, 0.0, angle, 0.0)
+        if catch:
+            start = np.zeros((m, 4))
+            start[:, 0] = self.middle_m
+            start[:, 2] = angle
         else:
-            start = tuple(values.get(name, v) for name, v in zip(INITIAL, nominal))
+            nominal = (i0.x_m, i0.x_dot_mps, i0.theta_rad, i0.theta_dot_radps)
+            start = np.column_stack([values.get(name, np.full(m, v))
+                                     for name, v in zip(INITIAL, nominal)])
         noise = self.plant.noise
-        std = tuple(values.get(name, float(getattr(noise, name.split(".")[1])))
-                    for name in NOISE)
-        seed = int(rng.integers(NOISE_SEED_RANGE))
+        std = np.column_stack([values.get(name, np.full(m, float(getattr(
+            noise, name.split(".")[1])))) for name in NOISE])
+        latency = values.get(LATENCY, np.full(m, self.plant.actuator.command_delay_s))
         physical = {name: values[name] for name in self.physical_names}
-        return RigDraw(physical, values.get(LATENCY, self.plant.actuator.command_delay_s),
-                       std, start, seed)  # type: ignore[arg-type]
+        return RigDraws(physical, latency, std, start, seed)
 
 
 def _number(name: str, value: Any, low: float, high: float, low_open: bool = False) -> float:

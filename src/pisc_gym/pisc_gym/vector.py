@@ -2,8 +2,8 @@
 
 ``gymnasium.make_vec("pisc/SwingUp-v0", num_envs=N)`` (after ``import pisc_gym``) builds
 :class:`PiscVectorEnv`, which takes :class:`pisc_gym.env.PiscEnv`'s keywords. Its rigs
-are :class:`pisc_gym.rigs.Rigs` of N: every step is a few compiled passes over all of
-them (command, plant, sensors), not N Python steps.
+are :class:`pisc_gym.rigs.Rigs` of N: every step is one compiled pass over all of
+them (command, plant, outcome, sensors), not N Python steps.
 
 Each sub-environment is the single environment: with ``reset(seed=s)`` sub-environment
 k is seeded with ``s + k``, as Gymnasium's :class:`~gymnasium.vector.SyncVectorEnv`
@@ -80,17 +80,15 @@ class PiscVectorEnv(VectorEnv):
         for k, s in enumerate(seeds):
             if s is not None or self._generators[k] is None:
                 self._generators[k] = seeding.np_random(s)[0]
-        draws = [self.task.draw(g) for g in self._generators]  # type: ignore[arg-type]
+        draws = self.task.draw_many(self._generators)  # type: ignore[arg-type]
         rigs = self._rigs
         rigs.reset(np.arange(self.num_envs), draws)
         rigs.observe()
         self._done[:] = False
         self._started = True
-        names = draws[0].as_overrides()
-        drawn = {name: np.array([d.as_overrides()[name] for d in draws]) for name in names}
         ones = np.ones(self.num_envs, dtype=np.bool_)
         return rigs.observation(), {"true_state": rigs.true_state(), "_true_state": ones,
-                                    "rig": drawn, "_rig": ones}
+                                    "rig": draws.as_overrides(), "_rig": ones}
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           dict[str, Any]]:
@@ -102,16 +100,13 @@ class PiscVectorEnv(VectorEnv):
         if actions.size != n:
             raise ValueError(f"actions of shape {actions.shape}: one a sub-environment, "
                              f"({n}, 1) or ({n},)")
-        rigs.advance(rigs.command(actions.reshape(n)))
-        reward, terminated, truncated = rigs.outcome()
+        # the sub-environments that ended at the last step start anew (NEXT_STEP): reset
+        # before the step, which leaves them at their start, their outcome 0
         done = np.flatnonzero(self._done)
         if len(done):
-            rigs.reset(done, [self.task.draw(self._generators[k])  # type: ignore[arg-type]
-                              for k in done.tolist()])
-            reward[done] = 0.0
-            terminated[done] = False
-            truncated[done] = False
-        rigs.observe()
+            rigs.reset(done, self.task.draw_many([self._generators[k]  # type: ignore[misc]
+                                                  for k in done.tolist()]))
+        reward, terminated, truncated = rigs.step(actions.reshape(n), self._done)
         self._done = terminated | truncated
         ones = np.ones(n, dtype=np.bool_)
         infos = {"true_state": rigs.true_state(), "_true_state": ones,

@@ -17,6 +17,25 @@ from pisc_sim.closed_loop import Controllers, simulate
 from pisc_sim.scene import load_scene
 
 
+LATE = """distribution:
+  description: latencies past half a period and past the period, a few unknowns
+  parameters:
+    actuator.command_delay_s: {uniform: [0.0, 0.007]}
+    motor.resistance_ohm: {relative: 0.3}
+    rig.pendulum_mass_kg: {relative: 0.2}
+    noise.x_std_m: {uniform: [0.0, 0.00043]}
+"""
+
+
+@pytest.fixture(scope="module")
+def late(tmp_path_factory) -> str:
+    """A distribution whose latencies cut a period into parts of one and two substeps
+    in either part, or miss the period (the command then takes effect at the next)."""
+    path = tmp_path_factory.mktemp("late") / "late.yaml"
+    path.write_text(LATE)
+    return str(path)
+
+
 def closed_loop_of(env: PiscEnv, rig: dict, seconds: float):
     """The pure closed loop (pisc_sim.closed_loop.simulate) of the rig ``env`` drew: the
     scene with the distribution's fixed plant and the rig's values as plant overrides."""
@@ -43,14 +62,21 @@ def run_policy(env: PiscEnv, seed: int, steps: int, current: bool):
     return info["rig"], np.array(rows)
 
 
-@pytest.mark.parametrize("distribution, task, current", [
-    (None, "swing_up", False), ("thesis-rig", "swing_up", False),
-    ("thesis-rig", "swing_up", True), ("thesis-rig", "catch", False)])
-def test_controllers_as_policy_give_the_closed_loops_voltages_bit_for_bit(distribution, task,
-                                                                          current):
+@pytest.mark.parametrize("distribution, task, current, seed", [
+    (None, "swing_up", False, 11), ("thesis-rig", "swing_up", False, 11),
+    ("thesis-rig", "swing_up", True, 11), ("thesis-rig", "catch", False, 11),
+    ("late", "swing_up", False, 0), ("late", "swing_up", True, 4)])
+def test_controllers_as_policy_give_the_closed_loops_voltages_bit_for_bit(
+        distribution, task, current, seed, late):
+    if distribution == "late":
+        distribution = late
     env = PiscEnv(task, distribution=distribution, episode_s=4.0,
                   action="current" if current else "voltage")
-    rig, rows = run_policy(env, 11, 800, current)
+    rig, rows = run_policy(env, seed, 800, current)
+    if distribution == late:  # seed 0: past half a period; seed 4: past the period
+        period = env.task.period_s
+        assert period / 2 < rig["actuator.command_delay_s"] < period or seed != 0
+        assert rig["actuator.command_delay_s"] > period or seed != 4
     config, log = closed_loop_of(env, rig, 4.0)
     n = len(rows)
     assert n > 400  # the episode ran (the cart stayed in the safe range)
@@ -64,36 +90,42 @@ def test_controllers_as_policy_give_the_closed_loops_voltages_bit_for_bit(distri
 
 
 def test_a_caught_pendulum_is_rewarded_and_the_episode_truncates():
-    env = PiscEnv("swing_up", episode_s=10.0)
+    """The configuration's controllers swing up and hold (whatever laws it names); every
+    step's reward is r = (1 + cos theta)/2 - w_x (x - x_mid)^2 - w_u (u / u_max)^2 of the
+    true state after it and the voltage commanded, computed here from the info."""
+    env = PiscEnv("swing_up", episode_s=10.0, x_weight=7.0, voltage_weight=0.03)
     obs, _ = env.reset(seed=0)
     controllers = Controllers(env.task.config)
-    total, steps = 0.0, 0
+    low, high = env.task.config.supervisor.safety.x_min_m, env.task.config.supervisor.safety.x_max_m
+    u_max = env.task.config.simulated_plant.actuator.full_scale_v
+    rewards, expected = [], []
     while True:
         out = controllers.step(*(float(v) for v in obs[:3]))
         obs, reward, terminated, truncated, info = env.step(np.array([out.voltage]))
-        total += reward
-        steps += 1
+        x, _, theta, _, _ = info["true_state"]
+        rewards.append(reward)
+        expected.append((1.0 + np.cos(theta)) / 2.0 - 7.0 * (x - (low + high) / 2.0) ** 2
+                        - 0.03 * (info["voltage_v"] / u_max) ** 2)
         if terminated or truncated:
             break
-    assert truncated and not terminated and steps == 2000
-    x, _, theta, _, _ = info["true_state"]
-    assert abs(np.cos(theta) - 1.0) < 1e-3 and abs(x) < 0.02  # held upright at x* = 0
-    # the reward's centre is the safe range's middle, -0.05 m, 5 cm from the controller's
-    # x*: 1 - x_weight (x + 0.05)^2 = 1 - 10 * 0.05^2 = 0.975, less a little voltage
-    assert reward == pytest.approx(1.0 - 10.0 * (x + 0.05) ** 2, abs=2e-3)
-    assert reward > 0.97
+    assert truncated and not terminated and len(rewards) == 2000
+    assert abs(np.cos(theta) - 1.0) < 1e-3  # held upright
+    np.testing.assert_allclose(rewards, expected, rtol=0, atol=1e-12)
+    assert rewards[0] < 0.01 < 0.9 < rewards[-1]  # hanging at the start, upright at the end
 
 
 def _random_actions(n: int, steps: int, limit: float) -> np.ndarray:
     return np.random.default_rng(5).uniform(-limit, limit, (steps, n))
 
 
-@pytest.mark.parametrize("n, picked", [(5, range(5)), (300, (0, 17, 256, 299))])
-def test_the_vector_environment_is_n_single_ones(n, picked):
-    options = dict(task="catch", distribution="thesis-rig", episode_s=0.15, velocities=True,
-                   fall_rad=0.35)
+@pytest.mark.parametrize("n, picked, distribution, action", [
+    (5, range(5), "thesis-rig", "voltage"), (300, (0, 17, 256, 299), "thesis-rig", "voltage"),
+    (40, range(0, 40, 3), "late", "current")])
+def test_the_vector_environment_is_n_single_ones(n, picked, distribution, action, late):
+    options = dict(task="catch", distribution=late if distribution == "late" else distribution,
+                   episode_s=0.15, velocities=True, fall_rad=0.35, action=action)
     vector = PiscVectorEnv(n, **options)
-    actions = _random_actions(n, 70, 11.47)
+    actions = _random_actions(n, 70, vector.single_action_space.high[0])
     obs, infos = vector.reset(seed=100)
     got = [(obs, None, None, None)]
     for a in actions:
@@ -101,6 +133,9 @@ def test_the_vector_environment_is_n_single_ones(n, picked):
         got.append((o, r, te, tr))
     # rigs fell and were reset, and others reached the episode's end
     assert any(te.any() for _, _, te, _ in got[1:]) and any(tr.any() for *_, tr in got[1:])
+    if distribution == "late":  # parts of one and of two substeps, and commands too late
+        latency = infos["rig"]["actuator.command_delay_s"] / vector.task.period_s
+        assert latency.min() < 0.5 < latency.max() and (latency > 1.0).any()
     for k in picked:
         env = PiscEnv(**options)
         o, info = env.reset(seed=100 + k)
@@ -167,6 +202,17 @@ def test_bad_input_is_refused_naming_it(options, message):
         PiscEnv("catch", **options)
     with pytest.raises((ConfigError, TypeError), match=message):
         gym.make_vec("pisc/Catch-v0", num_envs=2, **options)
+
+
+def test_an_action_that_is_not_finite_is_refused_naming_it():
+    env = PiscEnv("catch")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action nan \\(rig 0 of 1\\)"):
+        env.step(np.array([np.nan]))
+    vector = PiscVectorEnv(4, task="catch")
+    vector.reset(seed=0)
+    with pytest.raises(ValueError, match="action inf \\(rig 2 of 4\\)"):
+        vector.step(np.array([0.0, 1.0, np.inf, 2.0]))
 
 
 def test_an_unknown_task_is_refused():
