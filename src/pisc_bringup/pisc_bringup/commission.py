@@ -35,7 +35,6 @@ file simulated in lockstep: a rehearsal) or ``virtual`` (a plant parameter file 
 from __future__ import annotations
 
 import datetime
-import hashlib
 import json
 import math
 import os
@@ -47,6 +46,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pisc_bringup.commission_report import digest_files
 from pisc_msgs_py.config import ConfigError
 
 __all__ = ["RECORD", "STAGES", "CommissionError", "Context", "Plan", "Rig", "StageMismatch",
@@ -219,18 +219,6 @@ class Context:
 
 def stage_dir(directory: Path, stage: str) -> Path:
     return Path(directory) / f"{STAGES.index(stage) + 1}-{stage}"
-
-
-def digest_files(paths: list[Path]) -> dict[str, str]:
-    """The SHA-256 (first 16 hex digits) of each file, by name: what identifies an input."""
-    out = {}
-    for path in paths:
-        h = hashlib.sha256()
-        with open(path, "rb") as stream:
-            for block in iter(lambda: stream.read(1 << 20), b""):
-                h.update(block)
-        out[path.name] = h.hexdigest()[:16]
-    return out
 
 
 def _plain(value: Any) -> Any:

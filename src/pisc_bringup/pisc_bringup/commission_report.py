@@ -17,6 +17,7 @@ and the versions of PISC and of the libraries that made it.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import platform
 import subprocess
@@ -222,9 +223,19 @@ def _inputs(ctx: Any) -> list[str]:
     return lines
 
 
-def _digest(path: Path) -> str:
-    from pisc_bringup.commission import digest_files
+def digest_files(paths: list[Path]) -> dict[str, str]:
+    """The SHA-256 (first 16 hex digits) of each file, by name: what identifies an input."""
+    out = {}
+    for path in paths:
+        h = hashlib.sha256()
+        with open(path, "rb") as stream:
+            for block in iter(lambda: stream.read(1 << 20), b""):
+                h.update(block)
+        out[path.name] = h.hexdigest()[:16]
+    return out
 
+
+def _digest(path: Path) -> str:
     return digest_files([path])[path.name]
 
 

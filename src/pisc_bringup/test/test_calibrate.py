@@ -192,6 +192,8 @@ def write(tmp_path, text):
 
 JOINT = """\
 distribution:
+  plant:
+    models: {friction: viscous}
   parameters:
     initial.x_m: {offset: 0.1}
   joint:
