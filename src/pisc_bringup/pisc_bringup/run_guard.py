@@ -174,7 +174,8 @@ class RunGuard:
             self._stop()
         for topic, pin in self._pins.items():
             count = self.watcher.count_publishers(topic)
-            if count == self._counts[topic] and (pin is None or not pin.intruders):
+            if count == self._counts[topic] and (pin is None or not (pin.intruders
+                                                                    or pin.pending)):
                 continue
             self._counts[topic] = count
             listed = listed_publishers(self.watcher, topic)

@@ -128,6 +128,14 @@ class PublisherPin:
     graph lists exactly one endpoint of that name; any other matched publisher is an
     intruder while it is there (pure).
 
+    Discovery tells an endpoint some milliseconds before the name of its node (the rmw
+    lists it under ``_NODE_NAME_UNKNOWN_`` meanwhile; seen for 20-80 ms on a driver's
+    start). Before any owner is pinned, publishers the graph does not name yet are
+    ``pending``: nothing on the topic is admitted, nothing is said, and the graph is asked
+    again on every message until it names them (the owner's own is then pinned, another
+    node's is an intruder, said then). Once a pin is set, a publisher not yet named is an
+    intruder at once.
+
     rclpy on Jazzy gives no publisher GID with a message (ros2/rclpy#1466 came after),
     so messages cannot be sorted by sender: while an intruder is matched nothing on the
     topic may be used. The subscription's matched count is cheap to read on every
@@ -157,6 +165,7 @@ class PublisherPin:
         self.named: list[str] = []  # the intruders named since the last had gone
         self.fence_ns = -1  # no message answering a sample up to this stamp is admitted
         self.refused = 0  # messages not admitted while no intruder was matched
+        self.pending = False  # before a pin: publishers the graph does not name yet
 
     @property
     def pinned(self) -> bytes | None:
@@ -168,7 +177,7 @@ class PublisherPin:
         :meth:`look` first): not while an intruder is matched, and not when it answers a
         sample no later than the newest one when an intruder's departure was seen
         (``fence_ns``): the intruder's messages still queued answer those."""
-        if self.intruders:
+        if self.intruders or self.pending:
             return False
         if stamp_ns <= self.fence_ns:
             self.refused += 1
@@ -193,6 +202,10 @@ class PublisherPin:
                     self.pins[name] = ours[0].gid
         pinned = set(self.pins.values())
         others = [e for e in listed if e.gid not in pinned]
+        # before a pin, an endpoint not yet named may be an owner's own: wait for its name
+        self.pending = not self.pins and any(e.node == UNNAMED for e in others)
+        if self.pending:
+            others = [e for e in others if e.node != UNNAMED]
         intruders = tuple(e.fully_qualified for e in others)
         if (not intruders and self.pins
                 and matched > len(listed) - len(others)):

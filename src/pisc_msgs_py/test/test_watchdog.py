@@ -94,13 +94,36 @@ def test_the_first_stage_without_output_for_the_sample_is_named():
         "current_loop", None)
 
 
-def test_a_publisher_not_yet_named_by_discovery_is_held_off_and_said_so():
+def _unnamed(endpoint: Endpoint) -> Endpoint:
+    """The endpoint as discovery first lists it, before its node's name."""
+    return Endpoint("_NODE_NAME_UNKNOWN_", "_NODE_NAMESPACE_UNKNOWN_", endpoint.gid)
+
+
+def test_before_the_pin_a_publisher_not_yet_named_is_held_off_until_it_is_named():
+    """A driver's own publisher was listed unnamed for 20-80 ms at its start, and was said
+    to be another publisher: every run through the driver judged unsafe. Before the pin
+    nothing is admitted and nothing said until discovery names it."""
     pin = PublisherPin("current_loop")
-    early = Endpoint("_NODE_NAME_UNKNOWN_", "_NODE_NAMESPACE_UNKNOWN_", LOOP.gid)
-    assert pin.look(1, [early]) == PinChange(
+    assert pin.look(1, [_unnamed(LOOP)]) is None
+    assert pin.pending and pin.intruders == () and pin.pinned is None
+    assert not pin.admits(1000) and pin.needs_look(1)
+    assert pin.look(1, [LOOP]) is None
+    assert not pin.pending and pin.pinned == LOOP.gid and pin.admits(1000)
+    # named as another node's: an intruder, said then
+    pin = PublisherPin("current_loop")
+    assert pin.look(1, [_unnamed(VISITOR)]) is None and not pin.admits(1000)
+    assert pin.look(1, [VISITOR]) == PinChange(intruders=("/lab/visitor",))
+    assert pin.pinned is None and not pin.admits(1000)
+
+
+def test_after_the_pin_a_publisher_not_yet_named_is_an_intruder_at_once():
+    pin = PublisherPin("current_loop")
+    pin.look(1, [LOOP])
+    assert pin.look(2, [LOOP, _unnamed(VISITOR)]) == PinChange(
         intruders=("a publisher whose node the ROS graph does not name yet",))
-    assert pin.pinned is None and pin.needs_look(1)
-    assert pin.look(1, [LOOP]).left and pin.pinned == LOOP.gid and pin.intruders == ()
+    assert not pin.pending and not pin.admits(1000) and pin.needs_look(2)
+    assert pin.look(2, [LOOP, VISITOR]) == PinChange(intruders=("/lab/visitor",))
+    assert pin.look(1, [LOOP]).left == ("/lab/visitor",)
 
 
 def test_the_pin_admits_nothing_a_departed_intruder_left_queued():
