@@ -57,8 +57,10 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
     the recorder's progress (/pisc/recorder/progress) when it is 20 samples ahead of it.
 
     Here the recorder is stopped (SIGSTOP) for 3 s once its bag holds about 600 cycles
-    (3 s of the 15 s run; the plant cannot be far ahead of it: 12 s of the run are left,
-    2-3 s of wall time at the lockstep's pace with --processes). Stopped once this test's
+    (3 s of the 30 s run; the plant cannot be far ahead of it: 27 s of the run are left,
+    5-10 s of wall time at the lockstep's pace; with 15 s, on a machine loaded by other
+    work, the test saw the bag's size only after the run had ended, 1 of 4 runs on
+    2026-12-06). Stopped once this test's
     subscriber had seen 600 voltages, the run ended first when that subscriber was
     discovered late (1 of 4 runs on 2026-12-03); stopped at the recorder's ready file,
     before the run began, a controller's first messages were lost when its publisher had
@@ -67,7 +69,7 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
     of that sample or later reaches an outside subscriber before the recorder goes on; the
     bag has every cycle."""
     bag = tmp_path / "stalled"
-    duration_s = 15.0
+    duration_s = 30.0
     graph, watch = start_graph_with_watch(
         ["--duration", str(duration_s), *(["--processes"] if processes else [])], bag,
         env_for_domain, ros_context)
@@ -124,7 +126,9 @@ def test_a_stalled_recorder_pauses_the_lockstep_graph_and_the_bag_loses_nothing(
              if s.name == "pisc/plant" and "the recorder" in s.message]
     waits = [w for w in plant if "waiting for the recorder" in w]
     assert waits and all(w.startswith("lockstep: waiting for the recorder: sample ")
-                         for w in waits), plant
+                         for w in waits), [
+        f"{s.name}: {s.message}" for m in read_bag(bag, [DIAGNOSTICS.name])
+        for s in m.message.status if s.level != b"\x00"]
     # the stop's: the first sample held after every one seen before the stop (a wait of a
     # recorder short of the CPU earlier in the run holds an earlier sample)
     period_ns = round(PERIOD_S * 1e9)
