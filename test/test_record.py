@@ -490,3 +490,36 @@ def test_the_recorders_progress_is_the_oldest_of_its_sample_topics_newest(
     with pytest.raises(ValueError, match="resay_after_s = 0: must be > 0"):
         RecorderNode(BagWriter(tmp_path / "refused2", topics), topics, resay_after_s=0,
                      context=ros_context)
+
+
+def test_a_publisher_not_yet_named_is_foreign_only_when_the_run_has_fewer(
+        tmp_path, ros_context, monkeypatch):
+    """Discovery lists an endpoint before its node's name (a driver's own publishers for
+    20-80 ms as it started) and a moment after (as a node ends): the recorder marked them
+    as another publisher, and the hidden-rig benchmark judged 8 of 10 swing-ups through
+    the driver unsafe. Unnamed, a publisher is foreign only when more are matched than the
+    run has; named, one not of the run's nodes is foreign whatever the count."""
+    from types import SimpleNamespace
+
+    from pisc_bringup.bag import BagWriter
+    from pisc_bringup.recorder_node import RecorderNode
+
+    topics = [VOLTAGE]
+    node = RecorderNode(BagWriter(tmp_path / "bag", topics), topics, context=ros_context)
+    node.expect_publishers({VOLTAGE.name: 1}, own=["current_loop", "driver"])
+    listed: list[SimpleNamespace] = []
+    monkeypatch.setattr(node, "get_publishers_info_by_topic", lambda topic: listed)
+
+    def endpoint(name: str, namespace: str = "/") -> SimpleNamespace:
+        return SimpleNamespace(node_name=name, node_namespace=namespace)
+
+    unnamed = endpoint("_NODE_NAME_UNKNOWN_", "_NODE_NAMESPACE_UNKNOWN_")
+    listed[:] = [unnamed]  # the run's own, before its name
+    assert node._others(VOLTAGE.name, 1) == ""
+    listed[:] = [endpoint("current_loop"), unnamed]  # one more than the run has
+    assert node._others(VOLTAGE.name, 2) == "a publisher the ROS graph does not name yet"
+    listed[:] = [endpoint("current_loop"), endpoint("visitor", "/lab")]
+    assert node._others(VOLTAGE.name, 2) == "/lab/visitor"
+    listed[:] = [endpoint("visitor", "/lab")]  # named: foreign at any count
+    assert node._others(VOLTAGE.name, 1) == "/lab/visitor"
+    node.destroy_node()

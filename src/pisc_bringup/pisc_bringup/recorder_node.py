@@ -141,13 +141,18 @@ class RecorderNode(Node):
 
     def _others(self, topic: str, matched: int) -> str:
         """The publishers on ``topic`` not of the run's nodes, as the graph names them
-        ('' for none: then only more matched than the run has is one, unnamed)."""
+        ('' for none: then only more matched than the run has is one, unnamed).
+
+        A publisher the graph does not name yet counts only by the count: discovery lists
+        an endpoint before its node's name (the run's own, for 20-80 ms as a node starts)
+        and keeps it a moment after the name has gone (as a node ends), so unnamed it is
+        foreign only when more are matched than the run has."""
         names = set()
         for i in self.get_publishers_info_by_topic(topic):
-            if i.node_name in self._own or not self._own:  # (no names: by the count alone)
+            if (i.node_name in self._own or not self._own  # (no names: by the count alone)
+                    or i.node_name.startswith("_NODE_NAME_UNKNOWN")):
                 continue
-            names.add(UNNAMED if i.node_name.startswith("_NODE_NAME_UNKNOWN")
-                      else f"{i.node_namespace.rstrip('/')}/{i.node_name}")
+            names.add(f"{i.node_namespace.rstrip('/')}/{i.node_name}")
         if not names and matched > self._expected[topic]:
             names.add(UNNAMED)
         return ", ".join(sorted(names))
