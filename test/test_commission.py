@@ -282,6 +282,12 @@ def test_the_distribution_widens_each_interval_by_the_factor_about_its_estimate(
     assert ranges["friction.pivot_viscous_nms"] == pytest.approx([0.0, 1e-4])
     assert "motor.viscous_friction_nms" not in ranges and "current_offset" not in ranges
     assert "not identifiable from these runs: thesis-rig's range" in text
+    # runs whose commands came late (p99 6.4 ms, as on a busy machine): refused, saying so
+    identified["latency_s"]["p99"] = 6.425e-3
+    with pytest.raises(ValueError, match=r"the latency reaches 6\.675 ms \(the recorded "
+                       r"sample-to-voltage p99 6\.425 ms plus the identified delay, widened\)"
+                       r": past the 5 ms period"):
+        rd.distribution_text(identified, plan, prior)
 
 
 def test_the_benchmarks_hidden_rig_is_a_plant_file_of_its_draw(tmp_path, capsys):

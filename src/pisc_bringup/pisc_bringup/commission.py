@@ -458,7 +458,10 @@ def _distribution(ctx: Context, where: Path) -> dict[str, Any]:
     rig_file = identify / "rig.yaml"
     config, _ = load_graph_config(str(rig_file))
     prior = load_distribution(ctx.plan.prior, config)
-    text = rd.distribution_text(identified, ctx.plan, prior)
+    try:
+        text = rd.distribution_text(identified, ctx.plan, prior)
+    except ValueError as exc:
+        raise CommissionError(f"{where.name}: {exc}") from None
     path = where / "rig-distribution.yaml"
     path.write_text(text)
     distribution = load_distribution(str(path), config)  # it reads as any distribution

@@ -185,6 +185,15 @@ def distribution_text(identified: Mapping[str, Any], plan: Any, prior: Any) -> s
     if delay is not None:
         d_lo, d_hi = _range(LATENCY, delay["value"], delay["low"], delay["high"], plan.widen)
         lo, hi = max(0.0, lat["p1"] + d_lo), lat["p99"] + d_hi
+        period = float(flat["loop.period_s"])
+        if hi >= period:
+            # (the batch simulation models a command that comes within its period)
+            raise ValueError(
+                f"the latency reaches {hi * 1e3:.3f} ms (the recorded sample-to-voltage p99 "
+                f"{lat['p99'] * 1e3:.3f} ms plus the identified delay, widened): past the "
+                f"{period * 1e3:g} ms period, commands came late in these runs (a machine "
+                "busy with other work, or runs without --realtime); make the runs again on "
+                "a quiet machine (remove 1-excitation and the stages after it)")
         entries[LATENCY] = (lo, hi, f"recorded p1 {lat['p1'] * 1e3:.3f} .. p99 "
                             f"{lat['p99'] * 1e3:.3f} ms, plus the delay "
                             f"{_fmt(delay['value'])} s (95 %: {_fmt(delay['low'])} .. "
