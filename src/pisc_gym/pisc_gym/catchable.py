@@ -239,15 +239,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"starts {args.start!r}, seed {args.seed}, {time.perf_counter() - started:.0f} s")
     print(f"a plan within the track (linear model): {share(int(keeps.sum()))}")
     print(f"caught by the plan flown through the environment: {share(int(caught.sum()))}")
-    print("by |theta_0| [rad]: with a plan / caught flown / starts; the largest slack "
-          "(how far past the track the best input goes)")
+    print("by |theta_0| [rad]: starts; with a plan; caught flown; the best plan past the "
+          "track (its largest slack); no plan at all")
     edges = np.linspace(0.0, env.task.start_angle_rad, 7)
     for low, high in zip(edges[:-1], edges[1:]):
         m = (angle >= low) & (angle < high + (1e-12 if high == edges[-1] else 0.0))
-        worst = np.max(np.where(np.isfinite(slack[m]), slack[m], np.nan)) if m.any() else 0
-        print(f"  {low:.2f}-{high:.2f}: {int(keeps[m].sum()):4d} / {int(caught[m].sum()):4d} "
-              f"/ {int(m.sum()):4d}; slack up to {1000 * np.nan_to_num(worst):.0f} mm, "
-              f"{int((~np.isfinite(slack[m])).sum())} without any plan")
+        past = m & np.isfinite(slack) & ~keeps
+        worst = f", up to {1000 * slack[past].max():.1f} mm" if past.any() else ""
+        print(f"  {low:.2f}-{high:.2f}: {int(m.sum()):4d}; {int(keeps[m].sum()):4d}; "
+              f"{int(caught[m].sum()):4d}; {int(past.sum()):3d}{worst}; "
+              f"{int((~np.isfinite(slack[m])).sum()):3d}")
     return 0
 
 
