@@ -1,6 +1,8 @@
 """pisc_gym_catchable: which of the catch task's starts can be caught at all?
 
-    pisc_gym_catchable [--start arriving|rest] [--starts 1000] [--seed 2147483648]
+    pisc_gym_catchable [--start arriving|rest] [--starts 300] [--seed 2147483648]
+
+(a few seconds a start on a loaded machine: two linear programmes and the flight)
 
 Before asking a learner for a rate, ask the task: for each start of ``pisc/Catch-v0``
 (``thesis-rig`` rigs, drawn as the vector environment draws them from ``--seed``), does
@@ -27,7 +29,8 @@ Two answers, one a bound each way:
    start it catches is catchable, shown by an input.
 
 The share caught by (2) is a lower bound on what any policy can reach on the task, and
-the share with a plan (1) an upper bound up to the linearisation. docs/gym.md ("What the
+the share with a plan (1) an upper bound up to the linearisation and the solver (a
+programme HiGHS cannot settle counts as one without a plan). docs/gym.md ("What the
 catch task allows") has the figures.
 """
 
@@ -42,7 +45,7 @@ import numpy as np
 
 from pisc_gym.learn import CAUGHT_RAD, HOLD_S
 
-__all__ = ["Plan", "fly", "linearise", "main", "plan"]
+__all__ = ["Plan", "fly", "linearise", "main", "plan", "plans", "tracking_gain"]
 
 STATE = 5  # x, x_dot, theta, theta_dot, i
 MARGIN_M = 0.005  # the plan flown keeps this far inside the track,
@@ -214,7 +217,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--start", choices=("arriving", "rest"), default="arriving",
                         help="the catch task's starts (pisc_gym.task)")
-    parser.add_argument("--starts", type=int, default=1000)
+    parser.add_argument("--starts", type=int, default=300)
     parser.add_argument("--seed", type=int, default=2**31,
                         help="the vector environment's seed (default: pisc_gym_learn's "
                              "evaluation)")
