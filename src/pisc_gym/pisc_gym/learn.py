@@ -8,7 +8,7 @@ The task is ``pisc/Catch-v0`` on ``thesis-rig`` rigs (each start a new rig: moto
 masses, friction, noise and latency drawn from the distribution), the pendulum within
 0.3 rad of upright as the swing-up hands it over (``--start arriving``, the task's
 default: energy 0, moving towards upright) or at rest (``--start rest``, of which no
-input catches about a quarter: :mod:`pisc_gym.catchable`), the action the current
+input catches a fifth to a quarter: :mod:`pisc_gym.catchable`), the action the current
 set-point through PISC's PI current loop, the observation the sensors' x, theta, i and
 the estimator's differences.
 
@@ -94,12 +94,13 @@ def episodes(gains: np.ndarray, seed: int, **options) -> tuple[np.ndarray, np.nd
     environment seeded ``seed``): (returns, caught)."""
     env, obs, info = environment(len(gains), seed, **options)
     middle = env.task.middle_m
-    return run(env, obs, info, lambda k, obs, info: np.sum(gains * features(obs, middle) / SCALE,
-                                                 axis=1))
+    return run(env, obs, info,
+               lambda k, obs, info: np.sum(gains * features(obs, middle) / SCALE, axis=1))
 
 
 def learn(generations: int, population: int, starts: int, seed: int,
-          report: bool = True, start: str = "arriving") -> tuple[np.ndarray, list[tuple[float, float, float]]]:
+          report: bool = True, start: str = "arriving"
+          ) -> tuple[np.ndarray, list[tuple[float, float, float]]]:
     """CMA-ES from zero gains: the final mean and, per generation, (best, mean) return of
     the candidates and the mean's return."""
     from cmaes import CMA

@@ -25,8 +25,9 @@ Tasks:
       (2.54)'s pendulum terms): theta_dot = -sign(theta) sqrt(2 m g l (1 - cos theta)
       / (I + m l^2)) with the drawn rig's own m, l, I and g;
     - ``rest``: at rest (theta_dot = 0), a push to recover from. On ``thesis-rig`` rigs
-      a quarter of these starts past 0.2 rad cannot be caught by any input within the
-      track and the actuator's limits (docs/gym.md, "What the catch task allows").
+      a fifth to a quarter of these starts (more than half of those past 0.2 rad) cannot be
+      caught by any input within the track and the actuator's limits (docs/gym.md,
+      "What the catch task allows").
 
     The episode lasts ``episode_s`` (default 3 s) and also ends when the pendulum falls
     past ``fall_rad`` (default pi / 2) from upright.
@@ -205,7 +206,6 @@ class Task:
         latency = values.get(LATENCY, np.full(m, self.plant.actuator.command_delay_s))
         physical = {name: values[name] for name in self.physical_names}
         return RigDraws(physical, latency, std, start, seed)
-
 
     def _arriving_rate(self, angle: np.ndarray, values: dict[str, np.ndarray]) -> np.ndarray:
         """theta_dot towards upright at pendulum energy E_p = 0 (2.54): 1/2 J theta_dot^2
