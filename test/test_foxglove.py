@@ -24,10 +24,11 @@ from pisc_msgs_py.topics import VOLTAGE
 
 pytestmark = pytest.mark.integration
 
-# foxglove-sdk (0.30) names Foxglove's WebSocket protocol v1 "foxglove.sdk.v1" and no
-# longer accepts the old name, "foxglove.websocket.v1", for the same protocol: the client
-# offers both, as the Foxglove app does, and the server picks the new name
-SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+# foxglove-sdk names Foxglove's WebSocket protocol v1 "foxglove.sdk.v1" and refuses the
+# protocol's first name, "foxglove.websocket.v1", in every version on PyPI (docs/foxglove.md,
+# "Protocol"): the client offers the one name the server accepts
+SUBPROTOCOL = "foxglove.sdk.v1"
+LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
 
 
 def free_port() -> int:
@@ -52,14 +53,14 @@ async def first_messages(port: int, child: subprocess.Popen, timeout_s: float
     deadline = loop.time() + timeout_s
     while True:
         try:
-            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS,
+            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL],
                                           max_size=None)
             break
         except OSError:
             if child.poll() is not None or loop.time() > deadline:
                 raise AssertionError("the server never listened") from None
             await asyncio.sleep(0.05)
-    assert ws.subprotocol == "foxglove.sdk.v1"
+    assert ws.subprotocol == SUBPROTOCOL
     channels: dict[int, dict] = {}
     by_subscription: dict[int, int] = {}
     first: dict[int, bytes] = {}
@@ -140,6 +141,33 @@ def test_foxglove_serves_every_topic_and_the_scene_and_leaves_the_voltages(tmp_p
     live = [m.data for m in read_bag_raw(tmp_path / "live", [VOLTAGE.name])]
     alone = [m.data for m in read_bag_raw(tmp_path / "plain", [VOLTAGE.name])]
     assert len(live) == 1601 and live == alone
+
+
+def test_the_sdk_server_speaks_the_protocol_under_its_new_name_only():
+    """What docs/foxglove.md says of the pinned foxglove-sdk: a client that offers only
+    "foxglove.websocket.v1" (older Lichtblick releases) is refused with 400;
+    offered "foxglove.sdk.v1", the server takes it and sends its serverInfo."""
+    import foxglove
+    import websockets
+    from websockets.exceptions import InvalidStatus
+
+    server = foxglove.start_server(name="pisc-test", host="127.0.0.1", port=0)
+
+    async def offer(names: list[str]):
+        async with websockets.connect(f"ws://127.0.0.1:{server.port}",
+                                      subprotocols=names) as ws:
+            return ws.subprotocol, json.loads(await asyncio.wait_for(ws.recv(), 10.0))
+
+    try:
+        with pytest.raises(InvalidStatus) as refused:
+            asyncio.run(offer([LEGACY_SUBPROTOCOL]))
+        assert refused.value.response.status_code == 400
+        assert b"sec-websocket-protocol" in refused.value.response.body
+        chosen, info = asyncio.run(offer([SUBPROTOCOL]))
+        assert chosen == SUBPROTOCOL and info["op"] == "serverInfo"
+        assert info["name"] == "pisc-test"
+    finally:
+        server.stop()
 
 
 def test_a_port_in_use_is_refused_with_its_number_before_the_run(tmp_path, env_for_domain):

@@ -24,7 +24,7 @@ EXECUTABLES = {
     "pisc_model": [],
     "pisc_sim": [],
     "pisc_analysis": ["pisc_analysis"],
-    "pisc_gym": ["pisc_gym_bench", "pisc_gym_learn"],
+    "pisc_gym": ["pisc_gym_bench", "pisc_gym_catchable", "pisc_gym_learn"],
 }
 
 

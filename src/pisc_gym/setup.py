@@ -24,6 +24,7 @@ setup(
         'console_scripts': [
             'pisc_gym_bench = pisc_gym.bench:main',
             'pisc_gym_learn = pisc_gym.learn:main',
+            'pisc_gym_catchable = pisc_gym.catchable:main',
         ],
     },
 )

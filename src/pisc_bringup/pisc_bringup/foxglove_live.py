@@ -2,7 +2,7 @@
 the run's topics and the rig as a 3D scene. No rclpy here (the node is foxglove_node).
 
 :class:`LiveServer` serves, on ``ws://127.0.0.1:PORT`` with Foxglove's WebSocket
-protocol (subprotocol ``foxglove.websocket.v1``):
+protocol v1 (subprotocol ``foxglove.sdk.v1``, the name foxglove-sdk gives it):
 
 * every topic of :data:`LIVE_TOPICS`, its CDR bytes unchanged (message encoding
   ``cdr``) with its ROS 2 message definition as the schema (encoding ``ros2msg``, the

@@ -3,7 +3,7 @@
 ``gymnasium.make("pisc/SwingUp-v0")`` and ``gymnasium.make("pisc/Catch-v0")`` (after
 ``import pisc_gym``) build :class:`PiscEnv`; its keywords are :func:`pisc_gym.task.
 make_task`'s (``scene``, ``distribution``, ``action``, ``velocities``, ``episode_s``,
-``start_angle_rad``, ``fall_rad``, ``x_weight``, ``voltage_weight``).
+``start_angle_rad``, ``start``, ``fall_rad``, ``x_weight``, ``voltage_weight``).
 
 Action (held for one period, applied each rig's latency after the sample, as the PIC
 applies a command byte): ``action="voltage"`` the armature voltage [V], in

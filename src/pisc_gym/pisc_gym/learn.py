@@ -2,12 +2,15 @@
 environment, and count its catches over fresh randomised starts.
 
     pisc_gym_learn [--generations 40] [--population 16] [--starts 32] [--seed 0]
-                   [--evaluate 1000] [--figure FILE]
+                   [--evaluate 1000] [--start arriving|rest] [--figure FILE]
 
 The task is ``pisc/Catch-v0`` on ``thesis-rig`` rigs (each start a new rig: motor,
-masses, friction, noise and latency drawn from the distribution), the pendulum at rest
-within 0.3 rad of upright, the action the current set-point through PISC's PI current
-loop, the observation the sensors' x, theta, i and the estimator's differences.
+masses, friction, noise and latency drawn from the distribution), the pendulum within
+0.3 rad of upright as the swing-up hands it over (``--start arriving``, the task's
+default: energy 0, moving towards upright) or at rest (``--start rest``, of which no
+input catches a fifth to a quarter: :mod:`pisc_gym.catchable`), the action the current
+set-point through PISC's PI current loop, the observation the sensors' x, theta, i and
+the estimator's differences.
 
 The policy is linear in what it observes, ``i_d = g . (x - x_mid, x_dot, theta_wrapped,
 theta_dot)`` (x_mid the middle of the safe range, theta wrapped to the nearest upright,
@@ -34,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CAUGHT_RAD", "episodes", "learn", "main"]
+__all__ = ["CAUGHT_RAD", "environment", "episodes", "features", "learn", "main", "run"]
 
 CAUGHT_RAD = 0.05  # |theta| over the episode's last second, for a catch
 HOLD_S = 1.0
@@ -44,25 +47,21 @@ OPTIONS = {"distribution": "thesis-rig", "action": "current", "velocities": True
 SCALE = np.array([0.1, 0.5, 0.3, 3.0])
 
 
-def episodes(gains: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """One episode of each row of ``gains`` (rigs, 4) on its own randomised rig (vector
-    environment seeded ``seed``): (returns, caught)."""
-    from pisc_gym.vector import PiscVectorEnv
+def run(env, obs: np.ndarray, info: dict, policy) -> tuple[np.ndarray, np.ndarray]:
+    """One episode of each rig of a vector environment ``env`` just reset (its first
+    observation and infos ``obs``, ``info``), the action ``policy(k, obs, info)`` at step
+    k: (returns, caught). A rig is caught when its episode is not terminated and its
+    true angle stays within :data:`CAUGHT_RAD` of upright over the last :data:`HOLD_S`."""
     from pisc_model.dynamics import wrap_to_upright
 
-    n = len(gains)
-    env = PiscVectorEnv(n, task="catch", **OPTIONS)
-    obs, _ = env.reset(seed=seed)
+    n = env.num_envs
     steps = env.task.episode_steps
-    middle = env.task.middle_m
     hold_from = steps - int(round(HOLD_S / env.task.period_s))
     returns = np.zeros(n)
     live = np.ones(n, dtype=bool)  # in its first episode
     held = np.ones(n, dtype=bool)
     for k in range(steps):
-        z = np.column_stack([obs[:, 0] - middle, obs[:, 3], wrap_to_upright(obs[:, 1]),
-                             obs[:, 4]])
-        obs, reward, terminated, truncated, info = env.step(np.sum(gains * z / SCALE, axis=1))
+        obs, reward, terminated, truncated, info = env.step(policy(k, obs, info))
         returns += np.where(live, reward, 0.0)
         if k + 1 >= hold_from:
             angle = np.abs(wrap_to_upright(info["true_state"][:, 2]))
@@ -72,8 +71,36 @@ def episodes(gains: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return returns, held & ~live
 
 
+def environment(n: int, seed: int, **options):
+    """A vector environment of ``n`` catch rigs (:data:`OPTIONS`, then ``options``),
+    reset with ``seed``: (env, observation, infos)."""
+    from pisc_gym.vector import PiscVectorEnv
+
+    env = PiscVectorEnv(n, task="catch", **{**OPTIONS, **options})
+    return (env, *env.reset(seed=seed))
+
+
+def features(obs: np.ndarray, middle_m: float) -> np.ndarray:
+    """The policy's features (rigs, 4): x - x_mid, x_dot, theta wrapped to the nearest
+    upright, theta_dot, from the sensors and the estimator's differences."""
+    from pisc_model.dynamics import wrap_to_upright
+
+    return np.column_stack([obs[:, 0] - middle_m, obs[:, 3], wrap_to_upright(obs[:, 1]),
+                            obs[:, 4]])
+
+
+def episodes(gains: np.ndarray, seed: int, **options) -> tuple[np.ndarray, np.ndarray]:
+    """One episode of each row of ``gains`` (rigs, 4) on its own randomised rig (vector
+    environment seeded ``seed``): (returns, caught)."""
+    env, obs, info = environment(len(gains), seed, **options)
+    middle = env.task.middle_m
+    return run(env, obs, info,
+               lambda k, obs, info: np.sum(gains * features(obs, middle) / SCALE, axis=1))
+
+
 def learn(generations: int, population: int, starts: int, seed: int,
-          report: bool = True) -> tuple[np.ndarray, list[tuple[float, float, float]]]:
+          report: bool = True, start: str = "arriving"
+          ) -> tuple[np.ndarray, list[tuple[float, float, float]]]:
     """CMA-ES from zero gains: the final mean and, per generation, (best, mean) return of
     the candidates and the mean's return."""
     from cmaes import CMA
@@ -83,7 +110,8 @@ def learn(generations: int, population: int, starts: int, seed: int,
     for g in range(generations):
         candidates = np.array([optimizer.ask() for _ in range(optimizer.population_size)])
         rows = np.repeat(np.vstack([candidates, optimizer.mean]), starts, axis=0)
-        returns, _ = episodes(rows, seed * 1_000_003 + g * (population + 1) * starts)
+        returns, _ = episodes(rows, seed * 1_000_003 + g * (population + 1) * starts,
+                              start=start)
         scores = returns.reshape(population + 1, starts).mean(axis=1)
         optimizer.tell([(c, -s) for c, s in zip(candidates, scores[:-1])])
         history.append((float(scores[:-1].max()), float(scores[:-1].mean()),
@@ -95,7 +123,8 @@ def learn(generations: int, population: int, starts: int, seed: int,
     return optimizer.mean.copy(), history
 
 
-def plot(history: list[tuple[float, float, float]], rate: float, n: int, path: Path) -> None:
+def plot(history: list[tuple[float, float, float]], rate: float, n: int, path: Path,
+         start: str = "arriving") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -109,8 +138,8 @@ def plot(history: list[tuple[float, float, float]], rate: float, n: int, path: P
     ax.plot(gens, h[:, 2], label="the policy (CMA-ES mean)", linewidth=2)
     ax.set_xlabel("generation")
     ax.set_ylabel("mean return of its episodes")
-    ax.set_title(f"CMA-ES, pisc/Catch-v0 on thesis-rig rigs: {100 * rate:.1f} % of {n} new "
-                 "starts caught", fontsize=9)
+    ax.set_title(f"CMA-ES, pisc/Catch-v0 on thesis-rig rigs, {start} starts: "
+                 f"{100 * rate:.1f} % of {n} new starts caught", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -120,12 +149,15 @@ def plot(history: list[tuple[float, float, float]], rate: float, n: int, path: P
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="pisc_gym_learn", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--generations", type=int, default=80)
+    parser.add_argument("--generations", type=int, default=40)
     parser.add_argument("--population", type=int, default=16)
     parser.add_argument("--starts", type=int, default=32, help="episodes a candidate")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--evaluate", type=int, default=1000,
                         help="new randomised starts the learnt policy is counted on")
+    parser.add_argument("--start", choices=("arriving", "rest"), default="arriving",
+                        help="the catch's starts (pisc_gym.task): arriving as the swing-up "
+                             "hands the pendulum over (default), or at rest")
     parser.add_argument("--figure", type=Path, help="write the learning curve (PNG) here")
     args = parser.parse_args(argv)
     for name in ("generations", "population", "starts", "evaluate"):
@@ -134,10 +166,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     from pisc_bringup.robustness import binomial_interval
 
     started = time.perf_counter()
-    gains, history = learn(args.generations, args.population, args.starts, args.seed)
+    gains, history = learn(args.generations, args.population, args.starts, args.seed,
+                           start=args.start)
     learnt = time.perf_counter() - started
     # the evaluation's seeds lie past every seed the generations used
-    _, caught = episodes(np.repeat(gains[None, :], args.evaluate, axis=0), 2**31 + args.seed)
+    _, caught = episodes(np.repeat(gains[None, :], args.evaluate, axis=0), 2**31 + args.seed,
+                         start=args.start)
     low, high = binomial_interval(int(caught.sum()), args.evaluate)
     rate = float(caught.mean())
     k = gains / SCALE
@@ -146,7 +180,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"caught {int(caught.sum())} of {args.evaluate} new randomised starts: "
           f"{100 * rate:.1f} % (95 % interval {100 * low:.1f}-{100 * high:.1f} %)")
     if args.figure is not None:
-        plot(history, rate, args.evaluate, args.figure)
+        plot(history, rate, args.evaluate, args.figure, args.start)
         print(f"figure: {args.figure}")
     return 0 if rate >= 0.95 else 1
 

@@ -17,10 +17,20 @@ Tasks:
     Start where the distribution's ``initial.*`` put it (hanging, by default at rest);
     the episode lasts ``episode_s`` (default 10 s).
 ``catch``
-    Start at rest in the middle of the safe range, the pendulum within
-    ``start_angle_rad`` (default 0.3 rad) of upright, uniformly; the episode lasts
-    ``episode_s`` (default 3 s) and also ends when the pendulum falls past
-    ``fall_rad`` (default pi / 2) from upright.
+    The cart at rest in the middle of the safe range, the pendulum within
+    ``start_angle_rad`` (default 0.3 rad) of upright, uniformly, as ``start`` says:
+
+    - ``arriving`` (default): as the swing-up hands it to the catch, moving towards
+      upright with the energy the swing-up (3.30) drives it to, E_p = 0 (upright at rest,
+      (2.54)'s pendulum terms): theta_dot = -sign(theta) sqrt(2 m g l (1 - cos theta)
+      / (I + m l^2)) with the drawn rig's own m, l, I and g;
+    - ``rest``: at rest (theta_dot = 0), a push to recover from. On ``thesis-rig`` rigs
+      a fifth to a quarter of these starts (more than half of those past 0.2 rad) cannot be
+      caught by any input within the track and the actuator's limits (docs/gym.md,
+      "What the catch task allows").
+
+    The episode lasts ``episode_s`` (default 3 s) and also ends when the pendulum falls
+    past ``fall_rad`` (default pi / 2) from upright.
 
 Reward (every step, of the true state after it and the voltage commanded for it)::
 
@@ -46,9 +56,10 @@ import numpy as np
 
 from pisc_msgs_py.config import ConfigError
 
-__all__ = ["ACTIONS", "TASKS", "RigDraw", "RigDraws", "Task", "make_task"]
+__all__ = ["ACTIONS", "STARTS", "TASKS", "RigDraw", "RigDraws", "Task", "make_task"]
 
 TASKS = ("swing_up", "catch")
+STARTS = ("arriving", "rest")  # the catch's starts (module docstring)
 ACTIONS = ("voltage", "current")
 INITIAL = ("initial.x_m", "initial.x_dot_mps", "initial.theta_rad", "initial.theta_dot_radps")
 LATENCY = "actuator.command_delay_s"
@@ -128,6 +139,7 @@ class Task:
     x_weight: float
     voltage_weight: float
     physical_names: tuple[str, ...] = field(default=())
+    start: str = "arriving"
 
     @property
     def period_s(self) -> float:
@@ -182,6 +194,8 @@ class Task:
             start = np.zeros((m, 4))
             start[:, 0] = self.middle_m
             start[:, 2] = angle
+            if self.start == "arriving":
+                start[:, 3] = self._arriving_rate(angle, values)
         else:
             nominal = (i0.x_m, i0.x_dot_mps, i0.theta_rad, i0.theta_dot_radps)
             start = np.column_stack([values.get(name, np.full(m, v))
@@ -192,6 +206,17 @@ class Task:
         latency = values.get(LATENCY, np.full(m, self.plant.actuator.command_delay_s))
         physical = {name: values[name] for name in self.physical_names}
         return RigDraws(physical, latency, std, start, seed)
+
+    def _arriving_rate(self, angle: np.ndarray, values: dict[str, np.ndarray]) -> np.ndarray:
+        """theta_dot towards upright at pendulum energy E_p = 0 (2.54): 1/2 J theta_dot^2
+        = m g l (1 - cos theta), J = I + m l^2, each rig's own drawn m, l, I."""
+        base = self.plant.rig
+        m, l, inertia = (values.get(f"rig.{name}", np.full(len(angle), getattr(base, name)))
+                         for name in ("pendulum_mass_kg", "pendulum_com_m",
+                                      "pendulum_inertia_kgm2"))
+        mgl = m * base.gravity_mps2 * l
+        return -np.sign(angle) * np.sqrt(2.0 * mgl * (1.0 - np.cos(angle))
+                                         / (inertia + m * l * l))
 
 
 def _number(name: str, value: Any, low: float, high: float, low_open: bool = False) -> float:
@@ -206,7 +231,7 @@ def make_task(task: str, scene: str = "thesis-rig", distribution: str | None = N
               action: str = "voltage", velocities: bool = False,
               episode_s: float | None = None, start_angle_rad: float = 0.3,
               fall_rad: float | None = None, x_weight: float = 10.0,
-              voltage_weight: float = 0.01) -> Task:
+              voltage_weight: float = 0.01, start: str = "arriving") -> Task:
     """Check and load an environment's description; :class:`ConfigError` names the bad
     value (an unknown scene, distribution, task or action, a number out of range)."""
     from pisc_bringup.robustness import prepare
@@ -219,6 +244,10 @@ def make_task(task: str, scene: str = "thesis-rig", distribution: str | None = N
         raise ConfigError(f"action = {action!r}: unknown (known: {', '.join(ACTIONS)}: the "
                           "armature voltage, or the current set-point through PISC's PI "
                           "current loop)")
+    if start not in STARTS:
+        raise ConfigError(f"start = {start!r}: unknown (known: {', '.join(STARTS)}: the "
+                          "catch's pendulum arriving as the swing-up hands it over, or at "
+                          "rest)")
     if not isinstance(velocities, bool):
         raise ConfigError(f"velocities = {velocities!r}: must be true or false")
     if not isinstance(scene, str):
@@ -262,5 +291,5 @@ def make_task(task: str, scene: str = "thesis-rig", distribution: str | None = N
                          if r.name.split(".")[0] in PHYSICAL)
     return Task(task, loaded, config, plant, dist, action, velocities, steps, angle, fall,
                 _number("x_weight", x_weight, 0.0, 1e6),
-                _number("voltage_weight", voltage_weight, 0.0, 1e6), physical)
+                _number("voltage_weight", voltage_weight, 0.0, 1e6), physical, start)
 

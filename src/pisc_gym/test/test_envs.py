@@ -123,7 +123,8 @@ def _random_actions(n: int, steps: int, limit: float) -> np.ndarray:
     (40, range(0, 40, 3), "late", "current")])
 def test_the_vector_environment_is_n_single_ones(n, picked, distribution, action, late):
     options = dict(task="catch", distribution=late if distribution == "late" else distribution,
-                   episode_s=0.15, velocities=True, fall_rad=0.35, action=action)
+                   episode_s=0.15, velocities=True, fall_rad=0.35, action=action,
+                   start="rest")  # at rest, some of them fall within the episode
     vector = PiscVectorEnv(n, **options)
     actions = _random_actions(n, 70, vector.single_action_space.high[0])
     obs, infos = vector.reset(seed=100)
