@@ -367,9 +367,10 @@ def test_a_visitor_on_a_graph_topic_stops_the_run_named_and_the_bag_says_so(
     the cart driven into the end stop, a run reported CAUGHT and REPRODUCED): pisc_graph
     names it and stops (exit 3), its bag marks the topic, and neither the summary nor
     replay calls the run caught or reproduced. On the true state only the recorder and
-    the runner read, in separate processes."""
+    the runner read, in separate processes. (A 60 s run: with 30 s the run ended on a
+    loaded machine before the visitor had been discovered, 2 of about 10 runs.)"""
     bag = tmp_path / "bag"
-    graph = _graph(["--duration", "30", *layout], bag, domain_id)
+    graph = _graph(["--duration", "60", *layout], bag, domain_id)
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     visitor = None
