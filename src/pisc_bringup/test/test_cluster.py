@@ -99,7 +99,8 @@ def test_a_scheduler_address_that_is_none_is_refused_before_a_client_is_made(mon
     check_scheduler("tcp://127.0.0.1:8786")  # a well-formed one is not judged further
 
 
-@pytest.mark.skipif(core_count() < 2, reason="one core: numba starts one thread anyway")
+@pytest.mark.skipif(core_count() < 2, reason="a one-core machine: numba defaults to one "
+                    "thread there, so no worker can oversubscribe its core")
 def test_workers_whose_numba_would_oversubscribe_them_are_named(setup, monkeypatch):
     """A cluster's workers started without NUMBA_NUM_THREADS=1 (each would run one numba
     thread per core beside its one Dask thread: 6-8 times slower): each is named in a
