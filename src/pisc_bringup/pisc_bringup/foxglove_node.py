@@ -36,20 +36,25 @@ def wait_serving(child: Any, port: int, stderr: Any = None) -> Any:
     serves; :class:`~pisc_msgs_py.config.ConfigError` with its reason (a port in use:
     its number) when it exits instead or does not say so in :data:`START_TIMEOUT_S`.
     ``stderr()``: what the child wrote on its standard error, once it has exited."""
+    import os
     import select
     import time
 
     from pisc_msgs_py.config import ConfigError
 
+    # the pipe's bytes as they come, not readline(): a line not yet ended blocked a run
+    # for good past the deadline (a lockstep run of the test suite, 2026-12-06)
+    fd, pending = child.stdout.fileno(), b""
     deadline = time.monotonic() + START_TIMEOUT_S
     while (left := deadline - time.monotonic()) > 0:
-        ready, _, _ = select.select([child.stdout], [], [], min(left, 0.5))
+        ready, _, _ = select.select([fd], [], [], min(left, 0.5))
         if ready:
-            line = child.stdout.readline().decode(errors="replace")
-            if line.startswith("serving "):
-                return child
-            if not line:  # it exited
+            chunk = os.read(fd, 4096)
+            if not chunk:  # it exited
                 break
+            *lines, pending = (pending + chunk).split(b"\n")
+            if any(line.startswith(b"serving ") for line in lines):
+                return child
     if child.poll() is None:
         child.kill()
     child.wait()
