@@ -111,7 +111,7 @@ def recorder_pid(bag: Path) -> int | None:
         except OSError:
             continue
         if str(bag).encode() in cmdline and any(c.endswith(b"pisc_record") or
-                                                c == b"pisc_bringup.record" for c in cmdline):
+                                                c == b"pisc_bag.record" for c in cmdline):
             return int(proc.name)
     return None
 
@@ -123,8 +123,8 @@ class VoltageWatch:
     a subscriber there before would be taken for the recorder."""
 
     def __init__(self, ros_context) -> None:
-        from pisc_bringup.bag import header_stamp_ns
-        from pisc_bringup.recorder_node import recording_qos
+        from pisc_bag.bag import header_stamp_ns
+        from pisc_bag.recorder_node import recording_qos
         from pisc_msgs_py.base_node import message_class
         from pisc_msgs_py.topics import VOLTAGE
 

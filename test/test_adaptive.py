@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pisc_bringup.robustness import Criteria, load_benchmark
+from pisc_robust.robustness import load_benchmark
+from pisc_runs.verdict import Criteria
 from pisc_plant.plant import Plant
 from pisc_plant.sampled import SampledPlant
 from pisc_plant.command import plant_command

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pisc_bringup.analysis import CSV_COLUMNS, PLOTS, UPRIGHT_RAD, analyse_bag
-from pisc_bringup.bag import read_bag
+from pisc_runs.analysis import CSV_COLUMNS, PLOTS, UPRIGHT_RAD, analyse_bag
+from pisc_bag.bag import read_bag
 from pisc_msgs_py.convert import motor_sample_from_msg
 from pisc_msgs_py.topics import VOLTAGE
 from pisc_model.dynamics import wrap_to_upright
@@ -116,7 +116,7 @@ def test_two_bags_overlaid(tmp_path):
 
 
 def test_a_message_of_the_wrong_layout_is_named(tmp_path):
-    from pisc_bringup.bag import TYPESTORE, BagWriter
+    from pisc_bag.bag import TYPESTORE, BagWriter
     from pisc_msgs_py.topics import GRAPH_TOPICS, JOINT_STATES
 
     JointState = TYPESTORE.types["sensor_msgs/msg/JointState"]

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pisc_bringup.animate import (
+from pisc_runs.animate import (
     CART_COLOUR,
     FORCE_COLOUR,
     MODE_COLOURS,

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from mcap.writer import CompressionType, Writer
 
-from pisc_bringup.analysis import _limits, analyse_bag, analyse_messages, decimate, write_csv
-from pisc_bringup.bag import TYPESTORE, BagError, BagWriter, read_bag, read_bag_raw
-from pisc_bringup.bag_columns import FastPathRefused, read_columns
-from pisc_bringup.summary import TABLE_TOPICS, summarise, summarise_bag, tables_of_bag
+from pisc_runs.analysis import _limits, analyse_bag, analyse_messages, decimate, write_csv
+from pisc_bag.bag import TYPESTORE, BagError, BagWriter, read_bag, read_bag_raw
+from pisc_bag.bag_columns import FastPathRefused, read_columns
+from pisc_runs.summary import TABLE_TOPICS, summarise, summarise_bag, tables_of_bag
 from pisc_msgs_py.topics import CART_FORCE, GRAPH_TOPICS, JOINT_STATES, MODE, VOLTAGE
 
 pytestmark = pytest.mark.bag

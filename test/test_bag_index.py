@@ -13,10 +13,10 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from pisc_bringup import bag_index
-from pisc_bringup.bag import CHUNK_SIZE, BagWriter, index_problems, repair_bag
-from pisc_bringup.bag_bench import recorded_messages
-from pisc_bringup.bag_readers import read_every_way
+from pisc_bag import bag_index
+from pisc_bag.bag import CHUNK_SIZE, BagWriter, index_problems, repair_bag
+from pisc_bench.bag_bench import recorded_messages
+from pisc_bag.bag_readers import read_every_way
 from pisc_msgs_py.topics import GRAPH_TOPICS
 
 pytestmark = pytest.mark.bag
@@ -161,7 +161,7 @@ def test_the_index_check_walks_in_blocks_and_counts_what_the_mcap_reader_counts(
     """index_problems (repair's check of a finished file) counts by the record framing,
     as the mcap reader reading the file through counts; where the walk is not sure (a
     file cut short) the reader decides, and names what it cannot read."""
-    from pisc_bringup.bag import _index_counts_by_reader, index_problems
+    from pisc_bag.bag import _index_counts_by_reader, index_problems
 
     writer = write_stream(tmp_path / "bag", recorded_order())
     stream = writer.path.read_bytes()

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from pisc_bringup.bench import Row, format_rows, rows
+from pisc_bench.bench import Row, format_rows, rows
 
 HOP = 40e-6
 KERNEL = 5e-6
@@ -85,16 +85,16 @@ def test_steps_not_run_leave_no_rows_and_no_anchor_leaves_no_ratio():
 
 
 def test_bad_options_are_refused_with_their_names():
-    bad = subprocess.run([sys.executable, "-m", "pisc_bringup.bench", "--soak-seconds", "5"],
+    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--soak-seconds", "5"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--soak-seconds >= 15" in bad.stderr
-    bad = subprocess.run([sys.executable, "-m", "pisc_bringup.bench", "--only", "lunch"],
+    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--only", "lunch"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "invalid choice: 'lunch'" in bad.stderr
-    bad = subprocess.run([sys.executable, "-m", "pisc_bringup.bench", "--only", "batch",
+    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--only", "batch",
                           "--skip", "batch"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "leave no step to run" in bad.stderr
-    bad = subprocess.run([sys.executable, "-m", "pisc_bringup.bench", "--out", __file__],
+    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--out", __file__],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "exists and is not a directory" in bad.stderr
 
@@ -102,7 +102,7 @@ def test_bad_options_are_refused_with_their_names():
 @pytest.mark.bench
 @pytest.mark.integration
 def test_a_short_run_measures_its_anchors_and_the_batch(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "pisc_bringup.bench", "--only", "anchors",
+    done = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--only", "anchors",
                            "batch", "--rigs", "200", "--out", str(tmp_path)],
                           capture_output=True, text=True, timeout=600)
     print(done.stdout)

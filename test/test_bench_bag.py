@@ -30,8 +30,8 @@ import pytest
 from mcap.writer import CompressionType, Writer
 
 from conftest import recorder_pid
-from pisc_bringup.bag import TYPESTORE, BagError, BagWriter, read_bag, read_bag_raw
-from pisc_bringup.replay import bag_config, load_recorded, replay_bag, replay_cores
+from pisc_bag.bag import TYPESTORE, BagError, BagWriter, read_bag, read_bag_raw
+from pisc_runs.replay import bag_config, load_recorded, replay_bag, replay_cores
 from pisc_msgs_py.topics import GRAPH_TOPICS, JOINT_STATES, VOLTAGE
 
 pytestmark = pytest.mark.bench
@@ -128,8 +128,8 @@ def listen(out: str, start_file: str) -> None:
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
-    from pisc_bringup.bag import header_stamp_ns
-    from pisc_bringup.recorder_node import recording_qos
+    from pisc_bag.bag import header_stamp_ns
+    from pisc_bag.recorder_node import recording_qos
     from pisc_msgs_py.base_node import message_class
 
     stop: list[int] = []
@@ -312,11 +312,11 @@ def test_bench_finish_a_recorded_bag(tmp_path, seconds):
 
 
 def test_bench_bag_tools_on_a_long_bag(tmp_path):
-    """``python -m pisc_bringup.bag_bench``: finish, repair, analyse and replay of a bag
+    """``python -m pisc_bench.bag_bench``: finish, repair, analyse and replay of a bag
     made from the reference bag, each in its own process (wall time, messages a second,
     peak resident memory). ``PISC_BENCH_BAG_SECONDS`` sets its length (default 60; 600
     for the issue's 10-minute figures)."""
-    from pisc_bringup import bag_bench
+    from pisc_bench import bag_bench
 
     seconds = os.environ.get("PISC_BENCH_BAG_SECONDS", "60")
     assert bag_bench.main(["--seconds", seconds, "--dir", str(tmp_path)]) == 0

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from pisc_bringup.bag import read_bag_raw
+from pisc_bag.bag import read_bag_raw
 from pisc_msgs_py import cdr
 from pisc_msgs_py.convert import (
     cart_force_from_msg,

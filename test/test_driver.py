@@ -27,9 +27,9 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from conftest import spin_until
-from pisc_bringup.bag import read_bag
+from pisc_bag.bag import read_bag
 from pisc_sim.configuration import config_path
-from pisc_bringup.summary import summarise_bag
+from pisc_runs.summary import summarise_bag
 from pisc_driver.driver_node import DriverNode
 from pisc_driver.link import SerialLink
 from pisc_driver.protocol import command_voltage, encode_command

@@ -391,7 +391,7 @@ def test_a_run_in_separate_processes_ends_at_its_duration_exactly(tmp_path, doma
     """Issue 15: `--processes` runs went on 1-4 cycles past --duration (the plant ran on
     until its SIGTERM). The plant now stops at the duration itself: 1 s at 5 ms is the
     201 samples 0 .. 1 s, each answered, and no sample after them."""
-    from pisc_bringup.bag import read_bag
+    from pisc_bag.bag import read_bag
     from pisc_bringup.graph import RunOptions, run_graph
 
     bag = tmp_path / "bag"

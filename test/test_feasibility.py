@@ -173,7 +173,7 @@ def test_clopper_pearson_interval():
     (["--run-s", "ten"], "argument --run-s: 'ten': a time in seconds"),
 ])
 def test_the_command_refuses_bad_input_by_name(args, message, capsys, tmp_path):
-    from pisc_bringup.feasibility_cli import main
+    from pisc_robust.feasibility_cli import main
 
     out = tmp_path / "rows.csv"
     try:
@@ -188,7 +188,7 @@ def test_the_command_refuses_bad_input_by_name(args, message, capsys, tmp_path):
 @pytest.mark.bench
 def test_bench_feasibility_of_ten_draws(capsys):
     """Prints the fraction of the first 10 draws of seed 1 with a witness."""
-    from pisc_bringup.feasibility_cli import main
+    from pisc_robust.feasibility_cli import main
 
     assert main(["--draws", "10", "--seed", "1"]) == 0
     print(capsys.readouterr().out)
@@ -315,7 +315,7 @@ def test_a_draw_late_for_3_s_has_a_witness_by_8_s(tmp_path, capsys):
     of the day, as the shipped witness tables). With the "caught" rules (by 8 s, held from 9 s to
     12 s) the same search finds one; the witness table says so with its rules."""
     from pisc_analysis.witnesses import read_witness_csv
-    from pisc_bringup.feasibility_cli import main
+    from pisc_robust.feasibility_cli import main
 
     common = ["--config", "fixed-pump", "--draws", "100", "--seed", "1", "--only", "41",
               "--restarts", "0"]

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from pisc_bringup.bag import read_bag_raw
-from pisc_bringup.foxglove_live import LIVE_TOPICS, SCENE_TOPIC
+from pisc_bag.bag import read_bag_raw
+from pisc_runs.foxglove_live import LIVE_TOPICS, SCENE_TOPIC
 from pisc_msgs_py.processes import console_command
 from pisc_msgs_py.topics import VOLTAGE
 
@@ -188,7 +188,7 @@ def test_the_bridge_alone_refuses_a_port_in_use(tmp_path):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         port = taken.getsockname()[1]
-        done = subprocess.run([sys.executable, "-m", "pisc_bringup.foxglove_node", "--port",
+        done = subprocess.run([sys.executable, "-m", "pisc_runs.foxglove_node", "--port",
                                str(port), "--params", str(params)], capture_output=True,
                               text=True, timeout=60)
     assert done.returncode == 2 and f"port {port}" in done.stderr

@@ -16,7 +16,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pisc_bringup.uncertainty import load_distribution
+from pisc_robust.uncertainty import load_distribution
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import ConfigError, load_params_file, parse_overrides
 from pisc_sim.configuration import load_graph_config, load_run_config

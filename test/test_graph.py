@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import DomainClaim
-from pisc_bringup.bag import read_bag
+from pisc_bag.bag import read_bag
 from pisc_sim.closed_loop import simulate
 from pisc_sim.configuration import load_graph_config, load_run_config
 from pisc_bringup.graph import RunOptions, main, run_graph

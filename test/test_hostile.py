@@ -31,9 +31,9 @@ from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 
 from conftest import spin_until
-from pisc_bringup.bag import index_problems, read_bag
-from pisc_bringup.replay import replay_bag
-from pisc_bringup.summary import foreign_in_bag, summarise_bag
+from pisc_bag.bag import index_problems
+from pisc_runs.replay import replay_bag
+from pisc_runs.summary import foreign_in_bag, summarise_bag
 from pisc_control.current_loop_node import CurrentLoopNode
 from pisc_control.estimator_node import EstimatorNode
 from pisc_control.supervisor_node import SupervisorNode
@@ -52,7 +52,6 @@ from pisc_msgs_py.topics import (
     CART_FORCE,
     CLOCK,
     DIAGNOSTICS,
-    FOREIGN,
     JOINT_STATES,
     MODE,
     MOTOR_CURRENT,
@@ -436,7 +435,7 @@ def test_the_recorder_outlives_its_runner_without_a_traceback(tmp_path, domain_i
     bag = tmp_path / "bag"
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
     read, write = os.pipe()
-    recorder = subprocess.Popen([sys.executable, "-m", "pisc_bringup.record", "--bag", str(bag),
+    recorder = subprocess.Popen([sys.executable, "-m", "pisc_bag.record", "--bag", str(bag),
                                  "--topic", VOLTAGE.name], env=env, stdout=write,
                                 stderr=subprocess.PIPE, text=True)
     os.close(write)
@@ -540,7 +539,7 @@ def test_a_domain_id_fast_dds_cannot_map_is_refused_before_anything_starts(tmp_p
      "as several seeds)"),
 ])
 def test_robustness_refuses_a_seed_or_a_draw_count_it_cannot_take(capsys, args, message):
-    from pisc_bringup.robustness_cli import main
+    from pisc_robust.robustness_cli import main
 
     with pytest.raises(SystemExit) as exit_:
         main(["default", *args])
@@ -574,8 +573,8 @@ def test_the_summary_flags_a_voltage_before_its_sample_and_a_foreign_publisher()
     nothing flagged it; a bag with a foreign publisher was CAUGHT."""
     import numpy as np
 
-    from pisc_bringup.robustness import Criteria
-    from pisc_bringup.summary import RunTables, Table, summarise_tables
+    from pisc_runs.verdict import Criteria
+    from pisc_runs.summary import RunTables, Table, summarise_tables
 
     n = 10
     stamps = np.arange(n, dtype=np.int64) * PERIOD_NS

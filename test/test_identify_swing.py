@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from pisc_bringup import identify_bench as bench
+from pisc_bench import identify_bench as bench
 from pisc_msgs_py.config import load_params_file
 from pisc_sim.configuration import params_file_text
 
@@ -61,12 +61,12 @@ def test_free_swing_identifies_the_pendulum_against_the_hidden_truth(tmp_path, e
                    "--bag", str(tmp_path / scene), env=env)
         assert done.returncode in (0, 1) and "completed without a fault" in done.stdout
     motor = tmp_path / "motor.yaml"
-    done = run("pisc_bringup.identify_cli", str(tmp_path / "excitation"), "--out", str(motor),
+    done = run("pisc_robust.identify_cli", str(tmp_path / "excitation"), "--out", str(motor),
                env=env)
     assert done.returncode == 0
     # the swing's default fit: I and the pivot's friction, l from the base (nominal: wrong)
     swing = tmp_path / "swing.yaml"
-    done = run("pisc_bringup.identify_cli", str(tmp_path / "free-swing"), "--config",
+    done = run("pisc_robust.identify_cli", str(tmp_path / "free-swing"), "--config",
                str(motor), "--out", str(swing), env=env)
     assert done.returncode == 0 and "fitting I, pivot_viscous" in done.stdout
     got = identified(swing)
@@ -81,7 +81,7 @@ def test_free_swing_identifies_the_pendulum_against_the_hidden_truth(tmp_path, e
     flat["rig.pendulum_com_m"] = TRUE_L
     motor_l = tmp_path / "motor-l.yaml"
     motor_l.write_text(params_file_text(flat))
-    done = run("pisc_bringup.identify_cli", str(tmp_path / "free-swing"), "--config",
+    done = run("pisc_robust.identify_cli", str(tmp_path / "free-swing"), "--config",
                str(motor_l), "--out", str(tmp_path / "swing-l.yaml"), env=env)
     assert done.returncode == 0
     got = identified(tmp_path / "swing-l.yaml")
@@ -89,7 +89,7 @@ def test_free_swing_identifies_the_pendulum_against_the_hidden_truth(tmp_path, e
     assert got["friction.pivot_viscous_nms"] == pytest.approx(TRUE_PIVOT, rel=0.05)
     # l and I together: the data cannot separate them, and the failure says so
     out = tmp_path / "both.yaml"
-    done = run("pisc_bringup.identify_cli", str(tmp_path / "free-swing"), "--config",
+    done = run("pisc_robust.identify_cli", str(tmp_path / "free-swing"), "--config",
                str(motor), "--fit", "l,I,pivot_viscous", "--max-evaluations", "30",
                "--out", str(out), env=env)
     assert done.returncode == 1 and "these data cannot tell apart l and I" in done.stderr

@@ -24,7 +24,7 @@ import sys
 
 import pytest
 
-from pisc_bringup import identify_bench as bench
+from pisc_bench import identify_bench as bench
 from pisc_msgs_py.config import load_params_file
 
 pytestmark = [pytest.mark.integration, pytest.mark.bench]
@@ -81,7 +81,7 @@ def test_identified_then_tuned_catches_the_true_plant_the_default_does_not(tmp_p
                "--bag", str(tmp_path / "excitation"), env=env)
     assert "completed without a fault" in done.stdout
     identified = tmp_path / "identified.yaml"
-    done = run("pisc_bringup.identify_cli", str(tmp_path / "excitation"), "--out",
+    done = run("pisc_robust.identify_cli", str(tmp_path / "excitation"), "--out",
                str(identified), env=env)
     assert done.returncode == 0
     got = load_params_file(identified)
@@ -92,7 +92,7 @@ def test_identified_then_tuned_catches_the_true_plant_the_default_does_not(tmp_p
     (tmp_path / "identified-rig.yaml").write_text(DISTRIBUTION)
     (tmp_path / "energy-space.yaml").write_text(SPACE)
     tuned = tmp_path / "tuned.yaml"
-    done = run("pisc_bringup.tune_cli", str(identified), "--distribution",
+    done = run("pisc_robust.tune_cli", str(identified), "--distribution",
                str(tmp_path / "identified-rig.yaml"), "--space",
                str(tmp_path / "energy-space.yaml"), "--trials", "20", "--draws", "20",
                "--seed", "1", "--out", str(tuned), env=env)

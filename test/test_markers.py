@@ -11,8 +11,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from pisc_bringup.animate import MODE_COLOURS
-from pisc_bringup.markers import (
+from pisc_runs.animate import MODE_COLOURS
+from pisc_runs.markers import (
     MARKER_IDS,
     MarkerFeed,
     MarkerScene,
@@ -225,7 +225,7 @@ def test_the_node_publishes_the_throttled_samples_with_their_stamps(ros_context)
     from rclpy.node import Node
 
     from conftest import spin_until
-    from pisc_bringup.markers_node import MarkersNode
+    from pisc_runs.markers_node import MarkersNode
     from pisc_msgs_py.base_node import message_class, qos_profile
     from pisc_msgs_py.convert import cart_force_to_msg, mode_to_msg, true_state_to_msg
     from pisc_msgs_py.topics import CART_FORCE, JOINT_STATES, MARKERS, MODE, SIM_STATE
@@ -288,7 +288,7 @@ def test_the_node_publishes_the_throttled_samples_with_their_stamps(ros_context)
 def test_the_node_refuses_an_invalid_parameter_at_start_and_when_running(ros_context):
     from rclpy.parameter import Parameter
 
-    from pisc_bringup.markers_node import MarkersNode
+    from pisc_runs.markers_node import MarkersNode
 
     with pytest.raises(ConfigError, match=r"markers.rate_hz = -30.0 must be positive"):
         MarkersNode(context=ros_context,
@@ -306,7 +306,7 @@ def test_the_node_refuses_an_invalid_parameter_at_start_and_when_running(ros_con
 @pytest.mark.integration
 def test_the_entry_point_refuses_and_says_why(env_for_domain):
     completed = subprocess.run(
-        [sys.executable, "-m", "pisc_bringup.markers_node", "--ros-args",
+        [sys.executable, "-m", "pisc_runs.markers_node", "--ros-args",
          "-p", "markers.frame_id:=/world"],
         env=env_for_domain, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2
@@ -320,7 +320,7 @@ def test_the_entry_point_refuses_and_says_why(env_for_domain):
 
 @pytest.mark.integration
 def test_a_lockstep_run_with_markers_records_the_true_state_drawn(tmp_path, domain_id):
-    from pisc_bringup.bag import read_bag
+    from pisc_bag.bag import read_bag
     from pisc_bringup.graph import RunOptions, run_graph
     from pisc_msgs_py.convert import true_state_from_msg
     from pisc_msgs_py.topics import MARKERS, SIM_STATE

@@ -454,7 +454,7 @@ def test_a_shared_file_may_hold_other_nodes_sections_but_no_unknown_section(doma
 
 
 def test_the_known_sections_are_those_the_nodes_read():
-    from pisc_bringup.markers_node import SECTIONS as MARKERS_SECTIONS
+    from pisc_runs.markers_node import SECTIONS as MARKERS_SECTIONS
     from pisc_control.supervisor_node import SECTIONS as SUPERVISOR_SECTIONS
     from pisc_driver.driver_node import SECTIONS as DRIVER_SECTIONS
     from pisc_plant.plant_node import SECTIONS as PLANT_SECTIONS
@@ -550,7 +550,7 @@ def test_a_stopping_node_gives_up_sched_fifo_before_it_destroys_its_node(env_for
     """run_node (and pisc_graph) leave SCHED_FIFO in the thread that destroys the node:
     Fast DDS's wait there takes no turns and starved the threads it waits for
     (base_node.leave_realtime). Other threads keep the policy."""
-    from pisc_bringup.soak import check_realtime
+    from pisc_bench.soak import check_realtime
 
     refused = check_realtime(10)  # this container allows it; a machine without
     if refused is not None:  # CAP_SYS_NICE has no SCHED_FIFO to leave

@@ -1,7 +1,10 @@
-"""The packages' boundaries show the architecture (issue 17): every package declares in
-package.xml what its code imports, the controllers and the driver do not depend on the
-simulator, the analysis does not depend on the launch package, and no module imports
-itself back through another.
+"""The packages' boundaries show the architecture: every package declares in package.xml
+what its code imports and says in its README what it holds and may import; the packages
+stand in layers, each importing only layers below it (the controllers and the driver do
+not depend on the simulator, the bag library on nothing but the shared vocabulary, the
+analysis on nothing of the graph); a package's tests import only what the package may;
+no package holds more than about a quarter of the code; and no module imports itself back
+through another.
 
 Imports are read from the source with ``ast`` (function-level imports included: a lazy
 import is still a dependency); modules of the standard library are left out.
@@ -41,6 +44,22 @@ FORBIDDEN = [
     ("pisc_analysis", "pisc_bringup", "the analysis needs no launch package"),
     ("pisc_gym", "rclpy", "the environments run where learning libraries do, without ROS"),
 ]
+
+
+#: The packages in layers: a package imports only packages of the layers below its own.
+LAYERS = [
+    ["pisc_msgs_py"],
+    ["pisc_model"],
+    ["pisc_plant", "pisc_control", "pisc_driver"],
+    ["pisc_sim", "pisc_bag"],
+    ["pisc_analysis", "pisc_runs"],
+    ["pisc_robust"],
+    ["pisc_bringup", "pisc_gym"],
+    ["pisc_bench"],
+]
+LAYER = {package: n for n, layer in enumerate(LAYERS) for package in layer}
+#: Packages that may use only the ones named, whatever their layer.
+ONLY = {"pisc_bag": {"pisc_msgs_py"}}
 
 
 def _imports(path: Path) -> set[str]:
@@ -133,3 +152,57 @@ def test_no_import_circle():
         if v not in index:
             visit(v)
     assert not circles, circles
+
+
+def test_every_package_stands_in_a_layer():
+    assert sorted(LAYER) == PACKAGES
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_a_package_imports_only_the_layers_below_it(package):
+    used = {key for key in _needed(package) if key in LAYER} | {
+        key for key in _declared(package) if key in LAYER}
+    upward = sorted(other for other in used if LAYER[other] >= LAYER[package])
+    assert not upward, (f"{package} (layer {LAYER[package]}) uses {upward} of its own layer "
+                        "or above")
+    if package in ONLY:
+        assert used <= ONLY[package], f"{package} may use only {sorted(ONLY[package])}: {sorted(used)}"
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_a_package_s_tests_import_only_what_it_may(package):
+    allowed = {key for key in _declared(package) if key in LAYER} | {package}
+    wrong = {}
+    for path in sorted((SRC / package / "test").glob("*.py")):
+        used = {name.split(".")[0] for name in _imports(path)} & set(LAYER)
+        if used - allowed:
+            wrong[path.name] = sorted(used - allowed)
+    assert not wrong, (f"tests of {package} import packages it may not (move them to test/ "
+                       f"or to the package they test): {wrong}")
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_a_package_s_readme_says_what_it_holds_and_may_import(package):
+    readme = SRC / package / "README.md"
+    assert readme.is_file(), f"{package} has no README.md"
+    text = readme.read_text()
+    assert text.startswith(f"# {package}\n"), f"{readme}: the first line names the package"
+    assert "may import" in text, f"{readme} does not say what the package may import"
+    unnamed = sorted(key for key in _declared(package) if key in LAYER and key not in text)
+    assert not unnamed, f"{readme} does not name the packages it imports: {unnamed}"
+
+
+def test_no_package_holds_more_than_about_a_quarter_of_the_code():
+    lines = {package: sum(len(path.read_text().splitlines())
+                          for path in _modules(package).values()) for package in PACKAGES}
+    total = sum(lines.values())
+    assert total > 20000, lines  # the whole of src/ was counted
+    big = {package: f"{n / total:.0%}" for package, n in lines.items() if n > 0.27 * total}
+    assert not big, big
+
+
+def test_no_library_file_over_600_lines():
+    long = {str(path.relative_to(SRC)): n for package in PACKAGES
+            for path in _modules(package).values()
+            if (n := len(path.read_text().splitlines())) > 600}
+    assert not long, long

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import os
 import shutil
 import subprocess
@@ -13,19 +14,35 @@ import pytest
 pytestmark = pytest.mark.integration
 
 ROOT = Path(__file__).resolve().parent.parent
-EXECUTABLES = {
-    "pisc_plant": ["plant_node", "pisc_virtual_rig"],
-    "pisc_control": ["estimator_node", "supervisor_node", "current_loop_node"],
-    "pisc_bringup": ["pisc_graph", "pisc_record", "pisc_bag", "pisc_scene",
-                     "pisc_integrators", "pisc_batch_bench", "pisc_robustness", "pisc_tune",
-                     "markers_node", "pisc_parser_bench", "pisc_calibrate", "pisc_experiment"],
-    "pisc_msgs_py": [],
-    "pisc_driver": ["driver_node"],
-    "pisc_model": [],
-    "pisc_sim": [],
-    "pisc_analysis": ["pisc_analysis"],
-    "pisc_gym": ["pisc_gym_bench", "pisc_gym_catchable", "pisc_gym_learn"],
-}
+PACKAGES = sorted(p.parent.name for p in (ROOT / "src").glob("*/package.xml"))
+
+
+def _console_scripts(package: str) -> list[str]:
+    """The console scripts ``src/PACKAGE/setup.py`` declares (read, not run)."""
+    tree = ast.parse((ROOT / "src" / package / "setup.py").read_text())
+    for call in ast.walk(tree):
+        if isinstance(call, ast.Call) and getattr(call.func, "id", None) == "setup":
+            entry = next((k.value for k in call.keywords if k.arg == "entry_points"), None)
+            if entry is None:
+                return []
+            return [line.partition("=")[0].strip()
+                    for line in ast.literal_eval(entry)["console_scripts"]]
+    raise AssertionError(f"{package}/setup.py calls no setup()")
+
+
+EXECUTABLES = {package: _console_scripts(package) for package in PACKAGES}
+
+
+def test_the_executables_are_read_from_every_setup_py():
+    """The list the layout test walks is the packages' own: the graph's nodes and the
+    commands users run are in it, each in one package."""
+    every = [e for names in EXECUTABLES.values() for e in names]
+    assert len(every) == len(set(every))
+    assert {"plant_node", "driver_node", "estimator_node", "supervisor_node",
+            "current_loop_node", "markers_node", "pisc_graph", "pisc_record", "pisc_bag",
+            "pisc_robustness", "pisc_tune", "pisc_commission", "pisc_soak",
+            "pisc_gym_learn"} <= set(every)
+    assert "pisc_record" in EXECUTABLES["pisc_bag"] and "pisc_graph" in EXECUTABLES["pisc_bringup"]
 
 
 @pytest.fixture(scope="module")
@@ -58,11 +75,14 @@ def test_installed_configuration_and_node_run_from_the_install(install, env_for_
     assert sorted(p.name for p in config.glob("*.yaml")) == [
         "default.yaml", "fixed-pump.yaml", "lyapunov-tuned.yaml", "thesis-calibrated-plant.yaml",
         "thesis.yaml"]
-    bringup = install / "pisc_bringup" / "share" / "pisc_bringup"
-    distributions = bringup / "distributions"
+    robust = install / "pisc_robust" / "share" / "pisc_robust"
+    distributions = robust / "distributions"
     assert {"thesis-rig.yaml", "thesis-calibrated.yaml"} <= {
         p.name for p in distributions.glob("*.yaml")}
-    assert (bringup / "experiments" / "thesis-6.6.yaml").is_file()
+    assert sorted(p.name for p in (distributions / "witnesses").glob("*.csv")) == [
+        "thesis-rig-300-seed1-3s.csv", "thesis-rig-300-seed1-8s.csv"]
+    assert (robust / "experiments" / "thesis-6.6.yaml").is_file()
+    bringup = install / "pisc_bringup" / "share" / "pisc_bringup"
     launch = bringup / "launch"  # ros2 launch pisc_bringup sim.launch.xml
     assert sorted(p.name for p in launch.glob("*.launch.xml")) == [
         "rig.launch.xml", "sim.launch.xml"]

@@ -12,7 +12,7 @@ import textwrap
 import pytest
 
 from pisc_bringup.graph import main as graph_main
-from pisc_bringup.uncertainty import distribution_names, load_distribution
+from pisc_robust.uncertainty import distribution_names, load_distribution
 from pisc_model.params import unused_by_models
 from pisc_msgs_py.config import ConfigError
 from pisc_plant.virtual_rig import load_plant

@@ -13,9 +13,9 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from conftest import spin_until
-from pisc_bringup.bag import RawMessage, read_bag, read_bag_raw
-from pisc_bringup.play import play_bag, playback_plan
-from pisc_bringup.recorder_node import recording_qos
+from pisc_bag.bag import RawMessage, read_bag, read_bag_raw
+from pisc_runs.play import play_bag, playback_plan
+from pisc_bag.recorder_node import recording_qos
 from pisc_msgs_py.convert import motor_sample_from_msg, stamp_from_msg
 from pisc_msgs_py.base_node import message_class
 from pisc_msgs_py.topics import CLOCK, GRAPH_TOPICS, VOLTAGE

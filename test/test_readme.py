@@ -39,7 +39,7 @@ def test_parameters_doc_is_generated_from_the_descriptors():
 
 def test_every_parameter_is_in_the_parameters_doc():
     from pisc_sim.configuration import SECTIONS
-    from pisc_bringup.markers import MarkersParams
+    from pisc_runs.markers import MarkersParams
     from pisc_driver.driver import DriverParams
     from pisc_msgs_py.config import describe
     from pisc_plant.plant_node import SimulationParams

@@ -20,14 +20,14 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from conftest import VoltageWatch, recorder_pid, spin_until, start_graph_with_watch
-from pisc_bringup.bag import (
+from pisc_bag.bag import (
     bag_files,
     bag_topics,
     header_stamp_ns,
     index_problems,
     read_bag,
 )
-from pisc_bringup.bag_readers import READERS, read_every_way
+from pisc_bag.bag_readers import READERS, read_every_way
 from pisc_bringup.graph import RECORDER_LAG_SAMPLES, RunOptions, run_graph
 from pisc_msgs_py.base_node import qos_profile
 from pisc_msgs_py.convert import (
@@ -113,7 +113,7 @@ def stream_cycles(bag, ros_context, env, stop_signal, cycles):
     ready = bag.parent / f"{bag.name}.ready"
     silent = [arg for t in GRAPH_TOPICS if t not in CYCLE for arg in ("--expect", f"{t.name}=0")]
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bringup.record", "--bag", str(bag),
+        [sys.executable, "-m", "pisc_bag.record", "--bag", str(bag),
          "--ready-file", str(ready), *silent],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     node = Node("cycle_source", context=ros_context)
@@ -153,7 +153,7 @@ def test_the_recorder_says_it_is_ready_once_it_has_matched_every_publisher(
 
     ready = tmp_path / "ready"
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bringup.record", "--bag", str(tmp_path / "bag"),
+        [sys.executable, "-m", "pisc_bag.record", "--bag", str(tmp_path / "bag"),
          "--topic", STATE.name, "--topic", VOLTAGE.name,
          "--ready-file", str(ready), "--expect", f"{VOLTAGE.name}=2"],
         env=env_for_domain, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -203,7 +203,7 @@ def test_the_recorder_says_it_is_ready_once_it_has_matched_every_publisher(
 def test_the_recorder_refuses_bad_arguments_before_creating_the_bag(tmp_path, args, error):
     (tmp_path / "taken").touch()
     completed = subprocess.run(
-        [sys.executable, "-m", "pisc_bringup.record", "--bag", str(tmp_path / "bag"), *args],
+        [sys.executable, "-m", "pisc_bag.record", "--bag", str(tmp_path / "bag"), *args],
         capture_output=True, text=True, timeout=60, cwd=tmp_path)
     assert completed.returncode == 2
     assert completed.stderr.strip() == f"pisc_record: {error}"
@@ -268,7 +268,7 @@ def test_a_run_records_what_it_is_asked_and_its_own_topics(tmp_path, domain_id):
     cart force and diagnostics; the run's own topics are recorded anyway, the summary
     works, and replay compares what the bag holds and says what it does not."""
     from pisc_bringup.graph import RUN_TOPICS, main, recorded_topics
-    from pisc_bringup.replay import replay_bag
+    from pisc_runs.replay import replay_bag
     from pisc_msgs_py.config import ConfigError
 
     with pytest.raises(ConfigError, match=r"record: /pisc/forces is not a topic of the graph"):
@@ -386,7 +386,7 @@ def test_a_killed_recorder_is_noticed_within_a_period_and_the_run_stops(
 
 
 def replay_bag_of(bag):
-    from pisc_bringup.replay import replay_bag
+    from pisc_runs.replay import replay_bag
 
     return replay_bag(bag)
 
@@ -434,8 +434,8 @@ def test_the_recorders_progress_is_the_oldest_of_its_sample_topics_newest(
     oldest of the newest stamps written of each topic named (a topic whose message DDS
     sends again lags the others); nothing is said before each has been written, and a
     stamp once, and again only when the recorder has been idle for resay_after_s."""
-    from pisc_bringup.bag import BagWriter
-    from pisc_bringup.recorder_node import RecorderNode
+    from pisc_bag.bag import BagWriter
+    from pisc_bag.recorder_node import RecorderNode
     from pisc_msgs_py.convert import clock_to_cdr, motor_sample_to_cdr
 
     topics = [CLOCK, VOLTAGE]
@@ -467,7 +467,7 @@ def test_the_recorders_progress_is_the_oldest_of_its_sample_topics_newest(
     node._note_progress(batch(volts(4), volts(5), volts(6), volts(7)))
     assert said == [3 * ms]  # /clock holds it back: its sample 4 is not yet written
     now = [100.0]
-    monkeypatch.setattr("pisc_bringup.recorder_node.time.monotonic", lambda: now[0])
+    monkeypatch.setattr("pisc_bag.recorder_node.time.monotonic", lambda: now[0])
     node._say_progress(idle=True)  # woken to nothing: the same stamp is not said again
     assert said == [3 * ms]
     node._note_progress(batch(clock(4), clock(5)))
@@ -501,8 +501,8 @@ def test_a_publisher_not_yet_named_is_foreign_only_when_the_run_has_fewer(
     run has; named, one not of the run's nodes is foreign whatever the count."""
     from types import SimpleNamespace
 
-    from pisc_bringup.bag import BagWriter
-    from pisc_bringup.recorder_node import RecorderNode
+    from pisc_bag.bag import BagWriter
+    from pisc_bag.recorder_node import RecorderNode
 
     topics = [VOLTAGE]
     node = RecorderNode(BagWriter(tmp_path / "bag", topics), topics, context=ros_context)

@@ -11,7 +11,7 @@ import time
 import pytest
 
 from conftest import recorder_pid, start_graph_with_watch
-from pisc_bringup.bag import BagError, header_stamp_ns, read_bag, read_bag_raw
+from pisc_bag.bag import BagError, header_stamp_ns, read_bag, read_bag_raw
 from pisc_msgs_py.topics import (
     CURRENT_SETPOINT,
     DIAGNOSTICS,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from pisc_bringup.bag import (
+from pisc_bag.bag import (
     BagError,
     BagWriter,
     header_stamp_ns,
@@ -18,8 +18,8 @@ from pisc_bringup.bag import (
     read_bag_raw,
     repair_bag,
 )
-from pisc_bringup.bag_readers import READERS, read_every_way
-from pisc_bringup.replay import (
+from pisc_bag.bag_readers import READERS, read_every_way
+from pisc_runs.replay import (
     COMPARED_TOPICS,
     RecordedRun,
     StampTable,
@@ -127,7 +127,7 @@ def test_a_resent_sample_keeps_its_first_message_and_bad_messages_are_named(tmp_
     know) goes to the message path, whose error names it."""
     import numpy as np
 
-    from pisc_bringup.bag import TYPESTORE
+    from pisc_bag.bag import TYPESTORE
 
     def joint_state(stamp: int, names: list[str], position: list[float]) -> bytes:
         t = TYPESTORE.types
@@ -213,7 +213,7 @@ def test_replay_runs_the_cores_without_the_plant_kernel():
     kernel (pisc_plant.layout), and the batch controllers are imported only by a batch.
     (python-control and scipy are: the catch gain is designed again, and the recorded K
     kept when it is the same design.)"""
-    code = ("import sys\nfrom pisc_bringup.replay import replay_bag\n"
+    code = ("import sys\nfrom pisc_runs.replay import replay_bag\n"
             f"report = replay_bag({str(SWINGUP)!r})\nassert report.reproduced\n"
             "print(sorted(m for m in ('numba', 'pisc_plant.kernel', "
             "'pisc_sim.batch_controllers') if m in sys.modules))")

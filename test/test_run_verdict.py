@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pisc_bringup.robustness import Criteria, evaluate
-from pisc_bringup.summary import RunTables, Table, summarise_bag, summarise_tables
-from pisc_bringup.uncertainty import Draws
+from pisc_robust.robustness import evaluate
+from pisc_runs.verdict import Criteria
+from pisc_runs.summary import RunTables, Table, summarise_bag, summarise_tables
+from pisc_robust.uncertainty import Draws
 from pisc_msgs_py.types import Mode
 from pisc_sim.configuration import load_graph_config
 

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pisc_bringup.machine_probe import ProbeRun, Probes, load, probe_figures
-from pisc_bringup.soak import (
+from pisc_bench.machine_probe import ProbeRun, Probes, load, probe_figures
+from pisc_bench.soak import (
     DROP_RATE,
     SILENCE_S,
     Sample,
@@ -328,7 +328,7 @@ def test_a_machine_probe_that_died_is_named_when_the_probes_stop(tmp_path):
 
 
 def test_a_machine_probe_on_a_cpu_that_does_not_exist_says_so(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "pisc_bringup.machine_probe", "--cpu",
+    done = subprocess.run([sys.executable, "-m", "pisc_bench.machine_probe", "--cpu",
                            "4096", "--out", str(tmp_path / "p.npz")],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and done.stdout == ""
@@ -339,7 +339,7 @@ def test_a_machine_probe_on_a_cpu_that_does_not_exist_says_so(tmp_path):
 
 
 def test_a_machine_probe_refuses_an_output_it_could_not_write_before_it_runs(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "pisc_bringup.machine_probe", "--cpu", "0",
+    done = subprocess.run([sys.executable, "-m", "pisc_bench.machine_probe", "--cpu", "0",
                            "--out", str(tmp_path / "nowhere" / "p.npz")],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and done.stdout == ""  # never said ready
@@ -349,7 +349,7 @@ def test_a_machine_probe_refuses_an_output_it_could_not_write_before_it_runs(tmp
 
 def test_a_soak_whose_machine_probe_cannot_start_says_so_without_a_traceback(
         tmp_path, capsys, monkeypatch):
-    import pisc_bringup.soak as soak_module
+    import pisc_bench.soak as soak_module
 
     def refuse(*args, **kwargs):
         raise RuntimeError("the machine probe on CPU 0 did not start: refused")
@@ -537,7 +537,7 @@ def test_a_value_that_is_not_a_number_is_argparses_usage_error(capsys):
 
 def soak(tmp_path, *args: str) -> tuple[int, str, dict]:
     beside = Path(sys.executable).parent / "pisc_soak"
-    command = [str(beside)] if beside.exists() else [sys.executable, "-m", "pisc_bringup.soak"]
+    command = [str(beside)] if beside.exists() else [sys.executable, "-m", "pisc_bench.soak"]
     out = tmp_path / "soak"
     started = time.monotonic()
     done = subprocess.run([*command, *args, "--out", str(out)], capture_output=True,

@@ -12,10 +12,10 @@ import math
 import pytest
 
 from conftest import DomainClaim
-from pisc_bringup.analysis import analyse_bag
-from pisc_bringup.experiment import load_experiment
-from pisc_bringup.experiment_cli import main as experiment_main
-from pisc_bringup.experiment_cli import score_run
+from pisc_runs.analysis import analyse_bag
+from pisc_robust.experiment import load_experiment
+from pisc_robust.experiment_cli import main as experiment_main
+from pisc_robust.experiment_cli import score_run
 from pisc_bringup.graph import RunOptions, run_graph
 from pisc_msgs_py.config import load_params_file
 from pisc_sim.configuration import config_path

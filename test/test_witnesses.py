@@ -113,8 +113,8 @@ def test_the_shipped_tables_are_the_draws_of_the_distribution_they_name(name, ru
     draw (same digest, seed and N): a table left behind by a change of the distribution
     fails here. A witness is caught by the deadline; a draw without one says why (unless
     the bound proved it infeasible)."""
-    from pisc_bringup.robustness import load_benchmark
-    from pisc_bringup.uncertainty import DISTRIBUTION_DIR
+    from pisc_robust.robustness import load_benchmark
+    from pisc_robust.uncertainty import DISTRIBUTION_DIR
 
     meta, rows = read_witness_csv(DISTRIBUTION_DIR / "witnesses" / name)
     assert (meta["catch_by_s"], meta["hold_from_s"], meta["run_s"]) == rules

@@ -23,4 +23,9 @@ setup(
         ' and the closed loop of the plant and the controllers, one rig or a batch.'
     ),
     license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'pisc_scene = pisc_sim.scene_cli:main',
+        ],
+    },
 )

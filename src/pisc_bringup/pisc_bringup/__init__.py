@@ -1,3 +1,2 @@
-"""Running the PISC graph: parameter files, the graph runner, the recorder, run summaries."""
-
-__all__ = ["closed_loop", "graph", "recorder", "summary"]
+"""Bringing the PISC graph up: launch files and their reader, the graph runner, the DDS
+profile, replay through the nodes, and the ``pisc_bag`` command."""

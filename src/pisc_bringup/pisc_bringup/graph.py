@@ -49,7 +49,7 @@ samples ahead of the newest sample the recorder has written, so a recorder short
 CPU pauses the run instead of losing messages (docs/recording.md). With ``--processes
 --clock wall`` the plant does not wait for the recorder. The run ends when the voltage
 answering the sample at ``--duration`` has been received; the bag is closed, read back
-and summarised, and judged by the robustness benchmark's rule (:mod:`pisc_bringup.summary`:
+and summarised, and judged by the robustness benchmark's rule (:mod:`pisc_runs.summary`:
 each tier, safe, caught and fast, with its rule). Exit status: 0 when the run passes the
 tier ``--tier`` names (default ``caught``: caught for good by 8 s and held from 9 s to
 the end), 1 when it does not, 2 bad configuration or the graph did not run. An experiment
@@ -100,11 +100,11 @@ from rclpy.task import Future
 
 import yaml
 
-from pisc_bringup.bag import BagError, RepairReport, repair_bag
+from pisc_bag.bag import BagError, RepairReport, repair_bag
 from pisc_bringup.dds import dds_environment
 from pisc_bringup.launch_file import LaunchError, launch_path, read_launch
 from pisc_sim.configuration import load_run_config, write_params_file
-from pisc_bringup.recorder_node import header_stamp_ns
+from pisc_bag.recorder_node import header_stamp_ns
 from pisc_bringup.run_guard import (
     EXIT_FOREIGN,
     EXIT_PORT_LOST,
@@ -113,7 +113,7 @@ from pisc_bringup.run_guard import (
     RunStopped,
     pin_publishers,
 )
-from pisc_bringup.summary import RunSummary, summarise_bag
+from pisc_runs.summary import RunSummary, summarise_bag
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.processes import console_command
 from pisc_msgs_py.base_node import (
@@ -179,8 +179,8 @@ NODE_KINDS: dict[tuple[str, str], NodeKind] = {
         (CART_FORCE, MOTOR_CURRENT, MODE), (CURRENT_SETPOINT, VOLTAGE, DIAGNOSTICS),
         "controller"),
     # draws the rig for RViz and Foxglove (docs/markers.md), read by no other node
-    ("pisc_bringup", "markers_node"): NodeKind(
-        "pisc_bringup.markers_node", "MarkersNode", (SIM_STATE, JOINT_STATES, CART_FORCE, MODE),
+    ("pisc_runs", "markers_node"): NodeKind(
+        "pisc_runs.markers_node", "MarkersNode", (SIM_STATE, JOINT_STATES, CART_FORCE, MODE),
         (MARKERS, DIAGNOSTICS), "observer"),
 }
 # the launch file's source node, by what runs the rig
@@ -895,7 +895,7 @@ def run_graph(options: RunOptions) -> RunResult:
     ready = Path(ready_dir.name) / "recorder-ready"
     bridge = None
     if options.foxglove_port is not None:  # refused (a port in use) before the bag exists
-        from pisc_bringup import foxglove_node
+        from pisc_runs import foxglove_node
 
         write_params_file(Path(ready_dir.name) / "foxglove.yaml", flat)
         bridge = _spawn(foxglove_node.command(options.foxglove_port,
@@ -922,7 +922,7 @@ def run_graph(options: RunOptions) -> RunResult:
     # the run's recorder by a name of its own: another subscriber on the domain (a
     # `ros2 topic echo`, another run's recorder) must not pass for it
     recorder_name = f"pisc_record_{os.getpid()}"
-    recorder = _spawn([*console_command("pisc_record", "pisc_bringup.record"),
+    recorder = _spawn([*console_command("pisc_record", "pisc_bag.record"),
                        "--bag", str(bag_dir),
                        *topic_args, "--ros-args", "-r", f"__node:={recorder_name}"], env,
                       subprocess.PIPE, batch_scheduling=True)

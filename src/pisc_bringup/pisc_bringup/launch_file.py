@@ -26,7 +26,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
 
 from pisc_msgs_py.config import ConfigError, load_yaml, package_dir
 

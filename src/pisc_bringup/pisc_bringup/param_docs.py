@@ -22,7 +22,7 @@ CONFIGS = ("default", "thesis")
 
 def _node_sections() -> dict[str, tuple[str, ...]]:
     """Which node reads which section, from the nodes' own section lists."""
-    from pisc_bringup.markers_node import SECTIONS as MARKERS
+    from pisc_runs.markers_node import SECTIONS as MARKERS
     from pisc_control.supervisor_node import SECTIONS as SUPERVISOR
     from pisc_driver.driver_node import SECTIONS as DRIVER
     from pisc_plant.plant_node import SECTIONS as PLANT
@@ -42,7 +42,7 @@ def _node_sections() -> dict[str, tuple[str, ...]]:
 
 def _sections() -> dict[str, type]:
     from pisc_sim.configuration import SECTIONS
-    from pisc_bringup.markers import MarkersParams
+    from pisc_runs.markers import MarkersParams
     from pisc_driver.driver import DriverParams
     from pisc_msgs_py.base_node import StartParams
     from pisc_plant.plant_node import SimulationParams

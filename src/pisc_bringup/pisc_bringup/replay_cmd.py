@@ -1,4 +1,4 @@
-"""pisc_bag replay: the command around :mod:`pisc_bringup.replay` (through the cores) and
+"""pisc_bag replay: the command around :mod:`pisc_runs.replay` (through the cores) and
 :mod:`pisc_bringup.replay_node` (through the nodes over topics); kept apart from both so
 that neither imports the other back."""
 
@@ -8,8 +8,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-from pisc_bringup.bag import BagError
-from pisc_bringup.replay import PARAMS_FILE, replay_bag
+from pisc_bag.bag import BagError
+from pisc_runs.replay import PARAMS_FILE, replay_bag
 from pisc_msgs_py.config import parse_overrides
 
 __all__ = ["add_arguments", "run"]

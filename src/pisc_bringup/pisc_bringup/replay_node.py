@@ -5,7 +5,7 @@ parameters, as in ``pisc_graph``. A feeder node stands in for the plant: it publ
 the recorded sample k (``/pisc/joint_states`` and ``/pisc/motor/current``), waits for
 the voltage stamped k, then publishes sample k+1, so the nodes see exactly the
 recorded sequence. A collector records every output the nodes publish; the outputs
-are then compared as :func:`pisc_bringup.replay.compare` does for the cores.
+are then compared as :func:`pisc_runs.replay.compare` does for the cores.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from pisc_bringup.bag import bag_topics, read_bag
-from pisc_bringup.summary import foreign_in_bag
+from pisc_bag.bag import bag_topics, read_bag
+from pisc_runs.summary import foreign_in_bag
 from pisc_sim.configuration import load_graph_config
 from pisc_bringup.graph import (
     CONTROLLERS,
@@ -31,7 +31,7 @@ from pisc_bringup.graph import (
     expected_subscribers,
     ros_parameters,
 )
-from pisc_bringup.replay import (
+from pisc_runs.replay import (
     COMPARED_TOPICS,
     Outputs,
     RecordedRun,

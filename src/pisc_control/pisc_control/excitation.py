@@ -24,7 +24,7 @@ latches, commands no force, and the current loop then commands 0 V.
 
 The sequence is a pure function of the sample's time, so a run and its replay ask for
 the same forces. The recorded voltages are what an identification
-(:mod:`pisc_bringup.identify`) drives its model with: the current loop in between,
+(:mod:`pisc_robust.identify`) drives its model with: the current loop in between,
 the voltages are whatever it took to follow the requested force.
 """
 

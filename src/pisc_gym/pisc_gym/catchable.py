@@ -224,7 +224,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.starts < 1:
         parser.error(f"--starts {args.starts}: too small")
-    from pisc_bringup.robustness import binomial_interval
+    from pisc_robust.robustness import binomial_interval
 
     started = time.perf_counter()
     env, obs, info, found, gains = plans(args.start, args.starts, args.seed, report=True)

@@ -163,7 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name in ("generations", "population", "starts", "evaluate"):
         if getattr(args, name) < (2 if name == "population" else 1):
             parser.error(f"--{name} {getattr(args, name)}: too small")
-    from pisc_bringup.robustness import binomial_interval
+    from pisc_robust.robustness import binomial_interval
 
     started = time.perf_counter()
     gains, history = learn(args.generations, args.population, args.starts, args.seed,

@@ -3,7 +3,7 @@ the rigs it draws (domain randomisation), checked before anything runs.
 
 :class:`Task` reads a scene by name or path (:func:`pisc_sim.scene.load_scene`: the
 plant models only what the scene needs, as the graph's plant does) and, optionally, a
-distribution file (:func:`pisc_bringup.uncertainty.load_distribution`: ``thesis-rig`` or
+distribution file (:func:`pisc_robust.uncertainty.load_distribution`: ``thesis-rig`` or
 a path) around the scene's configuration. :meth:`Task.draw` takes one rig from a
 generator: its physical parameters, command latency and noise levels from the
 distribution (the scene's own without one), its start, and the seed of its measurement
@@ -130,7 +130,7 @@ class Task:
     scene: Any  # pisc_sim.scene.Scene
     config: Any  # pisc_sim.configuration.GraphConfig, with the distribution's fixed initial
     plant: Any  # pisc_plant.plant.PlantConfig: the base plant the draws vary
-    distribution: Any | None  # pisc_bringup.uncertainty.Distribution
+    distribution: Any | None  # pisc_robust.uncertainty.Distribution
     action: str
     velocities: bool
     episode_steps: int
@@ -171,7 +171,7 @@ class Task:
     def draw_many(self, generators: Sequence[np.random.Generator]) -> RigDraws:
         """One rig from each generator: the distribution's uniform draws (one per varied
         parameter, in the file's sorted order, as
-        :meth:`pisc_bringup.uncertainty.Distribution.draw` orders them), then the
+        :meth:`pisc_robust.uncertainty.Distribution.draw` orders them), then the
         catch's start angle, then the noise seed. The values are computed for all rigs
         at once, each from its own uniform draws, with the same numbers as one at a
         time (numpy's elementwise functions do not depend on the array's length)."""
@@ -234,8 +234,8 @@ def make_task(task: str, scene: str = "thesis-rig", distribution: str | None = N
               voltage_weight: float = 0.01, start: str = "arriving") -> Task:
     """Check and load an environment's description; :class:`ConfigError` names the bad
     value (an unknown scene, distribution, task or action, a number out of range)."""
-    from pisc_bringup.robustness import prepare
-    from pisc_bringup.uncertainty import load_distribution
+    from pisc_robust.robustness import prepare
+    from pisc_robust.uncertainty import load_distribution
     from pisc_sim.scene import load_scene
 
     if task not in TASKS:

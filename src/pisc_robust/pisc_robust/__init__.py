@@ -1,0 +1,1 @@
+"""PISC on rigs it was not designed on: parameter distributions, the robustness benchmark, tuning, feasibility, identification, calibration against the thesis experiment, commissioning, the Dask cluster."""
