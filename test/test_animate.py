@@ -9,15 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pisc_runs.rig_drawing import CART_COLOUR, FORCE_COLOUR, MODE_COLOURS, OVERLAY_COLOUR, rod_end
 from pisc_runs.animate import (
-    CART_COLOUR,
-    FORCE_COLOUR,
-    MODE_COLOURS,
-    OVERLAY_COLOUR,
     Animator,
     frame_cycles,
     load_run,
-    rod_end,
     write_animation,
 )
 from pisc_bringup.bag_cli import main as pisc_bag

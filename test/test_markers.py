@@ -11,7 +11,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from pisc_runs.animate import MODE_COLOURS
+from pisc_runs.rig_drawing import MODE_COLOURS
 from pisc_runs.markers import (
     MARKER_IDS,
     MarkerFeed,

@@ -33,7 +33,7 @@ def test_every_link_of_the_readme_and_the_docs_exists():
 
 
 def test_parameters_doc_is_generated_from_the_descriptors():
-    # regenerate with: .venv/bin/python -m pisc_bringup.param_docs > docs/parameters.md
+    # regenerate with: .venv/bin/python -m pisc_bringup.param_docs_cli > docs/parameters.md
     assert PARAMETERS.read_text() == render()
 
 

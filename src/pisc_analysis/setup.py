@@ -21,7 +21,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'pisc_analysis = pisc_analysis.report:main',
+            'pisc_analysis = pisc_analysis.report_cli:main',
         ],
     },
 )

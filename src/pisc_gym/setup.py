@@ -22,9 +22,9 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'pisc_gym_bench = pisc_gym.bench:main',
-            'pisc_gym_learn = pisc_gym.learn:main',
-            'pisc_gym_catchable = pisc_gym.catchable:main',
+            'pisc_gym_bench = pisc_gym.bench_cli:main',
+            'pisc_gym_learn = pisc_gym.learn_cli:main',
+            'pisc_gym_catchable = pisc_gym.catchable_cli:main',
         ],
     },
 )

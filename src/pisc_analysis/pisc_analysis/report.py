@@ -17,10 +17,8 @@ refused.
 
 from __future__ import annotations
 
-import argparse
 import io
 import math
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -34,12 +32,11 @@ from pisc_analysis import comparisons, linear, roa, stability, symbolic
 from pisc_sim.configuration import GraphConfig, load_graph_config
 from pisc_control.catch import catch_gain
 from pisc_control.swing_up import SwingUpParams, gain_condition
-from pisc_msgs_py.config import ConfigError, parse_overrides
 from pisc_msgs_py.progress import progress_bar
 from pisc_model.dynamics import linearise_upright
 from pisc_model.params import RigParams
 
-__all__ = ["Report", "SpecCheck", "build_report", "main", "spec_section6_checks"]
+__all__ = ["Report", "SpecCheck", "build_report", "spec_section6_checks"]
 
 THESIS_POLES = (-15.0, -11.0, -2.0, -1.5)
 SPEC_RTOL = 5e-5  # the published values' fifth significant digit
@@ -384,49 +381,3 @@ def _build_report(config_name: str, overrides: dict[str, Any] | None, out_dir: P
         report.add(*(str(p) for p in report.plots))
     report.add("", f"analysis took {time.perf_counter() - started:.1f} s")
     return report
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="pisc_analysis",
-                                     description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", default="default",
-                        help="named configuration (default, thesis) or a parameter file")
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                        help="override a parameter, e.g. --set motor.resistance_ohm=6")
-    parser.add_argument("--out", type=Path, default=Path("analysis"),
-                        help="directory for the PNG plots (default ./analysis)")
-    parser.add_argument("--grid", type=int, default=100,
-                        help="region of attraction: N x N starts (default 100)")
-    parser.add_argument("--roa-duration", type=float, default=1.5,
-                        help="region of attraction: seconds per start (default 1.5)")
-    parser.add_argument("--roa-x0", type=float, nargs="+", default=[0.0],
-                        help="region of attraction: initial cart positions [m], one map "
-                        "each (default 0)")
-    parser.add_argument("--compare", nargs="*", default=None,
-                        help="configurations whose region of attraction is drawn beside "
-                        "(default: thesis, or default for --config thesis)")
-    parser.add_argument("--no-roa", action="store_true", help="skip the region of attraction")
-    args = parser.parse_args(argv)
-    try:
-        overrides = parse_overrides(args.set)
-    except ConfigError as exc:
-        parser.error(str(exc))
-    if args.grid < 0:
-        parser.error(f"--grid {args.grid}: must be positive")
-    compare = args.compare
-    if compare is None:
-        compare = ["default"] if args.config == "thesis" else ["thesis"]
-    try:
-        report = build_report(args.config, overrides, args.out,
-                              grid=0 if args.no_roa else args.grid,
-                              roa_duration_s=args.roa_duration, roa_x0_m=args.roa_x0,
-                              compare=compare, progress=sys.stderr)
-    except ConfigError as exc:
-        print(f"pisc_analysis: invalid configuration: {exc}", file=sys.stderr)
-        return 2
-    print(report.text)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -6,7 +6,8 @@ import re
 
 import pytest
 
-from pisc_analysis.report import main, spec_section6_checks
+from pisc_analysis.report import spec_section6_checks
+from pisc_analysis.report_cli import main
 
 PUBLISHED = [-0.16302, 86.469, 2.1002, -18.210, -2.7711, -3.6696, -19.291, -2.0432,
              0.01235, 0.00867, 4.539, -4.539, 74.698, 16.587, 10.194, 9.1743]
@@ -73,7 +74,7 @@ def test_region_of_attraction_is_computed_for_both_gain_sets_without_a_bar_off_a
             assert f"    {name}: 6 x 6 starts at x0 = {x0} m, 0.50 s each" in text
     assert "thesis: criterion (4.1) k_va = 0.015 s^2, delta_s = 0.6 rad^2" in text
     # stderr is not a terminal: no bar of the steps or of the batch's cycles (they are
-    # drawn on a terminal only: test/test_progress.py)
+    # drawn on a terminal only: src/pisc_plant/test/test_progress.py)
     assert progress == ""
 
 

@@ -28,12 +28,12 @@ __all__ = ["main"]
 # subcommand -> module with add_arguments(parser) and run(args) -> int
 SUBCOMMANDS = {
     "repair": ("pisc_bag.repair_cmd", "finish a bag whose recorder was killed"),
-    "play": ("pisc_runs.play", "publish a bag's topics on /clock simulated time"),
+    "play": ("pisc_runs.play_cmd", "publish a bag's topics on /clock simulated time"),
     "replay": ("pisc_bringup.replay_cmd", "recompute every controller output of a bag and "
                                       "compare, stamp by stamp"),
-    "analyse": ("pisc_runs.analysis", "metrics, plots like the thesis's Figs. 6.3-6.8 and "
+    "analyse": ("pisc_runs.analyse_cmd", "metrics, plots like the thesis's Figs. 6.3-6.8 and "
                                          "the CSV log of a bag"),
-    "animate": ("pisc_runs.animate", "the run drawn as the rig (cart, pendulum, track, "
+    "animate": ("pisc_runs.animate_cmd", "the run drawn as the rig (cart, pendulum, track, "
                                         "mode, force, time) to a GIF or an MP4"),
 }
 

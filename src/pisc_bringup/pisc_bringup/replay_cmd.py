@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from pisc_bag.bag import BagError
-from pisc_runs.replay import PARAMS_FILE, replay_bag
+from pisc_bag.run_files import PARAMS_FILE
+from pisc_runs.replay import replay_bag
 from pisc_msgs_py.config import parse_overrides
 
 __all__ = ["add_arguments", "run"]

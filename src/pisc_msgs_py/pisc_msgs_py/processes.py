@@ -39,7 +39,7 @@ class DomainClaim:
     nearly every test of a run the same domain: in a test run on 2026-12-03, every graph
     after the first failed tests met "another publisher on /pisc/motor/voltage:
     /current_loop, /current_loop" (33 failed tests), what a node left alive by a failed
-    test looks like from its domain (``test/test_isolation.py``)."""
+    test looks like from its domain (``src/pisc_msgs_py/test/test_isolation.py``)."""
 
     def __init__(self) -> None:
         DOMAIN_LOCKS.mkdir(exist_ok=True)

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from pisc_bag.bag import BagError, BagMessage
+from pisc_bag.run_files import recorded_params, recorded_section
 from pisc_runs.verdict import Criteria
 from pisc_runs.summary import (
     RunSummary,
@@ -48,7 +49,6 @@ from pisc_runs.summary import (
     tables_of_bag,
 )
 from pisc_control.current_loop import CurrentLoopParams
-from pisc_msgs_py.config import ConfigError, load_params_file
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
 from pisc_model.params import LoopParams
@@ -176,17 +176,9 @@ class RunAnalysis:
 
 def _limits(bag: Path) -> tuple[float, float, float]:
     """Period, voltage limit and current limit of the run (its parameter file or defaults)."""
-    params = bag / "pisc_params.yaml"
-    loop, cl = LoopParams(), CurrentLoopParams()
-    if params.exists():
-        try:
-            flat = load_params_file(params)
-        except ConfigError as exc:
-            raise BagError(f"{params}: {exc}") from None
-        period = float(flat.get("loop.period_s", loop.period_s))
-        vm = float(flat.get("current_loop.voltage_limit_v", cl.voltage_limit_v))
-        im = float(flat.get("current_loop.current_limit_a", cl.current_limit_a))
-        return period, vm, im
+    flat = recorded_params(bag)
+    loop = recorded_section(bag, LoopParams, "loop", flat)
+    cl = recorded_section(bag, CurrentLoopParams, "current_loop", flat)
     return loop.period_s, cl.voltage_limit_v, cl.current_limit_a
 
 
@@ -340,35 +332,3 @@ def write_plots(traces: Sequence[RunTrace], out_dir: Path, period_s: float = 0.0
         figure.savefig(path)
         paths.append(path)
     return paths
-
-
-def add_arguments(parser: Any) -> None:
-    """``pisc_bag analyse`` options."""
-    parser.add_argument("bag", type=Path, help="bag directory")
-    parser.add_argument("--out", type=Path,
-                        help="directory for the plots and the CSV (default: BAG/analysis)")
-    parser.add_argument("--overlay", type=Path, help="a second bag drawn over the first")
-
-
-def run(args: Any) -> int:
-    """Print the metrics, write the plots and the CSV; 0 on success."""
-    first = analyse_bag(args.bag)
-    analyses = [first]
-    if args.overlay is not None:
-        analyses.append(analyse_bag(args.overlay))
-    out = args.out or args.bag / "analysis"
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise BagError(f"{out}: cannot create the output directory ({exc.strerror})") from None
-    period = first.summary.period_s
-    for n, analysis in enumerate(analyses):
-        if n:
-            print()
-        print(f"{analysis.trace.label}:")
-        print(analysis.format())
-        suffix = "" if n == 0 else f"_overlay_{analysis.trace.label}"
-        write_csv(analysis.trace, out / f"log{suffix}.csv")
-    paths = write_plots([a.trace for a in analyses], out, period)
-    print(f"wrote {len(paths)} plots and {len(analyses)} CSV log(s) to {out}")
-    return 0

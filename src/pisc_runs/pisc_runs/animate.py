@@ -15,7 +15,7 @@ has it (``/pisc/sim/true_state``), else the measured one (a run on the rig). Wit
 The angle convention is the project's (SPEC section 4): theta = 0 upright, pi hanging; the
 pendulum's tip is at (x + 2 l sin(theta), 2 l cos(theta)) above the pivot on the cart.
 
-The geometry (:func:`rod_end`), the frame times (:func:`frame_cycles`) and the drawing
+The geometry (:func:`pisc_runs.rig_drawing.rod_end`), the frame times (:func:`frame_cycles`) and the drawing
 (:class:`Animator`) are separate so that a test can measure a drawn frame against the
 bag's state.
 """
@@ -23,8 +23,6 @@ bag's state.
 from __future__ import annotations
 
 import math
-import sys
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,33 +31,27 @@ from typing import Any
 import numpy as np
 
 from pisc_runs.analysis import trace_from_messages
+from pisc_runs.rig_drawing import (
+    CART_COLOUR,
+    CART_HEIGHT_M,
+    CART_WIDTH_M,
+    FORCE_ARROW_MAX_M,
+    FORCE_COLOUR,
+    FORCE_SCALE_M_PER_N,
+    LIMIT_COLOUR,
+    MODE_COLOURS,
+    OVERLAY_COLOUR,
+    rod_end,
+)
 from pisc_bag.bag import BagError, read_bag
+from pisc_bag.run_files import recorded_params, recorded_section
 from pisc_control.supervisor import SafetyParams
-from pisc_msgs_py.config import ConfigError, from_flat, load_params_file
 from pisc_msgs_py.convert import MessageError, cart_force_from_msg
 from pisc_msgs_py.topics import CART_FORCE
 from pisc_msgs_py.types import Mode
 from pisc_model.params import RigParams, TrackParams
 
-__all__ = ["MODE_COLOURS", "Animator", "RunFrames", "frame_cycles", "load_run", "rod_end"]
-
-#: The pendulum's colour in each mode (RGB, 0-255): distinct hues, so that a test can
-#: find the rod by its colour.
-MODE_COLOURS = {Mode.SWING_UP: (230, 120, 0), Mode.CATCH: (0, 150, 60),
-                Mode.FAULT: (210, 20, 20)}
-CART_COLOUR = (40, 80, 170)
-FORCE_COLOUR = (140, 40, 160)
-OVERLAY_COLOUR = (150, 150, 150)
-LIMIT_COLOUR = (90, 90, 90)  # the safe range, dashed
-CART_WIDTH_M = 0.05
-CART_HEIGHT_M = 0.025
-FORCE_SCALE_M_PER_N = 0.025  # arrow length per newton of cart force
-FORCE_ARROW_MAX_M = 0.1  # longer arrows are cut to this (the title gives the value)
-
-
-def rod_end(x_m: Any, theta_rad: Any, length_m: float) -> tuple[Any, Any]:
-    """The pendulum's free end for a pivot at (x, 0): (x + L sin(theta), L cos(theta))."""
-    return x_m + length_m * np.sin(theta_rad), length_m * np.cos(theta_rad)
+__all__ = ["Animator", "RunFrames", "frame_cycles", "load_run"]
 
 
 @dataclass(frozen=True)
@@ -79,23 +71,11 @@ class RunFrames:
 
 
 def _run_params(bag: Path) -> tuple[RigParams, TrackParams, SafetyParams]:
-    """The rig, track and safe range of the run (its ``pisc_params.yaml``, else defaults)."""
-    rig, track, safety = RigParams(), TrackParams(), SafetyParams()
-    params = bag / "pisc_params.yaml"
-    if not params.exists():
-        return rig, track, safety
-    try:
-        flat = load_params_file(params)
-    except ConfigError as exc:
-        raise BagError(f"{params}: {exc}") from None
-
-    try:
-        rig = from_flat(RigParams, flat, "rig")
-        track = from_flat(TrackParams, flat, "track")
-        safety = from_flat(SafetyParams, flat, "safety")
-    except ConfigError as exc:
-        raise BagError(f"{params}: {exc}") from None
-    return rig, track, safety
+    """The rig, track and safe range of the run (its parameter file, else defaults)."""
+    flat = recorded_params(bag)
+    return (recorded_section(bag, RigParams, "rig", flat),
+            recorded_section(bag, TrackParams, "track", flat),
+            recorded_section(bag, SafetyParams, "safety", flat))
 
 
 def load_run(bag: str | Path) -> RunFrames:
@@ -322,48 +302,3 @@ def _write_mp4(path: Path, frames: Iterator[np.ndarray], fps: float,
 
 
 # -- pisc_bag animate ----------------------------------------------------------------------
-
-def add_arguments(parser: Any) -> None:
-    """``pisc_bag animate`` options."""
-    parser.add_argument("bag", type=Path, help="bag directory")
-    parser.add_argument("--out", type=Path,
-                        help="the animation, .gif or .mp4 (default: BAG/animation.gif)")
-    parser.add_argument("--overlay", type=Path, help="a second bag drawn behind, in grey")
-    parser.add_argument("--fps", type=float, default=25.0, help="frames per second "
-                        "(default: %(default)s)")
-    parser.add_argument("--speed", type=float, default=1.0,
-                        help="run seconds per second of animation (default: %(default)s; "
-                        "0.25 is slow motion)")
-    parser.add_argument("--start", type=float, default=0.0, metavar="T",
-                        help="first frame at this run time [s] (default: 0)")
-    parser.add_argument("--end", type=float, metavar="T",
-                        help="last frame at this run time [s] (default: the end)")
-
-
-def run(args: Any) -> int:
-    """Write the animation; 0 on success."""
-    from pisc_msgs_py.progress import progress_bar
-
-    out = args.out or args.bag / "animation.gif"
-    if out.suffix.lower() not in (".gif", ".mp4"):
-        raise BagError(f"{out}: the animation must be a .gif or an .mp4 file")
-    if not out.parent.is_dir():
-        raise BagError(f"{out.parent}: no such directory for the animation")
-    first = load_run(args.bag)
-    overlay = load_run(args.overlay) if args.overlay is not None else None
-    try:
-        cycles = frame_cycles(first.t, args.fps, args.speed, args.start, args.end)
-    except ValueError as exc:
-        raise BagError(str(exc)) from None
-    began = time.perf_counter()
-    with progress_bar(len(cycles), "frame", "animate") as bar:
-        n = write_animation(first, out, overlay, args.fps, args.speed, args.start, args.end,
-                            bar)
-    wall = time.perf_counter() - began
-    shown = float(first.t[cycles[-1]] - first.t[cycles[0]])
-    print(f"wrote {out}: {n} frames at {args.fps:g} fps, {shown:.2f} s of the run"
-          f"{'' if args.speed == 1 else f' at {args.speed:g}x'}, "
-          f"{'true' if first.true_state else 'measured'} state, in {wall:.1f} s",
-          file=sys.stdout)
-    return 0
-

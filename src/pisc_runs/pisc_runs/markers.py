@@ -32,7 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from pisc_runs.animate import (
+from pisc_runs.rig_drawing import (
     CART_COLOUR,
     CART_HEIGHT_M,
     CART_WIDTH_M,

@@ -23,7 +23,7 @@ from typing import Any
 
 from pisc_bag.bag import BagError, RawMessage, header_stamp_ns, read_bag_raw
 
-__all__ = ["PlayItem", "add_arguments", "play_bag", "playback_plan", "run"]
+__all__ = ["PlayItem", "play_bag", "playback_plan"]
 
 
 @dataclass(frozen=True)
@@ -129,29 +129,3 @@ def play_bag(bag: str | Path, rate: float = 1.0, topics: Sequence[str] | None = 
         if live is not None:
             live.close()
     return published
-
-
-def add_arguments(parser: Any) -> None:
-    """``pisc_bag play`` options."""
-    parser.add_argument("bag", type=Path, help="bag directory")
-    parser.add_argument("--rate", type=float, default=1.0,
-                        help="speed relative to the recording (default 1; 0: as fast as "
-                             "possible)")
-    parser.add_argument("--topic", action="append", default=None,
-                        help="play only this topic (repeatable; default: all but /clock)")
-    parser.add_argument("--wait-subscribers", type=float, default=2.0, metavar="S",
-                        help="wait up to S seconds for a subscriber on every played topic")
-    parser.add_argument("--domain-id", type=int, help="ROS domain id (default: environment)")
-    parser.add_argument("--foxglove", type=int, nargs="?", const=8765, metavar="PORT",
-                        help="also serve the played messages to Foxglove on "
-                        "ws://127.0.0.1:PORT (default 8765; docs/foxglove.md)")
-
-
-def run(args: Any) -> int:
-    started = time.monotonic()
-    counts = play_bag(args.bag, args.rate, args.topic, args.wait_subscribers, args.domain_id,
-                      args.foxglove)
-    print(f"played {args.bag} in {time.monotonic() - started:.1f} s of wall time:")
-    for topic, count in counts.items():
-        print(f"  {topic} {count}")
-    return 0

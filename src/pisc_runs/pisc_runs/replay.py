@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from pisc_bag.run_files import PARAMS_FILE, recorded_params
 from pisc_bag.bag import BagError, BagMessage, bag_topics, read_bag
 from pisc_runs.summary import foreign_in_bag
 from pisc_sim.closed_loop import Controllers
@@ -79,7 +80,6 @@ __all__ = [
     "replay_cores",
 ]
 
-PARAMS_FILE = "pisc_params.yaml"
 COMPARED_TOPICS = (STATE.name, CART_FORCE.name, MODE.name, CURRENT_SETPOINT.name, VOLTAGE.name)
 # the values each compared topic carries, in the order they are compared
 FIELDS = {
@@ -514,11 +514,8 @@ def bag_config(bag: str | Path, config: str | None = None,
     if not Path(bag).is_dir():
         raise BagError(f"{bag}: no such bag directory")
     if source is None:
-        params = Path(bag) / PARAMS_FILE
-        if not params.exists():
-            raise BagError(f"{bag}: no {PARAMS_FILE} (the parameters of the run); name the "
-                           "configuration it ran with (--config)")
-        source = str(params)
+        recorded_params(bag, required=True)  # refused here, naming the bag, if missing
+        source = str(Path(bag) / PARAMS_FILE)
     cfg, _ = load_graph_config(source, overrides)
     return cfg, source
 

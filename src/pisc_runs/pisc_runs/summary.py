@@ -360,20 +360,12 @@ def _at(unique: np.ndarray, index: np.ndarray, stamps: np.ndarray) -> np.ndarray
 
 
 def safe_range_of(bag: str | Path | None) -> tuple[float, float]:
-    """The safe range of a run: its bag's ``pisc_params.yaml`` (``safety.*``), else the
+    """The safe range of a run: its bag's parameter file (``safety.*``), else the
     controllers' defaults."""
+    from pisc_bag.run_files import recorded_section
     from pisc_control.supervisor import SafetyParams
-    from pisc_msgs_py.config import ConfigError, from_flat, load_params_file
 
-    flat: dict = {}
-    params = None if bag is None else Path(bag) / "pisc_params.yaml"
-    if params is not None and params.is_file():
-        try:
-            flat = load_params_file(params)
-        except ConfigError as exc:
-            raise BagError(f"{params}: {exc}") from None
-    safety = from_flat(SafetyParams, {k: v for k, v in flat.items()
-                                      if k.startswith("safety.")}, "safety")
+    safety = SafetyParams() if bag is None else recorded_section(bag, SafetyParams, "safety")
     return safety.x_min_m, safety.x_max_m
 
 

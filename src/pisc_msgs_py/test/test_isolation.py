@@ -59,7 +59,7 @@ def test_a_failed_test_leaves_no_node_in_its_domain(pytester):
     never destroyed keeps its publishers in the domain after the context's shutdown
     (2026-12-03: a later test given the same domain id took them for intruders on the
     voltage topic). conftest destroys them once the failed test is torn down."""
-    pytester.makeconftest((Path(__file__).parent / "conftest.py").read_text())
+    pytester.makeconftest((Path(__file__).resolve().parents[3] / "conftest.py").read_text())
     pytester.makepyfile(test_inner=textwrap.dedent("""
         import time
 

@@ -41,7 +41,7 @@ from pisc_msgs_py.topics import (
 
 pytestmark = pytest.mark.bag
 
-BAGS = Path(__file__).resolve().parent.parent / "bags"
+BAGS = Path(__file__).resolve().parents[3] / "bags"
 REFERENCE_BAGS = ("default-swingup", "lyapunov-swingup", "thesis-gains", "driver-swingup")
 
 

@@ -20,7 +20,7 @@ from pisc_msgs_py.convert import motor_sample_from_msg, stamp_from_msg
 from pisc_msgs_py.base_node import message_class
 from pisc_msgs_py.topics import CLOCK, GRAPH_TOPICS, VOLTAGE
 
-SWINGUP = Path(__file__).resolve().parent.parent / "bags" / "default-swingup"
+SWINGUP = Path(__file__).resolve().parents[3] / "bags" / "default-swingup"
 
 
 def stamped(sec: int, nanosec: int, tag: bytes) -> bytes:

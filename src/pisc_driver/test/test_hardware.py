@@ -1,6 +1,6 @@
 """The real rig on a serial port: skipped unless PISC_SERIAL_PORT names it.
 
-    PISC_SERIAL_PORT=/dev/ttyUSB0 .venv/bin/python -m pytest -m hardware test/test_hardware.py
+    PISC_SERIAL_PORT=/dev/ttyUSB0 .venv/bin/python -m pytest -m hardware src/pisc_driver/test/test_hardware.py
 
 Safe to run with the pendulum hanging: the motor only ever receives zero voltage.
 """

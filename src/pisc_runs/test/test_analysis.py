@@ -19,7 +19,7 @@ from pisc_model.dynamics import wrap_to_upright
 
 pytestmark = pytest.mark.bag
 
-BAGS = Path(__file__).resolve().parent.parent / "bags"
+BAGS = Path(__file__).resolve().parents[3] / "bags"
 SWINGUP = BAGS / "lyapunov-swingup"  # the times below are of this recording
 THESIS = BAGS / "thesis-gains"
 

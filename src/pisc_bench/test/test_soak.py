@@ -1,5 +1,5 @@
 """pisc_soak (issue 15 item 6, issue 16 item 3): its pure parts in the default suite,
-the command itself behind ``bench`` (``pytest test/test_soak.py -m bench -s``)."""
+the command itself behind ``bench`` (``pytest src/pisc_bench/test/test_soak.py -m bench -s``)."""
 
 from __future__ import annotations
 
@@ -668,7 +668,7 @@ def _swing_up(drop_seed: int | None = None, stall: tuple[int, int] | None = None
 @pytest.mark.bench
 def test_the_swing_up_survives_byte_drops_but_not_a_host_stall_of_180_ms():
     """Figures behind docs/soak.md ("Why the swing-up was lost"): .venv/bin/python -m
-    pytest test/test_soak.py -m bench -k host_stall -s"""
+    pytest src/pisc_bench/test/test_soak.py -m bench -k host_stall -s"""
     nominal = _swing_up()
     print(f"no faults: {nominal}")
     assert nominal[0] == "caught" and -0.225 < nominal[2] < -0.205  # 12-20 mm to spare

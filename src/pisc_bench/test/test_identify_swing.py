@@ -13,7 +13,7 @@ with a wrong l, and I and c themselves when l is right.
 
 About 2-5 minutes on this 2-core machine (two graph runs, four fits; measured 128 s), so
 behind bench:
-    ./pisc test -m bench -s test/test_identify_swing.py
+    ./pisc test -m bench -s src/pisc_bench/test/test_identify_swing.py
 """
 
 from __future__ import annotations

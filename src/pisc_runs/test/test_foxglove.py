@@ -195,7 +195,7 @@ def test_the_bridge_alone_refuses_a_port_in_use(tmp_path):
 
 
 def test_bag_play_serves_the_bag_and_refuses_a_port_in_use(tmp_path, env_for_domain):
-    bag = Path(__file__).resolve().parents[1] / "bags" / "default-swingup"
+    bag = Path(__file__).resolve().parents[3] / "bags" / "default-swingup"
     port = free_port()
     command = [*console_command("pisc_bag", "pisc_bringup.bag_cli"), "play", str(bag),
                "--rate", "0", "--wait-subscribers", "0", "--topic", "/pisc/joint_states"]

@@ -19,7 +19,7 @@ from pisc_msgs_py.types import Mode
 from pisc_sim.configuration import load_graph_config
 
 PERIOD = 0.005
-SWINGUP = Path(__file__).resolve().parents[1] / "bags" / "default-swingup"
+SWINGUP = Path(__file__).resolve().parents[3] / "bags" / "default-swingup"
 
 
 def run(duration_s: float, catch_at_s: float, x=None, theta=None) -> RunTables:

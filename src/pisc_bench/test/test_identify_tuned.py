@@ -14,7 +14,7 @@ SPEC (3.45)-(3.46)): re-deriving the default on the identified nominal changes n
 so the tune is what uses the identification.
 
 About 2-4 minutes on this 2-core machine (measured 115 s), so behind bench:
-    ./pisc test -m bench -s test/test_identify_tuned.py
+    ./pisc test -m bench -s src/pisc_bench/test/test_identify_tuned.py
 """
 
 from __future__ import annotations

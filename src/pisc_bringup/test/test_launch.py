@@ -16,7 +16,7 @@ from pisc_bringup.graph import NODE_KINDS, RunOptions, read_graph
 from pisc_bringup.launch_file import LaunchError, declared_args, launch_path, read_launch
 from pisc_sim.configuration import load_run_config
 
-SRC = Path(__file__).resolve().parents[1] / "src"
+SRC = Path(__file__).resolve().parents[3] / "src"
 LAUNCH = SRC / "pisc_bringup" / "launch"
 
 

@@ -21,7 +21,7 @@ from pisc_msgs_py.topics import GRAPH_TOPICS
 
 pytestmark = pytest.mark.bag
 
-SWINGUP = Path(__file__).resolve().parent.parent / "bags" / "lyapunov-swingup"
+SWINGUP = Path(__file__).resolve().parents[3] / "bags" / "lyapunov-swingup"
 
 
 def recorded_order(seconds: int = 10) -> list[tuple[str, bytes, int, int]]:

@@ -21,7 +21,7 @@ from pisc_msgs_py.topics import CART_FORCE, GRAPH_TOPICS, JOINT_STATES, MODE, VO
 
 pytestmark = pytest.mark.bag
 
-BAGS = Path(__file__).resolve().parent.parent / "bags"
+BAGS = Path(__file__).resolve().parents[3] / "bags"
 SWINGUP = BAGS / "default-swingup"
 DRIVER = BAGS / "driver-swingup"
 
