@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from pisc_msgs_py.config import ConfigError, parse_overrides
-from pisc_analysis import report
+from pisc_analysis import report as analysis_report
 from pisc_analysis.report import build_report
 
 __all__ = ["main"]
@@ -16,7 +16,7 @@ __all__ = ["main"]
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="pisc_analysis",
-                                     description=report.__doc__.split("\n\n")[0])
+                                     description=analysis_report.__doc__.split("\n\n")[0])
     parser.add_argument("--config", default="default",
                         help="named configuration (default, thesis) or a parameter file")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
