@@ -97,7 +97,7 @@ def test_a_malformed_recorded_gain_is_refused(gain):
 def test_governor_rows_against_a_simulation_of_the_sampled_loop():
     """Row j gives the cart and the set-point after 3 j periods of a loop simulated here
     period by period: the zero-order hold of the linearisation (scipy.signal.
-    cont2discrete), the IR reading through its RC low-pass, the estimator's numpy core
+    cont2discrete), the IR reading through its RC low-pass, the estimator over arrays
     (differences over 7 periods, low-passed) and the catch f = -K z on what it gives; the
     rig moving at the estimated velocities before the start."""
     from scipy.signal import cont2discrete
