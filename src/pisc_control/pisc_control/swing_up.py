@@ -20,9 +20,8 @@ supervisor_step`) calls them in the node and in the compiled batch, and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike

@@ -2,10 +2,8 @@
 the measurement before them and the bookkeeping after them.
 
 :func:`pisc_sim.closed_loop.simulate_batch` runs the estimator, the supervisor and the
-current loop of every rig each cycle. Their numpy cores (:mod:`pisc_control`) do that with
-about a hundred array operations a cycle, each a pass over all the rigs; here one compiled
-loop over the rigs, split between the cores (``prange``), runs for each rig the laws the
-nodes run, compiled from their Python source as they are
+current loop of every rig each cycle. Here one compiled loop over the rigs, split
+between the cores (``prange``), runs for each rig the laws the nodes run, compiled from their Python source as they are
 (:func:`pisc_control.estimator.estimator_step`,
 :func:`pisc_control.adaptation.adaptation_step`,
 :func:`pisc_control.supervisor.supervisor_step` with the swing-up's and the catch's laws
@@ -30,7 +28,7 @@ the code of the laws' modules (:data:`LAW_MODULES`), so when one of them is newe
 the cache's index, the index is removed here before numba reads it
 (:func:`drop_stale_cache`) and the pass compiles anew.
 Experiments (``experiment.kind``) are not compiled: :func:`supported` says so and the
-batch then runs the numpy cores.
+batch then runs them over arrays (:meth:`pisc_control.supervisor.Supervisor.update`).
 """
 
 from __future__ import annotations
@@ -270,7 +268,8 @@ class BatchControllers:
                  estimator: EstimatorState | None = None) -> None:
         if not supported(config):
             raise ValueError(f"experiment.kind = {config.supervisor.experiment.kind!r}: "
-                             "experiments run on the numpy cores, not the compiled ones")
+                             "experiments run over arrays (Supervisor.update), not in the "
+                             "compiled pass")
         period = config.loop.period_s
         self._s, self._w, self._k = supervisor.constants
         self._rows = np.ascontiguousarray(supervisor.governor_rows, dtype=float).reshape(-1, 8)

@@ -288,7 +288,7 @@ def test_the_compiled_cycle_refuses_what_it_cannot_index():
 def test_experiments_run_on_the_arrays():
     config = load_scene("excitation").config
     assert not supported(config)
-    with pytest.raises(ValueError, match="experiment.kind = .*numpy cores"):
+    with pytest.raises(ValueError, match="experiment.kind = .*not in the compiled pass"):
         BatchControllers(config, Supervisor(config.supervisor), 3)
     compiled = simulate_batch(config, np.zeros(3), 0.5)
     numpy_cores = simulate_batch(config, np.zeros(3), 0.5, controllers="numpy")
