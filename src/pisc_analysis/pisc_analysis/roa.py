@@ -29,6 +29,7 @@ import numpy as np
 from pisc_sim.closed_loop import simulate_batch
 from pisc_sim.configuration import GraphConfig
 from pisc_control.supervisor import switching_criterion
+from pisc_model.dynamics import wrap_to_upright
 
 __all__ = [
     "CAUGHT_AT_ONCE",
@@ -114,7 +115,7 @@ def region_of_attraction(
     codes = np.where(held & (caught_at == 0.0), CAUGHT_AT_ONCE,
                      np.where(held, CAUGHT_LATER, NOT_RECOVERED))
     sw = config.supervisor.switching
-    inside = switching_criterion(sw.k_va, grid_theta, grid_rate) < sw.delta_s
+    inside = switching_criterion(sw.k_va, wrap_to_upright(grid_theta), grid_rate) < sw.delta_s
     return RoaMap(label, theta, rate, float(x0_m), codes, caught_at, faulted, inside,
                   sw.k_va, sw.delta_s, duration_s, elapsed)
 

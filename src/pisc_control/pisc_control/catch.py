@@ -1,4 +1,14 @@
-"""Linear state feedback that catches and balances the pendulum upright, thesis 3.3."""
+"""Linear state feedback that catches and balances the pendulum upright, thesis 3.3.
+
+The gain K is designed from the model (:func:`catch_gain`). The laws of a sample are
+written on floats, one rig at a time, with the constants of :func:`catch_constants`:
+the catch (3.46) (:func:`catch_force`, with the hold's gain blended in,
+:func:`held_catch_force`, :func:`hold_blend`), its cart reference
+(:func:`catch_reference`), the reference governor (:func:`governor_interval` over the
+prediction of :func:`governor_rows`) and the catch's track guard
+(:func:`guard_lets_go`); the supervisor (:func:`pisc_control.supervisor.
+supervisor_step`) calls them in the node and in the compiled batch.
+"""
 
 from __future__ import annotations
 
@@ -6,14 +16,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
 
+from pisc_control.floatmath import clip
 from pisc_msgs_py.config import ConfigError, finite, nonnegative, one_of, param, positive
-from pisc_model.dynamics import linearise_upright, wrap_to_upright
+from pisc_model.dynamics import linearise_upright
 from pisc_model.params import RigParams
 
-__all__ = ["CatchParams", "GOVERNOR_STRIDE", "SAME_DESIGN_RTOL", "catch_force", "catch_gain",
-           "governor_rows", "recorded_or_designed"]
+__all__ = ["CatchParams", "GOVERNOR_STRIDE", "SAME_DESIGN_RTOL", "catch_constants",
+           "catch_force", "catch_gain", "catch_reference", "governor_interval", "governor_rows",
+           "guard_lets_go", "held_catch_force", "hold_blend", "narrow_interval",
+           "recorded_or_designed"]
 
 #: the governor checks its prediction every this many periods (and at the first)
 GOVERNOR_STRIDE = 3
@@ -174,30 +186,6 @@ def recorded_or_designed(designed: np.ndarray, recorded: tuple[float, ...]) -> n
     return designed
 
 
-def catch_force(
-    gain: np.ndarray,
-    x: ArrayLike,
-    x_dot: ArrayLike,
-    theta: ArrayLike,
-    theta_dot: ArrayLike,
-    target_m: ArrayLike = 0.0,
-) -> np.ndarray:
-    """``f = -K z``, z relative to the upright equilibrium at ``target_m``.
-
-    Notes
-    -----
-    Implements (3.46) with theta wrapped to the nearest upright (2 pi n), as the C++
-    program does with ``thetad``.
-    """
-    k1, k2, k3, k4 = gain
-    return -(
-        k1 * (np.asarray(x, dtype=float) - target_m)
-        + k2 * np.asarray(x_dot, dtype=float)
-        + k3 * wrap_to_upright(theta)
-        + k4 * np.asarray(theta_dot, dtype=float)
-    )
-
-
 def governor_rows(rig: RigParams, gain: np.ndarray, period_s: float, horizon_s: float,
                   force_per_amp: float, difference_periods: int = 1,
                   velocity_filter_hz: float = 0.0, ir_filter_hz: float = 0.0) -> np.ndarray:
@@ -304,3 +292,132 @@ def _expm(m: np.ndarray) -> np.ndarray:
     for _ in range(squarings):
         result = _matmul(result, result)
     return result
+
+
+# places in the catch's constants (catch_constants)
+(K_K1, K_K2, K_K3, K_K4, K_H1, K_H2, K_H3, K_H4, K_TARGET, K_SETTLE, K_SETTLE_STEP,
+ K_HOLD_AFTER, K_HOLD_BLEND, K_GOV, K_GOV_X_LO, K_GOV_X_HI, K_GOV_I, K_GUARD, K_TWO_BRAKE,
+ K_LOW, K_HIGH, K_LEAD, N_K) = range(23)
+
+
+def catch_constants(gain: np.ndarray, hold_gain: np.ndarray, params: CatchParams,
+                    limits_m: tuple[float, float], period_s: float, pump_guard: bool
+                    ) -> tuple[float, ...]:
+    """The constants of the laws below (places ``K_*``): the catch's gain K and the
+    hold's, the reference's settling, the governor's bounds in the safe range
+    ``limits_m``, and the catch's guard (``pump_guard``: the swing-up's track guard is
+    there to brake when the catch lets go)."""
+    c = params
+    k = [0.0] * N_K
+    k[K_K1], k[K_K2], k[K_K3], k[K_K4] = (float(v) for v in gain)
+    k[K_H1], k[K_H2], k[K_H3], k[K_H4] = (float(v) for v in hold_gain)
+    k[K_TARGET] = c.target_m
+    k[K_SETTLE] = 1.0 if c.settle_rate_mps != 0.0 else 0.0
+    k[K_SETTLE_STEP] = c.settle_rate_mps * period_s
+    k[K_HOLD_AFTER] = c.hold_after_s / period_s if c.hold_poles else -1.0
+    k[K_HOLD_BLEND] = c.hold_blend_s / period_s
+    k[K_GOV] = 1.0 if c.governor else 0.0
+    k[K_GOV_X_LO] = limits_m[0] + c.governor_margin_m
+    k[K_GOV_X_HI] = limits_m[1] - c.governor_margin_m
+    k[K_GOV_I] = c.governor_current_a
+    k[K_GUARD] = 1.0 if c.guard and pump_guard else 0.0
+    k[K_TWO_BRAKE] = 2.0 * c.guard_accel_mps2
+    k[K_LOW] = limits_m[0] + c.guard_margin_m
+    k[K_HIGH] = limits_m[1] - c.guard_margin_m
+    k[K_LEAD] = c.guard_lead_s
+    return tuple(k)
+
+
+def catch_force(k1: float, k2: float, k3: float, k4: float, x: float, x_dot: float,
+                th: float, theta_dot: float, reference: float) -> float:
+    """``f = -K z``, z the state relative to the upright equilibrium with the cart at
+    ``reference``; ``th``: the angle from the nearest upright (2 pi n), as the C++
+    program takes ``thetad``. No branch: it also runs on arrays.
+
+    Notes
+    -----
+    Implements (3.46), ``f = -(k1 (x - x*) + k2 x_dot + k3 theta + k4 theta_dot)``.
+    """
+    return -(k1 * (x - reference) + k2 * x_dot + k3 * th + k4 * theta_dot)
+
+
+def held_catch_force(k: tuple[float, ...], blend: float, x: float, x_dot: float, th: float,
+                     theta_dot: float, reference: float) -> float:
+    """:func:`catch_force` with the catch's gain K, or with ``blend`` > 0 the gain blended
+    linearly towards the hold's, K + blend (K_hold - K) (:func:`hold_blend`)."""
+    if blend > 0.0:
+        return catch_force(k[K_K1] + blend * (k[K_H1] - k[K_K1]),
+                           k[K_K2] + blend * (k[K_H2] - k[K_K2]),
+                           k[K_K3] + blend * (k[K_H3] - k[K_K3]),
+                           k[K_K4] + blend * (k[K_H4] - k[K_K4]),
+                           x, x_dot, th, theta_dot, reference)
+    return catch_force(k[K_K1], k[K_K2], k[K_K3], k[K_K4], x, x_dot, th, theta_dot,
+                       reference)
+
+
+def hold_blend(k: tuple[float, ...], held: float) -> float:
+    """How far the hold's gain has replaced the catch's (0 .. 1) after ``held`` periods in
+    the catch: from ``catch.hold_after_s`` on, linearly over ``catch.hold_blend_s``
+    (always 0 without ``catch.hold_poles``)."""
+    if k[K_HOLD_AFTER] >= 0.0:
+        return clip((held - k[K_HOLD_AFTER]) / k[K_HOLD_BLEND], 0.0, 1.0)
+    return 0.0
+
+
+def guard_lets_go(k: tuple[float, ...], x: float, x_dot: float) -> bool:
+    """The catch's track guard (``catch.guard``): whether the cart, moving on at x_dot
+    for ``guard_lead_s`` and then braked at ``guard_accel_mps2``, would stop beyond the
+    safe range less ``guard_margin_m``, moving towards that end."""
+    if k[K_GUARD] > 0.0:
+        stop = x + x_dot * (k[K_LEAD] + abs(x_dot) / k[K_TWO_BRAKE])
+        return (stop > k[K_HIGH] and x_dot > 0.0) or (stop < k[K_LOW] and x_dot < 0.0)
+    return False
+
+
+def narrow_interval(lo: float, hi: float, a: float, b: float, low: float, high: float
+                    ) -> tuple[float, float]:
+    """[lo, hi] narrowed to the r with low <= a + b r <= high (empty: lo > hi)."""
+    if b > 1e-12:
+        lo = max(lo, (low - a) / b)
+        hi = min(hi, (high - a) / b)
+    elif b < -1e-12:
+        lo = max(lo, (high - a) / b)
+        hi = min(hi, (low - a) / b)
+    elif not (a >= low and a <= high):
+        lo, hi = math.inf, -math.inf
+    return lo, hi
+
+
+def governor_interval(k: tuple[float, ...], rows, x: float, x_dot: float, th: float,
+                      theta_dot: float) -> tuple[float, float]:
+    """(lo, hi): the catch's cart references r for which the linear closed loop's
+    prediction from this state (:func:`governor_rows`: row j gives the cart ``r + P_j .
+    w`` and the set-point ``Q_j . w``, ``w = [x - r, x_dot, th, theta_dot]``) keeps the
+    cart in the safe range less ``governor_margin_m`` and the set-point within
+    +-``governor_current_a`` at every row; lo > hi when no reference does."""
+    lo, hi = -math.inf, math.inf
+    x_lo, x_hi, i_max = k[K_GOV_X_LO], k[K_GOV_X_HI], k[K_GOV_I]
+    for j in range(len(rows)):
+        row = rows[j]
+        moved = row[0] * x + row[1] * x_dot + row[2] * th + row[3] * theta_dot
+        lo, hi = narrow_interval(lo, hi, moved, 1.0 - row[0], x_lo, x_hi)
+        current = row[4] * x + row[5] * x_dot + row[6] * th + row[7] * theta_dot
+        lo, hi = narrow_interval(lo, hi, current, -row[4], -i_max, i_max)
+    return lo, hi
+
+
+def catch_reference(k: tuple[float, ...], entering: bool, catching: bool, x: float,
+                    previous: float, lo: float, hi: float) -> float:
+    """The catch's cart reference this sample: ``catch.target_m``, or with
+    ``settle_rate_mps`` > 0 the cart's position when the catch began (``entering``),
+    moved towards the target by rate x Ts a sample while ``catching``; then kept in the
+    governor's interval [lo, hi] (:func:`governor_interval`; none: lo > hi)."""
+    if k[K_SETTLE] > 0.0:
+        ref = x if entering else previous
+        if catching:
+            ref = ref + clip(k[K_TARGET] - ref, -k[K_SETTLE_STEP], k[K_SETTLE_STEP])
+    else:
+        ref = k[K_TARGET]
+    if lo <= hi:
+        ref = clip(ref, lo, hi)
+    return ref

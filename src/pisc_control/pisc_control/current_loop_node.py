@@ -5,8 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from pisc_control.current_loop import CurrentLoopParams
-from pisc_control.scalar import OneRigCurrentLoop
+from pisc_control.current_loop import CurrentLoopParams, OneRigCurrentLoop
 from pisc_msgs_py.base_node import ERROR, OK, PiscNode, ResendCache, run_node
 from pisc_msgs_py.convert import (
     cart_force_from_msg,

@@ -10,8 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pisc_control.estimator import EstimatorParams
-from pisc_control.scalar import OneRigEstimator
+from pisc_control.estimator import EstimatorParams, OneRigEstimator
 from pisc_msgs_py.base_node import ERROR, OK, PiscNode, ResendCache, run_node
 from pisc_msgs_py.convert import joint_sample_from_msg, state_to_cdr
 from pisc_msgs_py.topics import JOINT_STATES, STATE

@@ -28,29 +28,53 @@ the safe range, and stays there until the first catch. Pulling the cart over D i
 swings the pendulum up; because (3.30) does not depend on where the cart is, every
 start then sees the same swing-up, whatever its position on the track.
 
-The functions are pure and broadcast over arrays, so one call steps one rig in the
-supervisor node or many in a batch.
+The law is :func:`supervisor_step`, one sample of one rig on floats, with the swing-up
+laws (:mod:`pisc_control.swing_up`) and the catch's (:mod:`pisc_control.catch`) it
+calls: the supervisor node runs it through :class:`OneRigSupervisor`, the compiled batch
+compiles it (:mod:`pisc_sim.batch_controllers`), and :meth:`Supervisor.update` runs it
+over arrays of rigs, one rig after another.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from pisc_control.adaptation import AdaptationParams
+from pisc_control.adaptation import (
+    AdaptationParams,
+    adaptation_constants,
+    adaptation_estimates,
+    adaptation_init,
+    adaptation_size,
+    adaptation_std,
+    adaptation_step,
+)
+from pisc_control.catch import (
+    K_GOV,
+    CatchParams,
+    catch_constants,
+    catch_gain,
+    catch_reference,
+    governor_interval,
+    governor_rows,
+    guard_lets_go,
+    held_catch_force,
+    hold_blend,
+)
 from pisc_control.estimator import EstimatorParams
-from pisc_control.catch import CatchParams, catch_force, catch_gain, governor_rows
 from pisc_control.excitation import ExperimentParams, experiment_force
+from pisc_control.floatmath import cos, sin, wrap
 from pisc_control.swing_up import (
     SwingUpParams,
     check_gain_condition,
     energy_pump_force,
+    lyapunov_force,
     pendulum_energy,
-    swing_up_force,
+    swing_up_constants,
 )
-from pisc_model.dynamics import wrap_to_upright
 from pisc_model.params import LoopParams, MotorParams, RigParams, SensorParams
 from pisc_msgs_py.config import ConfigError, nonnegative, param, positive
 from pisc_msgs_py.types import Mode
@@ -59,12 +83,17 @@ __all__ = [
     "FAULT_NONE",
     "FAULT_NOT_FINITE",
     "FAULT_OUT_OF_RANGE",
+    "OneRigSupervisor",
     "SafetyParams",
     "StartupParams",
     "Supervisor",
     "SupervisorConfig",
     "SupervisorState",
     "SwitchingParams",
+    "fault_code",
+    "startup_target",
+    "supervisor_constants",
+    "supervisor_step",
     "switching_criterion",
 ]
 
@@ -135,7 +164,8 @@ class SupervisorConfig:
 
 @dataclass(frozen=True)
 class SupervisorState:
-    """Per-rig memory of the supervisor; ``None`` fields before the first sample."""
+    """Per-rig memory of :meth:`Supervisor.update`; ``None`` fields before the first
+    sample."""
 
     mode: np.ndarray | None = None
     fault: np.ndarray | None = None
@@ -144,17 +174,141 @@ class SupervisorState:
     catch_reference_m: np.ndarray | None = None  # the catch's cart reference (settling)
     sample: np.ndarray | None = None  # experiments: index of the sample (their clock)
     origin_m: np.ndarray | None = None  # experiments: the first measured position
+    # the online estimates' state (:mod:`pisc_control.adaptation`), one row per rig
+    adaptation: np.ndarray | None = None
 
 
-def switching_criterion(k_va: float, theta: ArrayLike, theta_dot: ArrayLike) -> np.ndarray:
-    """``theta^2 + k_va theta_dot^2`` with theta from the nearest upright (4.1)."""
-    th = wrap_to_upright(theta)
-    theta_dot = np.asarray(theta_dot, dtype=float)
+def switching_criterion(k_va: float, th: float, theta_dot: float) -> float:
+    """``theta^2 + k_va theta_dot^2`` (4.1), ``th`` the angle from the nearest upright
+    (:func:`pisc_control.floatmath.wrap`, or over arrays
+    :func:`pisc_model.dynamics.wrap_to_upright`). No branch: it also runs on arrays."""
     return th * th + k_va * theta_dot * theta_dot
 
 
+# places in the supervisor's own constants (supervisor_constants)
+(S_X_MIN, S_X_MAX, S_MIDDLE, S_STARTUP_D, S_SWING_TARGET, S_K_VA, S_DELTA_S, S_DELTA_EXIT,
+ S_BAND, S_LAW, S_ADAPT, N_S) = range(12)
+LAW_LYAPUNOV, LAW_ENERGY_PUMP = 0, 1
+SWING_UP, CATCH, FAULT = Mode.SWING_UP.code, Mode.CATCH.code, Mode.FAULT.code
+
+
+def supervisor_constants(config: SupervisorConfig) -> tuple[float, ...]:
+    """The constants of :func:`supervisor_step` of its own (places ``S_*``)."""
+    c = config
+    s = [0.0] * N_S
+    s[S_X_MIN], s[S_X_MAX] = c.safety.x_min_m, c.safety.x_max_m
+    s[S_MIDDLE] = 0.5 * (c.safety.x_min_m + c.safety.x_max_m)
+    s[S_STARTUP_D] = c.startup.distance_m
+    s[S_SWING_TARGET] = c.swing_up.target_m
+    sw = c.switching
+    s[S_K_VA], s[S_DELTA_S], s[S_DELTA_EXIT] = sw.k_va, sw.delta_s, sw.delta_exit
+    s[S_BAND] = sw.energy_band_j
+    s[S_LAW] = float(LAW_ENERGY_PUMP if c.swing_up.law == "energy_pump" else LAW_LYAPUNOV)
+    s[S_ADAPT] = 1.0 if c.adaptation.enabled else 0.0
+    return tuple(s)
+
+
+def startup_target(s: tuple[float, ...], x: float) -> float:
+    """The swing-up's target until the first catch, from the first measured position
+    ``x``: ``startup.distance_m`` from it towards the middle of the safe range, or
+    without a distance ``swing_up.target_m``."""
+    if s[S_STARTUP_D] > 0.0:
+        direction = -1.0 if x >= s[S_MIDDLE] else 1.0
+        return x + direction * s[S_STARTUP_D]
+    return s[S_SWING_TARGET]
+
+
+def fault_code(s: tuple[float, ...], fault: int, x: float, x_dot: float, theta: float,
+               theta_dot: float) -> int:
+    """The fault after this sample: a fault latches; else a state that is not finite,
+    or a cart outside the safe range, faults."""
+    if fault != FAULT_NONE:
+        return fault
+    if not (math.isfinite(x) and math.isfinite(x_dot) and math.isfinite(theta)
+            and math.isfinite(theta_dot)):
+        return FAULT_NOT_FINITE
+    if not (x >= s[S_X_MIN] and x <= s[S_X_MAX]):
+        return FAULT_OUT_OF_RANGE
+    return FAULT_NONE
+
+
+def supervisor_step(s: tuple[float, ...], w: tuple[float, ...], k: tuple[float, ...], rows,
+                    pendulum: tuple[float, float, float, float, bool, float], first: bool,
+                    x: float, x_dot: float, theta: float, theta_dot: float, mode: int,
+                    fault: int, caught: bool, target0: float, reference: float
+                    ) -> tuple[float, int, int, bool, float, float]:
+    """One sample of the supervisor for one rig: (force, mode, fault, caught, start-up
+    target, catch reference), the last five the state for the next sample.
+
+    ``s``, ``w``, ``k``: the constants of :func:`supervisor_constants`,
+    :func:`pisc_control.swing_up.swing_up_constants` and
+    :func:`pisc_control.catch.catch_constants`; ``rows``: the governor's prediction
+    (:func:`pisc_control.catch.governor_rows`); ``pendulum``: what
+    :func:`pisc_control.adaptation.adaptation_step` gave for this sample. ``first``: the
+    first sample (the state's mode, fault, caught, start-up target and reference are
+    then ignored).
+
+    The catch (3.46) while the criterion (4.1) is below ``delta_s``, or once catching
+    below ``delta_exit`` (with the energy band, the catch's guard and the governor's
+    conditions to start one); the swing-up law otherwise; no force in a fault.
+    """
+    if first:
+        mode = SWING_UP
+        fault = FAULT_NONE
+        caught = False
+        target0 = startup_target(s, x)
+    new_fault = fault_code(s, fault, x, x_dot, theta, theta_dot)
+    th = wrap(theta)
+    c = cos(theta)
+    w2, beta, middle, rate, stalled, held = pendulum
+    if s[S_ADAPT] > 0.0:  # the energy from the angle and rate of one instant
+        e_c = cos(middle)
+        e_rate = rate
+        e_th = wrap(middle)
+    else:
+        e_c, e_rate, e_th = c, theta_dot, th
+    catching = mode == CATCH
+    criterion = switching_criterion(s[S_K_VA], th, theta_dot)
+    inside = criterion < (s[S_DELTA_EXIT] if catching else s[S_DELTA_S])
+    if s[S_BAND] > 0.0:
+        inside = inside and (catching or abs(pendulum_energy(w, e_c, e_rate, w2)) < s[S_BAND])
+    if inside and guard_lets_go(k, x, x_dot):
+        inside = False  # the cart would not stop inside the guard's limits: brake
+    blend = hold_blend(k, held) if catching else 0.0
+    lo, hi = math.inf, -math.inf  # no governor's interval
+    if k[K_GOV] > 0.0 and inside and blend == 0.0:
+        lo, hi = governor_interval(k, rows, x, x_dot, th, theta_dot)
+        if not catching and not lo <= hi:
+            inside = False  # no reference keeps this catch in the track: do not start it
+    new_mode = CATCH if inside else SWING_UP
+    if new_fault != FAULT_NONE:
+        new_mode = FAULT
+    now_caught = caught or new_mode == CATCH
+    entering = first or (new_mode == CATCH and not catching)
+    ref = catch_reference(k, entering, new_mode == CATCH, x, reference,
+                          lo if new_mode == CATCH else math.inf,
+                          hi if new_mode == CATCH else -math.inf)
+    if new_mode == CATCH:
+        force = held_catch_force(k, blend, x, x_dot, th, theta_dot, ref)
+    elif new_mode == SWING_UP:
+        target = s[S_SWING_TARGET] if now_caught else target0
+        sn = sin(theta)
+        if s[S_LAW] == LAW_ENERGY_PUMP:
+            force = energy_pump_force(w, x, x_dot, sn, c, theta_dot, target,
+                                      (e_c, e_rate, e_th, w2, beta), stalled)
+        else:
+            force = lyapunov_force(w, x, x_dot, sn, c, theta_dot, target)
+    else:
+        force = 0.0
+    # (3.29) keeps the swing-up denominator positive; a non-finite force can only come
+    # from non-finite inputs, which fault. Never pass one on.
+    if not math.isfinite(force):
+        force = 0.0
+    return force, new_mode, new_fault, now_caught, target0, ref
+
+
 class Supervisor:
-    """A validated configuration with its catch gain; stateless apart from constants.
+    """A validated configuration with its catch gain and the laws' constants.
 
     Construction refuses a configuration that breaks (3.29) or whose linearisation is
     not controllable, with a :class:`ConfigError` naming the parameters.
@@ -189,12 +343,21 @@ class Supervisor:
         if config.adaptation.enabled and config.swing_up.law != "energy_pump":
             raise ConfigError("adaptation.enabled: the online estimates serve the energy pump "
                               "(swing_up.law: energy_pump), not (3.30)")
-        #: the configuration uses a law written only for one rig at a time
-        #: (:mod:`pisc_control.scalar`: the governor, the catch's guard, the hold's gain,
-        #: the online estimates); :meth:`update` refuses it, :class:`pisc_control.scalar.
-        #: ArraySupervisor` runs it over arrays, rig by rig
-        self.by_rig = config.experiment.kind == "none" and (
-            c.governor or c.guard or bool(c.hold_poles) or config.adaptation.enabled)
+        limits = (config.safety.x_min_m, config.safety.x_max_m)
+        su = config.swing_up
+        #: the constants of :func:`supervisor_step`: its own, the swing-up's, the catch's
+        self.constants = (
+            supervisor_constants(config),
+            swing_up_constants(config.rig, su, limits, config.adaptation.enabled),
+            catch_constants(self.gain, self.hold_gain, c, limits, config.loop.period_s,
+                            su.law == "energy_pump" and su.guard_accel_mps2 > 0.0))
+        #: the governor's rows as tuples of floats, which Python indexes faster than an
+        #: array's elements
+        self.rows = [tuple(float(v) for v in row) for row in self.governor_rows]
+        #: the online estimates' constants (:func:`pisc_control.adaptation.
+        #: adaptation_constants`)
+        self.adaptation = adaptation_constants(config.adaptation, config.rig,
+                                               config.loop.period_s)
 
     def update(
         self,
@@ -204,84 +367,77 @@ class Supervisor:
         theta: ArrayLike,
         theta_dot: ArrayLike,
     ) -> tuple[SupervisorState, np.ndarray, np.ndarray]:
-        """Decide the mode and force for one sample; returns (state, force, mode code)."""
-        c = self.config
-        x = np.asarray(x, dtype=float)
-        x_dot = np.asarray(x_dot, dtype=float)
-        theta = np.asarray(theta, dtype=float)
-        theta_dot = np.asarray(theta_dot, dtype=float)
-        shape = np.broadcast_shapes(x.shape, x_dot.shape, theta.shape, theta_dot.shape)
-        if self.by_rig:
-            raise ValueError("this configuration's laws are written for one rig at a time "
-                             "(the governor, the catch's guard, the hold's gain, the online "
-                             "estimates): "
-                             "run them over arrays with pisc_control.scalar.ArraySupervisor")
-
-        if state.mode is None:
-            mode = np.full(shape, Mode.SWING_UP.code)
-            fault = np.full(shape, FAULT_NONE)
-            caught = np.zeros(shape, dtype=bool)
-            middle = 0.5 * (c.safety.x_min_m + c.safety.x_max_m)
-            direction = np.where(x >= middle, -1.0, 1.0)
-            startup_target = np.where(c.startup.distance_m > 0.0,
-                                      x + direction * c.startup.distance_m, c.swing_up.target_m)
+        """Decide the mode and force for one sample of arrays of rigs (any shape; the
+        state's arrays are flat): :func:`supervisor_step` rig after rig, or during an
+        experiment its force. Returns (state, force, mode code)."""
+        values = [np.asarray(v, dtype=float) for v in (x, x_dot, theta, theta_dot)]
+        shape = np.broadcast_shapes(*(v.shape for v in values), *(
+            np.shape(v) for v in (state.mode, state.fault, state.caught,
+                                  state.startup_target_m, state.catch_reference_m)
+            if v is not None))
+        x, x_dot, theta, theta_dot = (np.broadcast_to(v, shape).reshape(-1) for v in values)
+        rigs = x.size
+        first = state.mode is None
+        s, w, k = self.constants
+        if first:
+            mode = np.full(rigs, SWING_UP, dtype=np.int64)
+            fault = np.full(rigs, FAULT_NONE, dtype=np.int64)
+            caught = np.zeros(rigs, dtype=bool)
+            target = np.array([startup_target(s, v) for v in x.tolist()])
         else:
-            mode, fault, caught = state.mode, state.fault, state.caught
-            startup_target = state.startup_target_m
+            mode, fault, caught, target = (
+                np.broadcast_to(v, shape).reshape(-1).copy()
+                for v in (state.mode, state.fault, state.caught, state.startup_target_m))
+        if self.config.experiment.kind != "none":
+            return self._experiment(state, shape, first, fault, target, caught, x, x_dot,
+                                    theta, theta_dot)
+        reference = (x.copy() if state.catch_reference_m is None else
+                     np.broadcast_to(state.catch_reference_m, shape).reshape(-1).copy())
+        a = self.config.adaptation
+        if state.adaptation is None:
+            adapt = np.zeros((rigs, adaptation_size(a)))
+            for row in adapt:
+                adaptation_init(a, self.config.rig, row)
+        else:
+            adapt = state.adaptation.copy()
+        force = np.empty(rigs)
+        # one rig after another: the law is written for one rig (the nodes'), and the
+        # compiled batch runs it over many (pisc_sim.batch_controllers)
+        for r in range(rigs):
+            row = adapt[r].tolist()
+            pendulum = adaptation_step(self.adaptation, row, float(x[r]), float(theta[r]),
+                                       first or mode[r] != CATCH)
+            adapt[r] = row
+            force[r], mode[r], fault[r], caught[r], target[r], reference[r] = supervisor_step(
+                s, w, k, self.rows, pendulum, first, float(x[r]), float(x_dot[r]),
+                float(theta[r]), float(theta_dot[r]), int(mode[r]), int(fault[r]),
+                bool(caught[r]), float(target[r]), float(reference[r]))
+        new = SupervisorState(mode.reshape(shape), fault.reshape(shape), target.reshape(shape),
+                              caught.reshape(shape), reference.reshape(shape),
+                              adaptation=adapt)
+        return new, force.reshape(shape), mode.reshape(shape)
 
-        finite = np.isfinite(x) & np.isfinite(x_dot) & np.isfinite(theta) & np.isfinite(theta_dot)
-        in_range = (x >= c.safety.x_min_m) & (x <= c.safety.x_max_m)
-        new_fault = np.where(fault != FAULT_NONE, fault,
-                             np.where(~finite, FAULT_NOT_FINITE,
-                                      np.where(~in_range, FAULT_OUT_OF_RANGE, FAULT_NONE)))
-
-        if c.experiment.kind != "none":
-            return self._experiment(state, new_fault, startup_target, caught, x, x_dot, shape)
-
-        criterion = switching_criterion(c.switching.k_va, theta, theta_dot)
-        catching = mode == Mode.CATCH.code
-        threshold = np.where(catching, c.switching.delta_exit, c.switching.delta_s)
-        inside = criterion < threshold
-        band = c.switching.energy_band_j
-        if band > 0.0:
-            coasting = np.abs(pendulum_energy(c.rig, theta, theta_dot)) < band
-            inside &= catching | coasting
-        new_mode = np.where(inside, Mode.CATCH.code, Mode.SWING_UP.code)
-        new_mode = np.where(new_fault != FAULT_NONE, Mode.FAULT.code, new_mode)
-
-        caught = caught | (new_mode == Mode.CATCH.code)
-        target = np.where(caught, c.swing_up.target_m, startup_target)
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            if c.swing_up.law == "energy_pump":
-                f_swing = energy_pump_force(c.rig, c.swing_up, x, x_dot, theta, theta_dot,
-                                            target, (c.safety.x_min_m, c.safety.x_max_m))
-            else:
-                f_swing = swing_up_force(c.rig, c.swing_up, x, x_dot, theta, theta_dot, target)
-            reference = self._catch_reference(state, mode, new_mode, x)
-            f_catch = catch_force(self.gain, x, x_dot, theta, theta_dot, reference)
-        force = np.where(new_mode == Mode.CATCH.code, f_catch,
-                         np.where(new_mode == Mode.SWING_UP.code, f_swing, 0.0))
-        # (3.29) keeps the swing-up denominator positive; a non-finite force can only come
-        # from non-finite inputs, which fault above. Never pass one on.
-        force = np.where(np.isfinite(force), force, 0.0)
-        return (SupervisorState(new_mode, new_fault, startup_target, caught, reference), force,
-                new_mode)
-
-    def _experiment(self, state: SupervisorState, fault: np.ndarray, startup_target: np.ndarray,
-                    caught: np.ndarray, x: np.ndarray, x_dot: np.ndarray, shape: tuple
+    def _experiment(self, state: SupervisorState, shape: tuple, first: bool,
+                    fault: np.ndarray, target: np.ndarray, caught: np.ndarray, x: np.ndarray,
+                    x_dot: np.ndarray, theta: np.ndarray, theta_dot: np.ndarray
                     ) -> tuple[SupervisorState, np.ndarray, np.ndarray]:
         """:meth:`update` during an experiment: its force, or none after a fault."""
         c = self.config
+        s = self.constants[0]
+        fault = np.array([fault_code(s, int(f), *v) for f, *v in zip(
+            fault.tolist(), x.tolist(), x_dot.tolist(), theta.tolist(), theta_dot.tolist())],
+            dtype=np.int64).reshape(shape)
+        x, x_dot = x.reshape(shape), x_dot.reshape(shape)
         sample = (np.zeros(shape, dtype=np.int64) if state.sample is None
                   else state.sample + 1)
-        origin = np.broadcast_to(x, shape).copy() if state.origin_m is None else state.origin_m
+        origin = x.copy() if state.origin_m is None else state.origin_m
         with np.errstate(invalid="ignore", over="ignore"):
             force = experiment_force(c.experiment, c.rig, (c.safety.x_min_m, c.safety.x_max_m),
                                      sample * c.loop.period_s, x, x_dot, origin)
-        mode = np.where(fault != FAULT_NONE, Mode.FAULT.code, Mode.SWING_UP.code)
-        force = np.where((mode == Mode.FAULT.code) | ~np.isfinite(force), 0.0, force)
-        return (SupervisorState(mode, fault, startup_target, caught, state.catch_reference_m,
-                                sample, origin), force, mode)
+        mode = np.where(fault != FAULT_NONE, FAULT, SWING_UP)
+        force = np.where((mode == FAULT) | ~np.isfinite(force), 0.0, force)
+        return (SupervisorState(mode, fault, target.reshape(shape), caught.reshape(shape),
+                                state.catch_reference_m, sample, origin), force, mode)
 
     def experiment_reason(self) -> str:
         """What the mode report says during an experiment ("" without one)."""
@@ -289,21 +445,6 @@ class Supervisor:
         if e.kind == "none":
             return ""
         return f"experiment: {e.kind}" + (f" ({e.signal})" if e.kind == "excitation" else "")
-
-    def _catch_reference(self, state: SupervisorState, mode: np.ndarray, new_mode: np.ndarray,
-                         x: np.ndarray) -> np.ndarray:
-        """The catch's cart reference: ``catch.target_m``, or with ``settle_rate_mps`` > 0
-        the cart's position when the catch began, moved towards it by rate x Ts a sample."""
-        c = self.config
-        rate = c.catch.settle_rate_mps
-        if rate == 0.0:
-            return np.broadcast_to(np.asarray(c.catch.target_m, dtype=float), np.shape(x))
-        previous = x if state.catch_reference_m is None else state.catch_reference_m
-        entering = (new_mode == Mode.CATCH.code) & (mode != Mode.CATCH.code)
-        reference = np.where(entering, x, previous)
-        step = rate * c.loop.period_s
-        return np.where(new_mode == Mode.CATCH.code,
-                        reference + np.clip(c.catch.target_m - reference, -step, step), reference)
 
     def fault_reason(self, fault: int, x: float) -> str:
         c = self.config.safety
@@ -313,3 +454,87 @@ class Supervisor:
             return (f"cart at x = {x:.4f} m outside the safe range "
                     f"[{c.x_min_m}, {c.x_max_m}] m (safety.x_min_m, safety.x_max_m)")
         return ""
+
+
+class OneRigSupervisor:
+    """The supervisor of one rig, as its node runs it: :func:`supervisor_step` on floats
+    with the online estimates' state, or during an experiment :meth:`Supervisor.update`."""
+
+    def __init__(self, supervisor: Supervisor) -> None:
+        # (mode, fault, caught, start-up target, catch reference); None before a sample
+        self._state: tuple[int, int, bool, float, float] | None = None
+        self._array_state = SupervisorState()
+        self.stalled = False  # the swing-up has given up (adaptation.stall_s)
+        self.configure(supervisor)
+
+    def configure(self, supervisor: Supervisor) -> None:
+        """New parameters; the state carries over (also into and out of an experiment), and
+        so do the online estimates unless their parameters changed."""
+        previous = getattr(self, "supervisor", None)
+        self.supervisor = supervisor
+        c = supervisor.config
+        self._law = c.experiment.kind == "none"
+        self._s, self._w, self._k = supervisor.constants
+        self._rows = supervisor.rows
+        self._adapt = supervisor.adaptation
+        if previous is None or (previous.config.adaptation, previous.config.rig) != (
+                c.adaptation, c.rig):
+            self._adapt_state = [0.0] * adaptation_size(c.adaptation)
+            adaptation_init(c.adaptation, c.rig, self._adapt_state)
+        self.estimates = adaptation_estimates(self._adapt_state)
+        if self._law and self._array_state.mode is not None:
+            n = self._array_state
+            ref = n.catch_reference_m
+            self._state = (int(n.mode), int(n.fault), bool(n.caught), float(n.startup_target_m),
+                           0.0 if ref is None else float(ref))
+            self._array_state = SupervisorState()
+        elif not self._law and self._state is not None:
+            mode, fault, caught, target, ref = self._state
+            self._array_state = SupervisorState(np.int64(mode), np.int64(fault),
+                                                np.float64(target), np.bool_(caught),
+                                                np.float64(ref))
+            self._state = None
+
+    def estimates_std(self) -> tuple[float, float]:
+        """The standard deviations of :attr:`estimates` (omega_0^2, beta)."""
+        return adaptation_std(self._adapt_state)
+
+    @property
+    def caught(self) -> bool:
+        """Whether the rig has been caught at least once."""
+        return bool(self._state[2]) if self._state is not None else bool(
+            self._array_state.caught is not None and self._array_state.caught)
+
+    @property
+    def reference(self) -> float:
+        """The catch's cart reference (0 before the first sample)."""
+        return float(self._state[4]) if self._state is not None else 0.0
+
+    @property
+    def fault(self) -> int:
+        """The fault code (``FAULT_NONE`` before the first sample)."""
+        if self._state is not None:
+            return self._state[1]
+        n = self._array_state.fault
+        return FAULT_NONE if n is None else int(n)
+
+    def step(self, x: float, x_dot: float, theta: float, theta_dot: float) -> tuple[float, int]:
+        """(force, mode code) for this sample."""
+        if not self._law:
+            self._array_state, force, code = self.supervisor.update(
+                self._array_state, x, x_dot, theta, theta_dot)
+            return float(force), int(code)
+        state = self._state
+        pendulum = adaptation_step(self._adapt, self._adapt_state, x, theta,
+                                   state is None or state[0] != CATCH)
+        self.estimates = pendulum[:2]
+        self.stalled = pendulum[4]
+        if state is None:
+            out = supervisor_step(self._s, self._w, self._k, self._rows, pendulum, True, x,
+                                  x_dot, theta, theta_dot, SWING_UP, FAULT_NONE, False, 0.0,
+                                  0.0)
+        else:
+            out = supervisor_step(self._s, self._w, self._k, self._rows, pendulum, False, x,
+                                  x_dot, theta, theta_dot, *state)
+        self._state = out[1:]
+        return out[0], out[1]

@@ -11,13 +11,13 @@ from pisc_control.catch import CatchParams
 from pisc_control.estimator import EstimatorParams
 from pisc_control.excitation import ExperimentParams
 from pisc_control.supervisor import (
+    OneRigSupervisor,
     SafetyParams,
     StartupParams,
     Supervisor,
     SupervisorConfig,
     SwitchingParams,
 )
-from pisc_control.scalar import OneRigSupervisor
 from pisc_control.swing_up import SwingUpParams
 from pisc_model.params import LoopParams, MotorParams, RigParams, SensorParams
 from pisc_msgs_py.base_node import ERROR, OK, WARN, PiscNode, ResendCache, run_node

@@ -10,21 +10,29 @@ Two laws, chosen by ``swing_up.law``:
   the force follows from the acceleration through (3.3). Each term has a physical
   scale (an acceleration the motor can give, a track stiffness), so the law does not
   need to be retuned when the rig's masses change, and it pumps from any state on.
-""" 
+
+The laws are written on floats, one rig at a time (:func:`lyapunov_force`,
+:func:`energy_pump_force`, :func:`pendulum_energy`, with the constants of
+:func:`swing_up_constants`): the supervisor (:func:`pisc_control.supervisor.
+supervisor_step`) calls them in the node and in the compiled batch, and
+:func:`swing_up_force` applies them to arrays of states.
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from pisc_control.floatmath import clip, cos, sin
 from pisc_msgs_py.config import ConfigError, finite, nonnegative, one_of, param, positive
-from pisc_model.dynamics import energy
 from pisc_model.params import RigParams
 
-__all__ = ["LAWS", "SwingUpParams", "check_gain_condition", "energy_pump_force", "gain_condition",
-           "pendulum_energy", "swing_up_force"]
+__all__ = ["LAWS", "SwingUpParams", "check_gain_condition", "energy_pump_force",
+           "gain_condition", "lyapunov_force", "pendulum_energy", "rig_pendulum_energy",
+           "swing_up_constants", "swing_up_force"]
 
 LAWS = ("lyapunov", "energy_pump")
 
@@ -93,16 +101,54 @@ def check_gain_condition(rig: RigParams, gains: SwingUpParams) -> None:
         )
 
 
-def swing_up_force(
-    rig: RigParams,
-    gains: SwingUpParams,
-    x: ArrayLike,
-    x_dot: ArrayLike,
-    theta: ArrayLike,
-    theta_dot: ArrayLike,
-    target_m: ArrayLike | None = None,
-) -> np.ndarray:
-    """Cart force that drives the energy to ``E_ref`` and the cart to the target.
+# places in the swing-up's constants (swing_up_constants)
+(W_INERTIA_HALF, W_MGL, W_A1, W_A2, W_A1G, W_ML, W_HALF_A2, W_HALF_J, W_M_L, W_KV, W_KX,
+ W_KDELTA, W_KE, W_E_REF, W_PUMP_ACCEL_NEG, W_PUMP_GAIN, W_TWO_MGL, W_OMEGA0, W_TRACK_KX,
+ W_TRACK_KV, W_BRAKE, W_TWO_BRAKE, W_GUARD_LOW, W_GUARD_HIGH, W_GUARD, W_LOSS_GAIN, W_QUIET,
+ W_ADAPT, N_W) = range(29)
+
+
+def swing_up_constants(rig: RigParams, gains: SwingUpParams,
+                       limits_m: tuple[float, float] = (-math.inf, math.inf),
+                       adaptive: bool = False) -> tuple[float, ...]:
+    """The constants of the laws below (places ``W_*``) for the model ``rig``, the safe
+    range ``limits_m`` (the track guard's) and whether the online estimates
+    (:mod:`pisc_control.adaptation`) replace the model's omega_0^2."""
+    inertia = rig.pendulum_inertia_kgm2 + rig.ml * rig.pendulum_com_m
+    m, l = rig.pendulum_mass_kg, rig.pendulum_com_m
+    w = [0.0] * N_W
+    w[W_INERTIA_HALF] = 0.5 * inertia
+    w[W_MGL] = rig.mgl
+    w[W_A1], w[W_A2] = rig.a1, rig.a2
+    w[W_A1G] = rig.a1 * rig.gravity_mps2
+    w[W_ML] = rig.ml
+    w[W_HALF_A2] = 0.5 * rig.a2
+    w[W_HALF_J] = 0.5 * (rig.pendulum_inertia_kgm2 + m * l * l)
+    w[W_M_L] = m * l
+    w[W_KV], w[W_KX], w[W_KDELTA], w[W_KE] = gains.k_v, gains.k_x, gains.k_delta, gains.k_e
+    w[W_E_REF] = gains.energy_target_j
+    w[W_PUMP_ACCEL_NEG] = -gains.pump_accel_mps2
+    w[W_PUMP_GAIN] = gains.pump_gain
+    w[W_TWO_MGL] = 2.0 * rig.mgl
+    w[W_OMEGA0] = float(np.sqrt(rig.mgl / inertia))
+    w[W_TRACK_KX], w[W_TRACK_KV] = gains.track_k_x, gains.track_k_v
+    w[W_BRAKE] = gains.guard_accel_mps2
+    w[W_TWO_BRAKE] = 2.0 * gains.guard_accel_mps2
+    w[W_GUARD_LOW] = limits_m[0] + gains.guard_margin_m
+    w[W_GUARD_HIGH] = limits_m[1] - gains.guard_margin_m
+    pump = gains.law == "energy_pump"
+    w[W_GUARD] = 1.0 if pump and gains.guard_accel_mps2 > 0.0 else 0.0
+    w[W_LOSS_GAIN] = gains.loss_gain
+    w[W_QUIET] = gains.track_quiet
+    w[W_ADAPT] = 1.0 if adaptive else 0.0
+    return tuple(w)
+
+
+def lyapunov_force(w: tuple[float, ...], x: float, x_dot: float, sn: float, c: float,
+                   theta_dot: float, target: float) -> float:
+    """Cart force that drives the energy to ``E_ref`` and the cart to the target x*;
+    ``sn``, ``c``: the sine and cosine of the angle; ``w``: :func:`swing_up_constants`.
+    No branch: it also runs on arrays.
 
     Notes
     -----
@@ -112,52 +158,51 @@ def swing_up_force(
              - (a2 - a1 cos^2) (k_x (x - x*) + k_delta x_dot))
             / (k_v + (a2 - a1 cos^2) k_e (E - E_ref))
 
-    with E from (2.54) and x* = ``target_m`` (default ``gains.target_m``). With
-    E_ref = 0 this is the thesis's law; the Lyapunov function (2.52) with (E - E_ref)^2
-    gives the same derivation because dE/dt = x_dot f (2.57) does not depend on E_ref.
-    Under (3.29) the denominator is positive for every state, because E >= -2 m g l
-    for any velocities (see :func:`pisc_model.dynamics.energy`) and
-    a2 - a1 cos^2 <= a2.
+    with E from (2.54). With E_ref = 0 this is the thesis's law; the Lyapunov function
+    (2.52) with (E - E_ref)^2 gives the same derivation because dE/dt = x_dot f (2.57)
+    does not depend on E_ref. Under (3.29) the denominator is positive for every state,
+    because E >= -2 m g l for any velocities (see :func:`pisc_model.dynamics.energy`)
+    and a2 - a1 cos^2 <= a2.
     """
-    if target_m is None:
-        target_m = gains.target_m
-    x = np.asarray(x, dtype=float)
-    x_dot = np.asarray(x_dot, dtype=float)
-    theta_dot = np.asarray(theta_dot, dtype=float)
-    s = np.sin(theta)
-    c = np.cos(theta)
-    a1, a2 = rig.a1, rig.a2
-    den_mass = a2 - a1 * c * c
-    e = energy(rig, x_dot, theta, theta_dot) - gains.energy_target_j
-    numerator = gains.k_v * s * (a1 * rig.gravity_mps2 * c - rig.ml * theta_dot * theta_dot) - (
-        den_mass * (gains.k_x * (x - target_m) + gains.k_delta * x_dot)
-    )
-    return numerator / (gains.k_v + den_mass * gains.k_e * e)
+    den_mass = w[W_A2] - w[W_A1] * c * c
+    kinetic = (w[W_HALF_A2] * x_dot * x_dot + w[W_M_L] * x_dot * theta_dot * c
+               + w[W_HALF_J] * theta_dot * theta_dot)
+    e = (kinetic + w[W_MGL] * (c - 1.0)) - w[W_E_REF]
+    numerator = w[W_KV] * sn * (w[W_A1G] * c - w[W_ML] * theta_dot * theta_dot) - (
+        den_mass * (w[W_KX] * (x - target) + w[W_KDELTA] * x_dot))
+    return numerator / (w[W_KV] + den_mass * w[W_KE] * e)
 
 
-def pendulum_energy(rig: RigParams, theta: ArrayLike, theta_dot: ArrayLike) -> np.ndarray:
-    """The pendulum's own energy, zero upright at rest, -2 m g l hanging at rest.
+def pendulum_energy(w: tuple[float, ...], c: float, theta_dot: float, w2: float) -> float:
+    """The pendulum's own energy, zero upright at rest, -2 m g l hanging at rest; ``c``:
+    the cosine of the angle. No branch on the values: it also runs on arrays.
 
     Notes
     -----
-    The pendulum terms of (2.54): ``1/2 (I + m l^2) theta_dot^2 + m g l (cos(theta) - 1)``.
+    The pendulum terms of (2.54): ``1/2 (I + m l^2) theta_dot^2 + m g l (cos(theta) -
+    1)``; with the online estimate ``w2`` of omega_0^2 = m g l / J (``W_ADAPT``) m g l
+    (theta_dot^2 / (2 omega_0^2) + cos(theta) - 1).
     """
-    theta_dot = np.asarray(theta_dot, dtype=float)
-    inertia = rig.pendulum_inertia_kgm2 + rig.ml * rig.pendulum_com_m
-    return 0.5 * inertia * theta_dot * theta_dot + rig.mgl * (np.cos(theta) - 1.0)
+    if w[W_ADAPT] > 0.0:
+        return w[W_MGL] * (theta_dot * theta_dot / (2.0 * w2) + (c - 1.0))
+    return w[W_INERTIA_HALF] * theta_dot * theta_dot + w[W_MGL] * (c - 1.0)
 
 
-def energy_pump_force(
-    rig: RigParams,
-    gains: SwingUpParams,
-    x: ArrayLike,
-    x_dot: ArrayLike,
-    theta: ArrayLike,
-    theta_dot: ArrayLike,
-    target_m: ArrayLike | None = None,
-    limits_m: tuple[float, float] = (-np.inf, np.inf),
-) -> np.ndarray:
-    """Cart force of the ``energy_pump`` law.
+def energy_pump_force(w: tuple[float, ...], x: float, x_dot: float, sn: float, c: float,
+                      theta_dot: float, target: float,
+                      pendulum: tuple[float, float, float, float, float],
+                      stalled: bool = False) -> float:
+    """Cart force of the ``energy_pump`` law; ``sn``, ``c``: the sine and cosine of the
+    angle; ``w``: :func:`swing_up_constants`.
+
+    ``pendulum``: (cos, rate, angle from upright) of the instant the energy is read at,
+    and the online estimates omega_0^2 and beta = b / J. With the estimates
+    (``W_ADAPT``), the energy is the estimated pendulum's, read one period late from a
+    central difference, the pump acts on that instant's rate and angle, and the energy's
+    target makes up for the pivot's loss still ahead on the way up, 4 b omega_0 (1 -
+    |cos(th / 2)|) (the loss int b theta_dot dtheta along the separatrix, theta_dot = 2
+    omega_0 sin(th / 2)), times ``swing_up.loss_gain``. ``stalled``: no pump, the track's
+    terms and its guard only.
 
     Notes
     -----
@@ -171,34 +216,77 @@ def energy_pump_force(
 
     ``sat`` clipping to [-1, 1] and ``omega_0 = sqrt(m g l / J)``: the first term
     makes dE_p/dt >= 0 below E_ref and <= 0 above it (Astrom and Furuta 2000), bounded
-    by the acceleration the motor can give; the others hold the cart near x*. The track
-    guard (``guard_accel_mps2`` = a_b > 0) keeps the cart inside ``limits_m`` narrowed
-    by ``guard_margin_m``: where the cart, braked at a_b, would stop beyond them
-    (``x + x_dot |x_dot| / (2 a_b)``), a becomes the braking -a_b sign(x_dot). The force
-    that gives a follows from (3.3): ``f = (a2 - a1 cos^2) a + a1 g sin cos - m l
-    theta_dot^2 sin``.
+    by the acceleration the motor can give; the others hold the cart near x*. With
+    ``track_quiet`` = kappa > 0 the track's terms are divided by 1 + (kappa theta_dot
+    cos(theta) / omega_0)^2. The track guard (``guard_accel_mps2`` = a_b > 0) keeps the
+    cart inside the safe range narrowed by ``guard_margin_m``: where the cart, braked at
+    a_b, would stop beyond it (``x + x_dot |x_dot| / (2 a_b)``), a becomes the braking
+    -a_b sign(x_dot). The force that gives a follows from (3.3): ``f = (a2 - a1 cos^2) a
+    + a1 g sin cos - m l theta_dot^2 sin``.
     """
-    if target_m is None:
-        target_m = gains.target_m
-    x = np.asarray(x, dtype=float)
-    x_dot = np.asarray(x_dot, dtype=float)
-    theta_dot = np.asarray(theta_dot, dtype=float)
-    s = np.sin(theta)
-    c = np.cos(theta)
-    mgl = rig.mgl
-    inertia = rig.pendulum_inertia_kgm2 + rig.ml * rig.pendulum_com_m
-    omega_0 = np.sqrt(mgl / inertia)
-    e_p = 0.5 * inertia * theta_dot * theta_dot + mgl * (c - 1.0)
-    error = (gains.energy_target_j - e_p) / (2.0 * mgl)
-    pump = -gains.pump_accel_mps2 * np.clip(
-        gains.pump_gain * error * theta_dot * c / omega_0, -1.0, 1.0)
-    a = pump - gains.track_k_x * (x - target_m) - gains.track_k_v * x_dot
-    if gains.guard_accel_mps2 > 0.0:
-        brake = gains.guard_accel_mps2
-        stop = x + x_dot * np.abs(x_dot) / (2.0 * brake)
-        low, high = limits_m[0] + gains.guard_margin_m, limits_m[1] - gains.guard_margin_m
-        a = np.where((stop > high) & (x_dot > 0.0), -brake,
-                     np.where((stop < low) & (x_dot < 0.0), brake, a))
-    a1 = rig.a1
-    return ((rig.a2 - a1 * c * c) * a + a1 * rig.gravity_mps2 * s * c
-            - rig.ml * theta_dot * theta_dot * s)
+    e_c, e_rate, th, w2, beta = pendulum
+    if w[W_ADAPT] > 0.0:
+        e_p = pendulum_energy(w, e_c, e_rate, w2)
+        omega0 = math.sqrt(w2)
+        loss = w[W_LOSS_GAIN] * w[W_MGL] * 4.0 * beta / omega0 * (1.0 - abs(cos(0.5 * th)))
+        error = (w[W_E_REF] + loss - e_p) / w[W_TWO_MGL]
+        pump = w[W_PUMP_ACCEL_NEG] * clip(w[W_PUMP_GAIN] * error * e_rate * e_c / omega0,
+                                          -1.0, 1.0)
+    else:
+        e_p = pendulum_energy(w, c, theta_dot, w2)
+        error = (w[W_E_REF] - e_p) / w[W_TWO_MGL]
+        pump = w[W_PUMP_ACCEL_NEG] * clip(
+            w[W_PUMP_GAIN] * error * theta_dot * c / w[W_OMEGA0], -1.0, 1.0)
+    if stalled:
+        pump = 0.0
+    if w[W_QUIET] > 0.0:
+        # the track's pull weighs less where it would change the pendulum's energy most
+        # (dE_p/dt = -m l a theta_dot cos(theta))
+        swing = w[W_QUIET] * theta_dot * c / w[W_OMEGA0]
+        a = pump - (w[W_TRACK_KX] * (x - target) + w[W_TRACK_KV] * x_dot) / (1.0 + swing * swing)
+    else:
+        a = pump - w[W_TRACK_KX] * (x - target) - w[W_TRACK_KV] * x_dot
+    if w[W_GUARD] > 0.0:
+        stop = x + x_dot * abs(x_dot) / w[W_TWO_BRAKE]
+        if stop > w[W_GUARD_HIGH] and x_dot > 0.0:
+            a = -w[W_BRAKE]
+        elif stop < w[W_GUARD_LOW] and x_dot < 0.0:
+            a = w[W_BRAKE]
+    a1 = w[W_A1]
+    return (w[W_A2] - a1 * c * c) * a + w[W_A1G] * sn * c - w[W_ML] * theta_dot * theta_dot * sn
+
+
+# -- over arrays of states: the laws above element by element ---------------------------
+
+def swing_up_force(
+    rig: RigParams,
+    gains: SwingUpParams,
+    x: ArrayLike,
+    x_dot: ArrayLike,
+    theta: ArrayLike,
+    theta_dot: ArrayLike,
+    target_m: ArrayLike | None = None,
+    limits_m: tuple[float, float] = (-math.inf, math.inf),
+) -> np.ndarray:
+    """The swing-up force of ``gains.law`` (:func:`lyapunov_force` or
+    :func:`energy_pump_force`, with the model's pendulum) over arrays of states; x* =
+    ``target_m`` (default ``gains.target_m``), the track guard's safe range
+    ``limits_m``."""
+    w = swing_up_constants(rig, gains, limits_m)
+    target = gains.target_m if target_m is None else target_m
+    if gains.law == "energy_pump":
+        def one(x, x_dot, theta, theta_dot, target):
+            return energy_pump_force(w, x, x_dot, sin(theta), cos(theta), theta_dot, target,
+                                     (0.0, 0.0, 0.0, 0.0, 0.0))
+    else:
+        def one(x, x_dot, theta, theta_dot, target):
+            return lyapunov_force(w, x, x_dot, sin(theta), cos(theta), theta_dot, target)
+    return np.vectorize(one, otypes=[float])(x, x_dot, theta, theta_dot, target)
+
+
+def rig_pendulum_energy(rig: RigParams, theta: ArrayLike, theta_dot: ArrayLike
+                        ) -> np.ndarray:
+    """:func:`pendulum_energy` of the model's pendulum over arrays of angles and rates."""
+    w = swing_up_constants(rig, SwingUpParams())
+    return np.vectorize(lambda th, rate: pendulum_energy(w, cos(th), rate, 0.0),
+                        otypes=[float])(theta, theta_dot)

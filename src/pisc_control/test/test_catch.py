@@ -7,6 +7,7 @@ import pytest
 from scipy.linalg import solve_continuous_are
 
 from pisc_control.catch import CatchParams, catch_force, catch_gain
+from pisc_control.floatmath import wrap
 from pisc_msgs_py.config import ConfigError
 from pisc_model.dynamics import linearise_upright
 from pisc_model.params import RigParams
@@ -65,10 +66,11 @@ def test_bad_pole_sets_are_refused(kwargs, match):
 def test_force_sign_and_wrap():
     k = catch_gain(RIG, CatchParams())
     # pendulum leaning towards +x: push the cart towards +x (SPEC section 1)
-    assert catch_force(k, 0.0, 0.0, 0.05, 0.0) > 0
-    assert catch_force(k, 0.0, 0.0, 0.05 + 4 * math.pi, 0.0) == pytest.approx(
-        catch_force(k, 0.0, 0.0, 0.05, 0.0), rel=1e-12)
-    assert catch_force(k, 0.02, 0.0, 0.0, 0.0, target_m=0.02) == 0.0
+    assert catch_force(*k, 0.0, 0.0, 0.05, 0.0, 0.0) > 0
+    # the angle from the nearest upright, as the supervisor gives it
+    assert catch_force(*k, 0.0, 0.0, wrap(0.05 + 4 * math.pi), 0.0, 0.0) == pytest.approx(
+        catch_force(*k, 0.0, 0.0, 0.05, 0.0, 0.0), rel=1e-12)
+    assert catch_force(*k, 0.02, 0.0, 0.0, 0.0, 0.02) == 0.0
 
 
 def test_a_recorded_gain_is_used_only_when_the_design_gives_it_up_to_rounding():
@@ -95,7 +97,7 @@ def test_a_malformed_recorded_gain_is_refused(gain):
 def test_governor_rows_against_a_simulation_of_the_sampled_loop():
     """Row j gives the cart and the set-point after 3 j periods of a loop simulated here
     period by period: the zero-order hold of the linearisation (scipy.signal.
-    cont2discrete), the IR reading through its RC low-pass, the estimator's numpy core
+    cont2discrete), the IR reading through its RC low-pass, the estimator over arrays
     (differences over 7 periods, low-passed) and the catch f = -K z on what it gives; the
     rig moving at the estimated velocities before the start."""
     from scipy.signal import cont2discrete

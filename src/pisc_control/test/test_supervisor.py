@@ -25,8 +25,12 @@ CATCH, SWING, FAULT = Mode.CATCH.code, Mode.SWING_UP.code, Mode.FAULT.code
 
 
 def test_criterion_measures_from_the_nearest_upright():
-    assert switching_criterion(0.015, 2 * math.pi + 0.3, 2.0) == pytest.approx(0.09 + 0.06)
-    assert switching_criterion(0.015, -0.3, -2.0) == pytest.approx(0.15)
+    from pisc_control.floatmath import wrap
+
+    assert switching_criterion(0.015, wrap(2 * math.pi + 0.3), 2.0) == pytest.approx(0.15)
+    assert switching_criterion(0.015, -0.3, -2.0) == pytest.approx(0.09 + 0.06)
+    # hanging: pi from upright whichever way round
+    assert switching_criterion(0.0, wrap(-math.pi), 0.0) == pytest.approx(math.pi ** 2)
 
 
 def test_enter_catch_below_delta_s_and_leave_at_delta_exit():
@@ -111,11 +115,11 @@ def test_the_catch_reference_settles_from_where_the_catch_began():
         assert int(mode) == CATCH
         assert float(s.catch_reference_m) == pytest.approx(expected_ref, abs=1e-12)
         assert float(force) == pytest.approx(
-            float(catch_force(sup.gain, -0.05, 0.0, 0.01, 0.0, expected_ref)), rel=1e-12)
+            catch_force(*sup.gain, -0.05, 0.0, 0.01, 0.0, expected_ref), rel=1e-12)
     # without the rate, the thesis's law: x* at once
     plain = Supervisor(SupervisorConfig())
     _, force, _ = plain.update(SupervisorState(), -0.05, 0.0, 0.01, 0.0)
-    assert float(force) == pytest.approx(float(catch_force(plain.gain, -0.05, 0.0, 0.01, 0.0)))
+    assert float(force) == pytest.approx(catch_force(*plain.gain, -0.05, 0.0, 0.01, 0.0, 0.0))
 
 
 def test_the_energy_band_catches_only_a_pendulum_that_can_coast_up():
@@ -123,12 +127,12 @@ def test_the_energy_band_catches_only_a_pendulum_that_can_coast_up():
     upright the pendulum's energy is m g l (cos 0.3 - 1) = -0.40 mJ, moving at 3 rad/s
     towards upright it is +0.07 mJ. A 0.2 mJ band catches the second only; once
     catching, only (4.1)'s exit threshold lets go."""
-    from pisc_control.swing_up import pendulum_energy
+    from pisc_control.swing_up import rig_pendulum_energy
     from pisc_model.params import RigParams
 
     rig = RigParams()
-    assert float(pendulum_energy(rig, 0.3, 0.0)) == pytest.approx(-4.0e-4, rel=0.01)
-    assert abs(float(pendulum_energy(rig, 0.3, -3.0))) < 2e-4
+    assert float(rig_pendulum_energy(rig, 0.3, 0.0)) == pytest.approx(-4.0e-4, rel=0.01)
+    assert abs(float(rig_pendulum_energy(rig, 0.3, -3.0))) < 2e-4
     sup = Supervisor(SupervisorConfig(switching=SwitchingParams(energy_band_j=2e-4)))
     _, _, mode = sup.update(SupervisorState(), np.zeros(2), np.zeros(2), np.array([0.3, 0.3]),
                             np.array([0.0, -3.0]))
@@ -153,13 +157,12 @@ def test_governor_interval_holds_its_prediction():
     """Every reference inside the governor's interval keeps the linear prediction inside
     the track less the margin and the set-point within its bound; just outside it, some
     row breaks one of them."""
-    from pisc_control.scalar import governor_interval, governor_rows, supervisor_constants
+    from pisc_control.catch import governor_interval
 
     sup = _governed()
-    s = supervisor_constants(sup)
-    rows = np.array(governor_rows(sup))
+    rows = sup.governor_rows
     state = (0.05, 0.05, 0.03, -0.1)  # x, x_dot, theta from upright, theta_dot
-    lo, hi = governor_interval(s, governor_rows(sup), *state)
+    lo, hi = governor_interval(sup.constants[2], sup.rows, *state)
     assert lo < hi
     c = sup.config
 
@@ -182,7 +185,7 @@ def test_governor_refuses_a_catch_that_would_leave_the_track():
     """The same pendulum, coasting into the catch region: caught with the cart in the
     middle of the track, not with the cart near the end and running towards it (the
     current's bound set out of the way: the track refuses it)."""
-    from pisc_control.scalar import OneRigSupervisor
+    from pisc_control.supervisor import OneRigSupervisor
 
     theta, theta_dot = 0.03, -0.1
     middle = OneRigSupervisor(_governed(governor_current_a=5.0))

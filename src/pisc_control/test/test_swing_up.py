@@ -8,9 +8,8 @@ import pytest
 from pisc_control.swing_up import (
     SwingUpParams,
     check_gain_condition,
-    energy_pump_force,
     gain_condition,
-    pendulum_energy,
+    rig_pendulum_energy,
     swing_up_force,
 )
 from pisc_msgs_py.config import ConfigError
@@ -96,7 +95,7 @@ def test_energy_pump_at_a_worked_state():
     a2 = RIG.cart_mass_kg + m
     expected = ((a2 - a1 * math.cos(th) ** 2) * a + a1 * g * math.sin(th) * math.cos(th)
                 - m * l * th_d**2 * math.sin(th))
-    assert energy_pump_force(RIG, PUMP, x, x_d, th, th_d) == pytest.approx(expected, rel=1e-13)
+    assert swing_up_force(RIG, PUMP, x, x_d, th, th_d) == pytest.approx(expected, rel=1e-13)
 
 
 def test_energy_pump_gives_the_cart_the_acceleration_it_asks_for_and_pumps_towards_e_ref():
@@ -107,18 +106,18 @@ def test_energy_pump_gives_the_cart_the_acceleration_it_asks_for_and_pumps_towar
     rng = np.random.default_rng(5)
     states = rng.uniform([-0.2, -1, -7, -12], [0.1, 1, 7, 12], size=(2000, 4))
     x, x_d, th, th_d = states.T
-    f = energy_pump_force(RIG, gains, x, x_d, th, th_d)
+    f = swing_up_force(RIG, gains, x, x_d, th, th_d)
     x_dd, th_dd = accelerations(RIG, th, th_d, f)
     j = RIG.pendulum_inertia_kgm2 + RIG.ml * RIG.pendulum_com_m
     e_dot = j * th_d * th_dd - RIG.mgl * np.sin(th) * th_d  # d/dt of pendulum_energy
-    e_p = pendulum_energy(RIG, th, th_d)
+    e_p = rig_pendulum_energy(RIG, th, th_d)
     assert np.all(np.abs(x_dd) <= 2.0 + 1e-9)
     assert np.all(np.sign(e_dot[np.abs(e_dot) > 1e-12]) == -np.sign(e_p)[np.abs(e_dot) > 1e-12])
     assert np.all(np.abs(e_dot) <= RIG.ml * 2.0 * np.abs(th_d) + 1e-12)
 
 
 def test_energy_pump_leaves_a_rig_hanging_at_rest_at_its_target_alone():
-    assert energy_pump_force(RIG, PUMP, 0.02, 0.0, math.pi, 0.0) == pytest.approx(0.0, abs=1e-15)
+    assert swing_up_force(RIG, PUMP, 0.02, 0.0, math.pi, 0.0) == pytest.approx(0.0, abs=1e-15)
 
 
 def test_energy_pump_has_no_gain_condition():
@@ -139,9 +138,9 @@ def test_the_track_guard_brakes_a_cart_that_would_stop_beyond_its_limits():
     limits = (-0.225, 0.125)
     th, th_d = 2.0, 5.0
     for x_d, braked in ((0.6, True), (0.5, False), (-0.6, False)):
-        f = energy_pump_force(RIG, gains, 0.05, x_d, th, th_d, 0.0, limits)
+        f = swing_up_force(RIG, gains, 0.05, x_d, th, th_d, 0.0, limits)
         x_dd, _ = accelerations(RIG, th, th_d, f)
-        free = accelerations(RIG, th, th_d, energy_pump_force(
+        free = accelerations(RIG, th, th_d, swing_up_force(
             RIG, SwingUpParams(**{**gains.__dict__, "guard_accel_mps2": 0.0}), 0.05, x_d, th,
             th_d, 0.0, limits))[0]
         if braked:
@@ -149,5 +148,5 @@ def test_the_track_guard_brakes_a_cart_that_would_stop_beyond_its_limits():
         else:
             assert x_dd == pytest.approx(free, rel=1e-12)
     # at the far end, moving outwards: braked the other way
-    f = energy_pump_force(RIG, gains, -0.15, -0.6, th, th_d, 0.0, limits)  # stops at -0.21
+    f = swing_up_force(RIG, gains, -0.15, -0.6, th, th_d, 0.0, limits)  # stops at -0.21
     assert accelerations(RIG, th, th_d, f)[0] == pytest.approx(3.0, rel=1e-12)

@@ -18,51 +18,39 @@ closed loop (:func:`pisc_sim.closed_loop.simulate`):
   (4.8) of every code from numpy) or :meth:`~pisc_plant.plant.Plant.measurement` with
   ideal sensors, with one noise standard deviation a rig (a plant set's
   ``noise.*_std_*``);
-* the estimator runs :func:`pisc_control.scalar.estimator_step`, the differences (4.7),
+* the estimator runs :func:`pisc_control.estimator.estimator_step`, the differences (4.7),
   (4.9) over N periods with the optional low-pass, on each rig's own window;
-* the current action runs :func:`pisc_control.scalar.current_loop_step`, the PI loop
+* the current action runs :func:`pisc_control.current_loop.current_loop_step`, the PI loop
   (3.47), and the bridge :func:`pisc_sim.batch_controllers._actuator`
   (:meth:`pisc_model.params.ActuatorParams.apply`).
 
-The control laws are not copied here: they are compiled from
-:mod:`pisc_control.scalar`'s source, as :mod:`pisc_sim.batch_controllers` compiles them
-(importing it registers the helpers they call). numba's cache keys an entry on its own
-file's time stamp only, and the pass holds the code of the kernel, its vector maths,
-the scalar laws and the bridge: when one of those files is newer than the cache's
-index, the index is removed here before numba reads it and the pass compiles anew.
+The control laws are not copied here: they are compiled from their modules' source,
+as :mod:`pisc_sim.batch_controllers` compiles them (importing it registers the helpers
+they call). numba's cache keys an entry on its own file's time stamp only, and the pass
+holds the code of the kernel, its vector maths, the laws and the bridge: when one of
+those files is newer than the cache's index, the index is removed here before numba
+reads it (:func:`pisc_sim.batch_controllers.drop_stale_cache`) and the pass compiles
+anew.
 """
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numba
 import numpy as np
 
-from pisc_control import scalar
+from pisc_control import current_loop, estimator, floatmath
 from pisc_plant import kernel, vecmath
 from pisc_plant.layout import ARM_FORCE, ARM_FULL, ARM_QUASI_STATIC, P_KER, P_KF, P_R
-from pisc_sim import batch_controllers  # registers scalar's helpers for numba
+from pisc_sim import batch_controllers  # registers the laws' helpers for numba
 
 __all__ = ["ACTION_CURRENT", "ACTION_FORCE", "ACTION_VOLTAGE", "SENSORS_IDEAL",
            "SENSORS_QUANTISED", "observe", "sensor_constants", "step"]
 
 
-def _drop_stale_cache() -> None:
-    """Remove this module's cache indexes when a module its code comes from is newer."""
-    newest = max(Path(m.__file__).stat().st_mtime  # type: ignore[arg-type]
-                 for m in (kernel, vecmath, scalar, batch_controllers))
-    cache = Path(__file__).parent / "__pycache__"
-    try:
-        for index in cache.glob(f"{Path(__file__).stem}.*.nbi"):
-            if index.stat().st_mtime < newest:
-                index.unlink(missing_ok=True)
-    except OSError:  # a read-only install: numba then keeps its cache elsewhere
-        pass
-
-
-_drop_stale_cache()
+batch_controllers.drop_stale_cache(
+    __file__, "*", (kernel, vecmath, batch_controllers, *batch_controllers.LAW_MODULES))
 
 SENSORS_QUANTISED, SENSORS_IDEAL = 0, 1
 #: what an action is: the armature voltage; the current set-point through the PI loop;
@@ -72,11 +60,11 @@ ACTION_VOLTAGE, ACTION_CURRENT, ACTION_FORCE = 0, 1, 2
 (T_MIDDLE, T_X_WEIGHT, T_VOLTAGE_WEIGHT, T_SHARE_LIMIT, T_LOW, T_HIGH, T_FALL,
  T_CURRENT_LIMIT, T_FULL_SCALE, T_LEVELS, T_STEP_V, N_T) = range(12)
 
-_estimator_step = numba.njit(scalar.estimator_step, error_model="numpy", inline="always")
-_current_loop_step = numba.njit(scalar.current_loop_step, error_model="numpy",
+_estimator_step = numba.njit(estimator.estimator_step, error_model="numpy", inline="always")
+_current_loop_step = numba.njit(current_loop.current_loop_step, error_model="numpy",
                                 inline="always")
-_wrap = numba.njit(scalar._wrap, error_model="numpy", inline="always")
-_clip = numba.njit(scalar._clip, error_model="numpy", inline="always")
+_wrap = numba.njit(floatmath.wrap, error_model="numpy", inline="always")
+_clip = numba.njit(floatmath.clip, error_model="numpy", inline="always")
 _actuator = batch_controllers._actuator
 # the plant kernel's step of one block of a plant set (kept private to pisc_plant's entry
 # points, which gather a block's states, step it and scatter them: here the step of a
@@ -127,7 +115,7 @@ def _sample_rows(lo, hi, y, applied, kind, armature, ii, vir, vcur, constants, n
     a rig's first sample, else the difference over the window of its last ``est_n``
     samples (``x_hist``, ``theta_hist`` (rigs, est_n), a ring written at ``seen[r] %
     est_n``), low-passed with the previous estimate ``v[:, r]`` when est[0] > 0, as
-    :class:`pisc_control.scalar.OneRigEstimator` steps it. (Each choice of the layout is
+    :class:`pisc_control.estimator.OneRigEstimator` steps it. (Each choice of the layout is
     a loop of its own: branches on it inside one loop made the pass ten times slower.)
     """
     if armature == ARM_FULL:
@@ -391,7 +379,7 @@ def step(arm: int, filt: bool, *args) -> None:
 
     ``args``: ``done`` (rigs reset for this step: not stepped, their outcome 0, only
     sampled), ``action``, ``kind``, ``task`` (``T_*``), ``loop``
-    (:func:`pisc_control.scalar.current_loop_constants`), the state ``y`` (rigs, size),
+    (:func:`pisc_control.current_loop.current_loop_constants`), the state ``y`` (rigs, size),
     the input held ``applied``, the plant's constants in the kernel's blocks ``p``,
     ``stops``, ``method``; each part's substep counts (G,), steps (G, rigs) and
     operator tables (G, blocks, N_TABLE * BLOCK) (a rig steps in the group of its count,

@@ -30,7 +30,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pisc_control import scalar
+from pisc_control import current_loop, estimator
 from pisc_gym import compiled
 from pisc_gym.task import RigDraws, Task
 from pisc_plant import kernel, layout
@@ -112,7 +112,7 @@ class Rigs:
         self.true_current = np.zeros(n)
         # the estimator's differences (4.7), (4.9)
         est = task.config.estimator
-        a, b = scalar.estimator_constants(est, self.period_s)
+        a, b = estimator.estimator_constants(est, self.period_s)
         self._est = np.array([a, b, self.period_s])
         self._est_n = est.difference_periods
         self._seen = np.zeros(n, dtype=np.int64)
@@ -121,9 +121,9 @@ class Rigs:
         self._v = np.zeros((2, n))
         self.velocity = np.zeros((n, 2))
         # the current loop (3.47) for a set-point action: k_m / r = 1 makes i_d the action
-        c_loop = list(scalar.current_loop_constants(base.motor, task.config.current_loop,
-                                                    self.period_s))
-        c_loop[scalar.C_FORCE_PER_AMP] = 1.0
+        c_loop = list(current_loop.current_loop_constants(base.motor, task.config.current_loop,
+                                                          self.period_s))
+        c_loop[current_loop.C_FORCE_PER_AMP] = 1.0
         self._loop_constants = tuple(c_loop)
         self.integral = np.zeros(n)
         self.voltage = np.zeros(n)  # the voltage commanded at the last step

@@ -82,7 +82,7 @@ NAME = re.compile(r"^(?P<parameter>[a-z_]+\.[a-z0-9_]+)(\[(?P<index>\d+)\])?$")
 #: name ending in ``*`` standing for every name it begins, the settings that make the
 #: controllers read them, as (parameter, the values that do)). Every other parameter of the
 #: tunable sections is read whatever the settings (pisc_control's cores: the laws (3.30)
-#: and the energy pump, :func:`pisc_control.scalar.supervisor_constants`).
+#: and the energy pump, :func:`pisc_control.swing_up.swing_up_constants`).
 READ_ONLY_WHEN: tuple[tuple[tuple[str, ...], tuple[tuple[str, tuple[Any, ...]], ...]], ...] = (
     (("swing_up.k_v", "swing_up.k_x", "swing_up.k_delta", "swing_up.k_e"),
      (("swing_up.law", ("lyapunov",)),)),

@@ -2,15 +2,16 @@
 the measurement before them and the bookkeeping after them.
 
 :func:`pisc_sim.closed_loop.simulate_batch` runs the estimator, the supervisor and the
-current loop of every rig each cycle. Their numpy cores (:mod:`pisc_control`) do that with
-about a hundred array operations a cycle, each a pass over all the rigs; here one compiled
-loop over the rigs, split between the cores (``prange``), runs for each rig the one-rig
-functions the nodes run (:mod:`pisc_control.scalar`: :func:`estimator_step`,
-:func:`supervisor_step`, :func:`current_loop_step`, compiled from their Python source).
-Those give the numpy cores' bits, and so does their compiled form: numba compiles without
-``fastmath``, so no multiply-add is fused and nothing is reassociated, and ``math.sin``
-and ``math.cos`` are the C library's in both (``test_batch_controllers`` compares the
-compiled pass with the numpy cores over closed-loop runs and hostile inputs).
+current loop of every rig each cycle. Here one compiled loop over the rigs, split
+between the cores (``prange``), runs for each rig the laws the nodes run, compiled from their Python source as they are
+(:func:`pisc_control.estimator.estimator_step`,
+:func:`pisc_control.adaptation.adaptation_step`,
+:func:`pisc_control.supervisor.supervisor_step` with the swing-up's and the catch's laws
+it calls, :func:`pisc_control.current_loop.current_loop_step`). The compiled form gives
+the bits the nodes give: numba compiles without ``fastmath``, so no multiply-add is fused
+and nothing is reassociated, and ``math.sin`` and ``math.cos`` are the C library's in
+both (``test_batch_controllers`` compares the compiled pass with the nodes' one-rig
+controllers over closed-loop runs and hostile inputs).
 
 For :func:`~pisc_sim.closed_loop.simulate_batch` (:meth:`BatchControllers.track`,
 :meth:`BatchControllers.cycle`) the same pass also does what surrounds the controllers
@@ -23,10 +24,11 @@ saturation and quantisation of the voltage, so that the plant steps the rows in 
 (``test_batch_controllers``).
 
 numba's cache keys an entry on its own file's time stamp only; the compiled pass holds
-the code of :mod:`pisc_control.scalar`, so when that file is newer than the cache's
-index, the index is removed here before numba reads it and the pass compiles anew.
+the code of the laws' modules (:data:`LAW_MODULES`), so when one of them is newer than
+the cache's index, the index is removed here before numba reads it
+(:func:`drop_stale_cache`) and the pass compiles anew.
 Experiments (``experiment.kind``) are not compiled: :func:`supported` says so and the
-batch then runs the numpy cores.
+batch then runs them over arrays (:meth:`pisc_control.supervisor.Supervisor.update`).
 """
 
 from __future__ import annotations
@@ -39,42 +41,59 @@ import numba
 import numpy as np
 from numba.extending import register_jitable
 
-from pisc_control import adaptation, scalar
-from pisc_control.estimator import EstimatorState
-from pisc_control.scalar import SWING_UP
-from pisc_control.supervisor import FAULT_NONE, Supervisor
+from pisc_control import (
+    adaptation,
+    catch,
+    current_loop,
+    estimator,
+    floatmath,
+    supervisor,
+    swing_up,
+)
+from pisc_control.estimator import EstimatorState, estimator_constants
+from pisc_control.supervisor import CATCH, FAULT, FAULT_NONE, SWING_UP, Supervisor
 from pisc_model import sensors
 from pisc_plant.plant import Plant
 from pisc_sim.configuration import GraphConfig
 
-__all__ = ["BatchControllers", "supported", "warm_up"]
+__all__ = ["LAW_MODULES", "BatchControllers", "drop_stale_cache", "supported", "warm_up"]
+
+#: the modules whose laws the compiled pass holds
+LAW_MODULES = (floatmath, estimator, adaptation, swing_up, catch, supervisor, current_loop)
 
 
-def _drop_stale_cache() -> None:
-    """Remove the compiled pass's cache index when pisc_control.scalar is newer."""
-    source = Path(scalar.__file__)
-    cache = Path(__file__).parent / "__pycache__"
+def drop_stale_cache(module_file: str, pattern: str, sources) -> None:
+    """Remove the numba cache indexes ``pattern`` of ``module_file`` that are older than
+    one of the modules ``sources``, whose code the compiled functions of ``module_file``
+    hold (numba compares the time stamp of ``module_file`` alone)."""
+    newest = max(Path(m.__file__).stat().st_mtime for m in sources)
+    cache = Path(module_file).parent / "__pycache__"
     try:
-        for index in cache.glob(f"{Path(__file__).stem}._pass-*.nbi"):
-            if index.stat().st_mtime < source.stat().st_mtime:
+        for index in cache.glob(f"{Path(module_file).stem}.{pattern}.nbi"):
+            if index.stat().st_mtime < newest:
                 index.unlink(missing_ok=True)
     except OSError:  # a read-only install: numba then keeps its cache elsewhere
         pass
 
 
-_drop_stale_cache()
-# the one-rig functions and their helpers, callable from compiled code (and unchanged as
-# Python functions)
-for _function in (scalar._clip, scalar._floor, scalar._sin, scalar._cos, scalar._wrap,
-                  scalar._lyapunov_force, scalar._energy_pump_force, scalar._narrow,
-                  scalar.governor_interval, scalar._pendulum_energy):
+drop_stale_cache(__file__, "_pass-*", LAW_MODULES)
+# the laws the pass calls, callable from compiled code (and unchanged as Python functions)
+for _function in (floatmath.clip, floatmath.floor, floatmath.sin, floatmath.cos,
+                  floatmath.wrap, swing_up.lyapunov_force, swing_up.pendulum_energy,
+                  swing_up.energy_pump_force, catch.catch_force, catch.held_catch_force,
+                  catch.hold_blend, catch.guard_lets_go, catch.narrow_interval,
+                  catch.governor_interval, catch.catch_reference,
+                  supervisor.switching_criterion, supervisor.startup_target,
+                  supervisor.fault_code, current_loop.current_setpoint_step,
+                  current_loop.pi_step):
     register_jitable(error_model="numpy")(_function)
 # inlined into the pass (numba's own inlining), which calls them for every rig
-_estimator_step = numba.njit(scalar.estimator_step, error_model="numpy", inline="always")
-_supervisor_step = numba.njit(scalar.supervisor_step, error_model="numpy", inline="always")
-_current_loop_step = numba.njit(scalar.current_loop_step, error_model="numpy",
+_estimator_step = numba.njit(estimator.estimator_step, error_model="numpy", inline="always")
+_supervisor_step = numba.njit(supervisor.supervisor_step, error_model="numpy",
+                              inline="always")
+_current_loop_step = numba.njit(current_loop.current_loop_step, error_model="numpy",
                                 inline="always")
-_wrap = numba.njit(scalar._wrap, error_model="numpy", inline="always")
+_wrap = numba.njit(floatmath.wrap, error_model="numpy", inline="always")
 _adaptation_step = numba.njit(adaptation.adaptation_step, error_model="numpy",
                               inline="always")
 
@@ -103,7 +122,7 @@ def _actuator(full_scale, levels, step, v):
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
-def _pass(s, rows, ac, adapt, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, theta_hist,
+def _pass(s, w, k, rows, ac, adapt, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, theta_hist,
           v_x, v_theta, mode, fault, caught, startup_target, reference, integral, measure, y,
           ir_index, cur_index, draws, m, ir_table, x, theta, current, book, t, hold,
           track_range, force_per_amp, faulted, previous_mode, caught_at, first_catch,
@@ -167,12 +186,12 @@ def _pass(s, rows, ac, adapt, c, est_a, est_b, first, est_first, span, oldest, w
         theta_hist[r, write] = thr
         v_x[r] = x_dot
         v_theta[r] = theta_dot
-        pendulum = _adaptation_step(ac, adapt[r], xr, thr, first or mode[r] != scalar.CATCH)
-        force, md, f, k, tg, ref = _supervisor_step(
-            s, rows, pendulum, first, xr, x_dot, thr, theta_dot, mode[r], fault[r], caught[r],
-            startup_target[r], reference[r])
-        mode[r], fault[r], caught[r], startup_target[r], reference[r] = md, f, k, tg, ref
-        i_d, voltage, integral[r] = _current_loop_step(c, md == scalar.FAULT, force,
+        pendulum = _adaptation_step(ac, adapt[r], xr, thr, first or mode[r] != CATCH)
+        force, md, f, ck, tg, ref = _supervisor_step(
+            s, w, k, rows, pendulum, first, xr, x_dot, thr, theta_dot, mode[r], fault[r],
+            caught[r], startup_target[r], reference[r])
+        mode[r], fault[r], caught[r], startup_target[r], reference[r] = md, f, ck, tg, ref
+        i_d, voltage, integral[r] = _current_loop_step(c, md == FAULT, force,
                                                        current[r], integral[r])
         force_out[r] = force
         setpoint_out[r] = i_d
@@ -181,9 +200,9 @@ def _pass(s, rows, ac, adapt, c, est_a, est_b, first, est_first, span, oldest, w
             if track_range:
                 x_min[r] = _minimum(x_min[r], y[r, 0])
                 x_max[r] = _maximum(x_max[r], y[r, 0])
-            faulted[r] = faulted[r] or md == scalar.FAULT
-            catching = md == scalar.CATCH
-            if catching and previous_mode[r] != scalar.CATCH:
+            faulted[r] = faulted[r] or md == FAULT
+            catching = md == CATCH
+            if catching and previous_mode[r] != CATCH:
                 caught_at[r] = t
             elif not catching:
                 caught_at[r] = np.inf
@@ -249,18 +268,19 @@ class BatchControllers:
                  estimator: EstimatorState | None = None) -> None:
         if not supported(config):
             raise ValueError(f"experiment.kind = {config.supervisor.experiment.kind!r}: "
-                             "experiments run on the numpy cores, not the compiled ones")
+                             "experiments run over arrays (Supervisor.update), not in the "
+                             "compiled pass")
         period = config.loop.period_s
-        self._s = scalar.supervisor_constants(supervisor)
+        self._s, self._w, self._k = supervisor.constants
         self._rows = np.ascontiguousarray(supervisor.governor_rows, dtype=float).reshape(-1, 8)
         sc = supervisor.config
-        self._ac = adaptation.adaptation_constants(sc.adaptation, sc.rig, period)
+        self._ac = supervisor.adaptation
         self._adapt = np.zeros((rigs, adaptation.adaptation_size(sc.adaptation)))
         for row in self._adapt:
             adaptation.adaptation_init(sc.adaptation, sc.rig, row)
-        self._c = scalar.current_loop_constants(config.plant.motor, config.current_loop,
-                                                period)
-        self._est_a, self._est_b = scalar.estimator_constants(config.estimator, period)
+        self._c = current_loop.current_loop_constants(config.plant.motor, config.current_loop,
+                                                      period)
+        self._est_a, self._est_b = estimator_constants(config.estimator, period)
         self._period = period
         self._n = config.estimator.difference_periods
         self._x_hist = np.zeros((rigs, self._n))
@@ -310,7 +330,7 @@ class BatchControllers:
         span, oldest, write = self._window()
         m, table = self._constants
         k = self._book
-        bad = _pass(self._s, self._rows, self._ac, self._adapt, self._c, self._est_a, self._est_b, self._cycles == 0,
+        bad = _pass(self._s, self._w, self._k, self._rows, self._ac, self._adapt, self._c, self._est_a, self._est_b, self._cycles == 0,
                     self._seen == 0, span, oldest, write, self._x_hist, self._theta_hist,
                     self._v_x, self._v_theta, self._mode, self._fault, self._caught,
                     self._startup_target, self._reference, self._integral, measure, y,

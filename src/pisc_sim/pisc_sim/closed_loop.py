@@ -16,15 +16,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pisc_sim.configuration import GraphConfig
-from pisc_control.current_loop import CurrentLoopState, current_loop_cycle
-from pisc_control.estimator import EstimatorState, estimator_update
-from pisc_control.scalar import (
-    ArraySupervisor,
-    OneRigCurrentLoop,
-    OneRigEstimator,
-    OneRigSupervisor,
-)
-from pisc_control.supervisor import Supervisor, SupervisorState
+from pisc_control.current_loop import CurrentLoopState, OneRigCurrentLoop, current_loop_cycle
+from pisc_control.estimator import EstimatorState, OneRigEstimator, estimator_update
+from pisc_control.supervisor import OneRigSupervisor, Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
 from pisc_plant.command import plant_command
@@ -68,8 +62,7 @@ class Controllers:
     the current setpoint (4.2) and the PI voltage (3.47), or 0 V with the integral
     cleared in ``fault``. Values leave each stage as Python floats, as they cross a
     topic, so the pure simulation, the nodes and a regression replay compute the same
-    bits; each stage is the one-rig form of its core (:mod:`pisc_control.scalar`, the
-    numpy cores' bits without numpy's per-call cost). Raises
+    bits; each stage runs its law on floats, one rig, as its node does. Raises
     :class:`pisc_msgs_py.config.ConfigError` for an invalid configuration.
     """
 
@@ -176,8 +169,10 @@ def simulate_batch(
     ``controllers``: ``"compiled"`` runs the measurement, the controllers and the
     outcomes' bookkeeping of every rig in one compiled pass a cycle
     (:mod:`pisc_sim.batch_controllers`, the same outcomes as the numpy path;
-    experiments fall back to it), ``"numpy"`` runs the sensors' model and the numpy
-    cores over arrays.
+    experiments fall back to it), ``"numpy"`` runs the sensors' model over arrays and
+    the same laws over the rigs in Python (:func:`~pisc_control.estimator.
+    estimator_update`, :meth:`~pisc_control.supervisor.Supervisor.update`,
+    :func:`~pisc_control.current_loop.current_loop_cycle`).
 
     ``hold_box`` (|theta| from upright [rad], |x| [m]): the outcome's ``unheld_at_s`` is
     the last sample time the true state lay outside it.
@@ -275,15 +270,15 @@ def simulate_batch(
         x_min, x_max, hold_theta = book["x_min"], book["x_max"], book["hold_theta"]
         hold_x, hold_i2 = book["hold_x"], book["hold_i2"]
         unheld_at = book["unheld_at"]
-    else:  # the numpy cores over arrays (the one-rig laws rig by rig)
-        arrays = ArraySupervisor(supervisor)
+    else:  # the sensors' model over arrays, the laws rig by rig
         for k in range(cycles):
             t = k * period
             draws = None if rng is None else rng.standard_normal(x0.shape + (3,))
             x, theta, current = sim.measurement(y, applied, draws)
             est_state, x_dot, theta_dot = estimator_update(
                 config.estimator, period, est_state, x, theta)
-            sup_state, force, mode = arrays.update(sup_state, x, x_dot, theta, theta_dot)
+            sup_state, force, mode = supervisor.update(sup_state, x, x_dot, theta,
+                                                       theta_dot)
             fault = mode == Mode.FAULT.code
             cl_state, i_d, voltage = current_loop_cycle(
                 config.plant.motor, config.current_loop, period, cl_state, force, current,
