@@ -100,7 +100,8 @@ def climb_time(rig: Rig, limits: Limits, cells: int = 400, phases: int = 2000) -
     target = region_energy(rig, limits)
     if start >= target:
         return 0.0
-    a_b, bp, ml, mgl, j = accel_bound(rig, limits), pivot_friction(rig), rig.ml, rig.mgl, rig.inertia
+    a_b, bp = accel_bound(rig, limits), pivot_friction(rig)
+    ml, mgl, j = rig.ml, rig.mgl, rig.inertia
     edges = np.linspace(start, target, cells + 1)
     c = np.linspace(-1.0, 1.0, phases + 1)
     c_lo, c_hi = c[:-1], c[1:]

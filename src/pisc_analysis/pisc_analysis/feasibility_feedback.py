@@ -186,10 +186,11 @@ class Pool:
 def feedback_search(rig: Rig, limits: Limits, rng: np.random.Generator, rollouts: int = 48,
                     rounds: int = 4, k_gain: np.ndarray | None = None
                     ) -> tuple[np.ndarray | None, Verdict | None, Pool, int]:
-    """The cross-entropy search over the pump's gains (:func:`pisc_analysis.feasibility_search.find_witness`'s first
-    stage): ``rounds`` batches of ``rollouts`` gain sets, the first uniform, each next
-    one around the best eighth so far with a spread that halves. Returns (the witness's
-    voltages and verdict, or None, None; the pool of every rollout; candidates checked)."""
+    """The cross-entropy search over the pump's gains (the first stage of
+    :func:`pisc_analysis.feasibility_search.find_witness`): ``rounds`` batches of
+    ``rollouts`` gain sets, the first uniform, each next one around the best eighth so far
+    with a spread that halves. Returns (the witness's voltages and verdict, or None, None;
+    the pool of every rollout; candidates checked)."""
     period = rig.period_s
     steps = int(round(limits.duration_s / period))
     k_gain = hold_gain(rig) if k_gain is None else k_gain

@@ -24,8 +24,9 @@ parameter file and a malformed ``-p`` are a one-line refusal, not an rcl traceba
 
 **Start.** Every node also reads ``start.*``
 (:class:`pisc_msgs_py.node_params.StartParams`): before its first subscription it can
-wait until its publishers have matched the readers a runner counts for them (:meth:`PiscNode.await_subscribers`). A thread that destroys a node leaves
-SCHED_FIFO first (:func:`leave_realtime`).
+wait until its publishers have matched the readers a runner counts for them
+(:meth:`PiscNode.await_subscribers`). A thread that destroys a node leaves SCHED_FIFO
+first (:func:`leave_realtime`).
 
 **Inputs answer to the graph alone.** Each input topic with a publisher in
 ``start.publishers`` (:data:`pisc_msgs_py.watchdog.GRAPH_PUBLISHERS` unless set; /clock
