@@ -16,7 +16,7 @@ from pisc_analysis import feasibility_bound as B
 from pisc_analysis import feasibility_feedback as FB
 from pisc_analysis import feasibility_search as S
 from pisc_analysis import feasibility_shooting as SH
-from pisc_plant.plant import PlantConfig
+from pisc_plant.plant_config import PlantConfig
 from pisc_sim.configuration import load_graph_config
 
 

@@ -33,7 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pisc_model.params import ActuatorParams, NoiseParams
-from pisc_plant.plant import Plant, PlantConfig
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import PlantConfig
 
 __all__ = ["Limits", "Rig", "Verdict", "cart_friction", "check", "clopper_pearson",
            "exact_plant", "make_rig", "pendulum_energy", "pivot_friction", "rollout", "samples",
