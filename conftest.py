@@ -49,7 +49,7 @@ def _no_virtual_rig_outlives_its_test() -> Iterator[None]:
     """Stop every pisc_virtual_rig a test started and left running (one whose test failed
     before its own clean-up): at SCHED_FIFO it would load every later test of the run."""
     yield
-    module = sys.modules.get("pisc_plant.virtual_rig")
+    module = sys.modules.get("pisc_plant.rig_process")
     if module is not None:
         for rig in list(module.RigProcess.running):
             rig.stop()

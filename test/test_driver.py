@@ -49,7 +49,7 @@ from pisc_msgs_py.topics import (
     VOLTAGE_SENT,
 )
 from pisc_msgs_py.types import Mode, MotorSample
-from pisc_plant.virtual_rig import RigProcess
+from pisc_plant.rig_process import RigProcess
 
 pytestmark = pytest.mark.integration
 

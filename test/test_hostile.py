@@ -560,7 +560,7 @@ def test_a_number_in_e_notation_is_a_number_as_ros_reads_it():
 
 
 def test_the_virtual_rig_refuses_a_silence_longer_than_an_hour():
-    from pisc_plant.virtual_rig import RequestError, check_request
+    from pisc_plant.rig_faults import RequestError, check_request
 
     assert check_request({"silence_s": 3600})["silence_s"] == 3600.0
     with pytest.raises(RequestError, match=r"silence_s = 1e\+308 is too long \(seconds "

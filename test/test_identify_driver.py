@@ -100,7 +100,7 @@ def test_a_voltage_after_the_next_tick_acts_from_its_arrival_in_the_next_period(
     the next tick), and two late in a row, give the same states at every tick."""
     from pisc_driver.protocol import command_voltage
     from pisc_plant.plant import Plant
-    from pisc_plant.virtual_rig import Firmware
+    from pisc_plant.firmware import Firmware
 
     config = load_run_config("default")[0].plant
     period = config.loop.period_s

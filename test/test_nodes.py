@@ -22,13 +22,8 @@ from conftest import spin_until
 from pisc_control.current_loop_node import CurrentLoopNode
 from pisc_control.estimator_node import EstimatorNode
 from pisc_control.supervisor_node import SupervisorNode
-from pisc_msgs_py.base_node import (
-    PISC_SECTIONS,
-    StartError,
-    message_class,
-    parse_ros_arguments,
-    qos_profile,
-)
+from pisc_msgs_py.base_node import message_class, qos_profile
+from pisc_msgs_py.node_params import PISC_SECTIONS, StartError, parse_ros_arguments
 from pisc_msgs_py.config import ConfigError
 from pisc_msgs_py.convert import (
     cart_force_to_cdr,

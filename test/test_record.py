@@ -397,7 +397,7 @@ def test_a_killed_recorder_in_a_driver_run_leaves_the_rig_at_zero_volts(
     """Through the serial driver and the virtual rig: the run stops at once and the
     driver, stopped, sends 0 V (before the rig's own command watchdog would)."""
     from pisc_sim.configuration import config_path
-    from pisc_plant.virtual_rig import RigProcess
+    from pisc_plant.rig_process import RigProcess
 
     rig = RigProcess(["--params-file", str(config_path("default")), "--x0", "0.0"])
     bag = tmp_path / "driven"

@@ -10,7 +10,9 @@ import pytest
 from pisc_driver.link import SerialLink
 from pisc_driver.protocol import FrameParser, command_voltage, encode_command
 from pisc_plant.plant import Plant
-from pisc_plant.virtual_rig import Firmware, RigProcess, load_plant
+from pisc_plant.firmware import Firmware
+from pisc_plant.rig_process import RigProcess
+from pisc_plant.virtual_rig import load_plant
 
 pytestmark = pytest.mark.integration
 

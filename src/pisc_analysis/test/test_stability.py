@@ -22,7 +22,8 @@ from pisc_analysis.stability import (
 from pisc_analysis.symbolic import cart_pole
 from pisc_control.current_loop import CurrentLoopParams, CurrentLoopState, current_loop_update
 from pisc_model.params import MotorParams
-from pisc_plant.plant import Plant, PlantConfig
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import PlantConfig
 
 MOTOR = MotorParams()
 THESIS_PI = CurrentLoopParams()  # k_pi = 2.9, k_ii = 1800 (Table 6.2)

@@ -41,7 +41,8 @@ def hidden_rigs(n: int, seed: int, say=print) -> list[tuple[int, dict[str, float
     that have a 3 s witness: (draw number, the draw's plant values)."""
     import numpy as np
 
-    from pisc_analysis.feasibility import exact_plant, find_witness, make_rig
+    from pisc_analysis.feasibility import exact_plant, make_rig
+    from pisc_analysis.feasibility_search import find_witness
     from pisc_robust.feasibility_cli import witness_limits
     from pisc_robust.robustness import load_benchmark
     from pisc_runs.verdict import Criteria

@@ -153,7 +153,7 @@ def record_driver(truth: dict[str, float], duration_s: float, overrides: dict[st
 
     A run that the machine could not keep in time (the graph did not finish) is tried
     again, up to ``attempts`` times."""
-    from pisc_plant.virtual_rig import RigProcess
+    from pisc_plant.rig_process import RigProcess
 
     params = bag.parent / f"{bag.name}-truth.yaml"
     truth_file(truth, params)

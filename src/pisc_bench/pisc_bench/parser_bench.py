@@ -53,7 +53,8 @@ from pisc_driver.protocol import (
     wrap_count,
 )
 from pisc_model.params import LoopParams
-from pisc_plant.plant import Plant, PlantConfig
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import PlantConfig
 
 __all__ = ["ADVERSARIAL_COUNTS", "ParserScore", "adversarial_frames", "damage", "main",
            "rig_frames", "score"]

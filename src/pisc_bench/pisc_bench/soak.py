@@ -663,7 +663,7 @@ def run(options: SoakOptions, out: Path, domain_id: int,
         say: Callable[[str], None]) -> RunRecord:
     """Start the rig (and observer), run pisc_graph, sample, inject faults; stop all."""
     from pisc_sim.configuration import config_path
-    from pisc_plant.virtual_rig import RigProcess
+    from pisc_plant.rig_process import RigProcess
 
     from pisc_bringup.dds import dds_environment
 

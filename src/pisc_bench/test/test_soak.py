@@ -37,7 +37,7 @@ from pisc_bench.soak import (
     stop_load,
     usage_over,
 )
-from pisc_plant.virtual_rig import check_request
+from pisc_plant.rig_faults import check_request
 
 # -- statistics --------------------------------------------------------------------------
 

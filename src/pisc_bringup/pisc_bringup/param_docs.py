@@ -43,7 +43,7 @@ def _sections() -> dict[str, type]:
     from pisc_sim.configuration import SECTIONS
     from pisc_runs.markers import MarkersParams
     from pisc_driver.driver import DriverParams
-    from pisc_msgs_py.base_node import StartParams
+    from pisc_msgs_py.node_params import StartParams
     from pisc_plant.plant_node import SimulationParams
 
     return {**SECTIONS, "simulation": SimulationParams, "driver": DriverParams,

@@ -2,10 +2,10 @@
 
 :func:`step` does for every rig what the graph's cycle does after the controllers, in
 one loop over the rigs (split between the cores, ``prange``, for more than
-:data:`pisc_plant.kernel.CHUNK` rigs): the action into the plant's input (the
+:data:`pisc_plant.kernel_batch.CHUNK` rigs): the action into the plant's input (the
 actuator's saturation and quantisation, or PISC's current loop), the plant over the
 period in its two parts (the input held until the rig's latency, then the new one:
-the plant kernel's block step, :func:`pisc_plant.kernel._lanes_set`, each rig with its
+the plant kernel's block step, :func:`pisc_plant.kernel_sets.block_step`, each rig with its
 own constants and operator tables), the reward, termination and truncation, the
 sensors' measurement and the estimator's differences. :func:`observe` is the
 measurement and the estimator alone (at a reset). The arithmetic is the one the rest
@@ -27,10 +27,10 @@ closed loop (:func:`pisc_sim.closed_loop.simulate`):
 The control laws are not copied here: they are compiled from their modules' source,
 as :mod:`pisc_sim.batch_controllers` compiles them (importing it registers the helpers
 they call). numba's cache keys an entry on its own file's time stamp only, and the pass
-holds the code of the kernel, its vector maths, the laws and the bridge: when one of
-those files is newer than the cache's index, the index is removed here before numba
-reads it (:func:`pisc_sim.batch_controllers.drop_stale_cache`) and the pass compiles
-anew.
+holds the code of the kernel and its vector maths (:data:`pisc_plant.kernel_jit.SOURCES`),
+the laws and the bridge: when one of those files is newer than the cache's index, the
+index is removed here before numba reads it
+(:func:`pisc_sim.batch_controllers.drop_stale_cache`) and the pass compiles anew.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ import numba
 import numpy as np
 
 from pisc_control import current_loop, estimator, floatmath
-from pisc_plant import kernel, vecmath
+from pisc_plant import kernel_batch, kernel_jit, kernel_sets
 from pisc_plant.layout import ARM_FORCE, ARM_FULL, ARM_QUASI_STATIC, P_KER, P_KF, P_R
 from pisc_sim import batch_controllers  # registers the laws' helpers for numba
 
@@ -49,8 +49,8 @@ __all__ = ["ACTION_CURRENT", "ACTION_FORCE", "ACTION_VOLTAGE", "SENSORS_IDEAL",
            "SENSORS_QUANTISED", "observe", "sensor_constants", "step"]
 
 
-batch_controllers.drop_stale_cache(
-    __file__, "*", (kernel, vecmath, batch_controllers, *batch_controllers.LAW_MODULES))
+batch_controllers.drop_stale_cache(__file__, "*", (*kernel_jit.source_paths(), batch_controllers,
+                                                 *batch_controllers.LAW_MODULES))
 
 SENSORS_QUANTISED, SENSORS_IDEAL = 0, 1
 #: what an action is: the armature voltage; the current set-point through the PI loop;
@@ -66,11 +66,11 @@ _current_loop_step = numba.njit(current_loop.current_loop_step, error_model="num
 _wrap = numba.njit(floatmath.wrap, error_model="numpy", inline="always")
 _clip = numba.njit(floatmath.clip, error_model="numpy", inline="always")
 _actuator = batch_controllers._actuator
-# the plant kernel's step of one block of a plant set (kept private to pisc_plant's entry
-# points, which gather a block's states, step it and scatter them: here the step of a
-# period, both its parts, the outcome and the measurement are one pass)
-_lanes_set = kernel._lanes_set
-BLOCK = kernel.BLOCK
+# the plant kernel's step of one block of a plant set (pisc_plant's entry points gather
+# a block's states, step it and scatter them: here the step of a period, both its parts,
+# the outcome and the measurement are one pass)
+_lanes_set = kernel_sets.block_step
+BLOCK = kernel_sets.BLOCK
 
 # places in the measurement's sensor constants
 (M_LSB, M_LOW, M_TOP, M_IR_ORIGIN, M_IR_EXPONENT, M_CURRENT_SCALE, M_CURRENT_OFFSET,
@@ -277,7 +277,7 @@ def _outcome_rows(lo, hi, done, y, kind, task, voltage, setpoint, applied, new, 
 
 @_inline
 def _part(cols, us, h, p, stops, tables, method, substeps, arm, filt):
-    """The kernel's block step (:func:`pisc_plant.kernel._lanes_set`) for the layout
+    """The kernel's block step (:func:`pisc_plant.kernel_sets.block_step`) for the layout
     (arm, filt), each a constant of its own compilation there."""
     if arm == ARM_FULL:
         if filt:
@@ -363,9 +363,9 @@ def _step_many(arm, filt, done, action, kind, task, loop, y, applied, p, stops, 
                velocities, est, est_n, seen, x_hist, theta_hist, v, velocity, obs,
                true_state):
     rigs = done.shape[0]
-    for c in numba.prange((rigs + kernel.CHUNK - 1) // kernel.CHUNK):
-        _step_rows(c * kernel.CHUNK, min(rigs, (c + 1) * kernel.CHUNK), arm, filt, done,
-                   action, kind, task, loop, y, applied, p, stops, method, counts1, hs1,
+    for c in numba.prange((rigs + kernel_batch.CHUNK - 1) // kernel_batch.CHUNK):
+        _step_rows(c * kernel_batch.CHUNK, min(rigs, (c + 1) * kernel_batch.CHUNK), arm, filt,
+                   done, action, kind, task, loop, y, applied, p, stops, method, counts1, hs1,
                    tables1, counts2, hs2, tables2, integral, voltage, setpoint, steps,
                    episode_steps, reward, terminated, truncated, sensors, ii, vir, vcur,
                    constants, noisy, std, noise, noise_at, m, ir_table, measured,
@@ -385,10 +385,10 @@ def step(arm: int, filt: bool, *args) -> None:
     operator tables (G, blocks, N_TABLE * BLOCK) (a rig steps in the group of its count,
     with step 0 in the others); the current loop's integral, the voltage and set-point
     commanded, the steps, the episode's length; the outcome's arrays; then the sample's
-    (:func:`_sample_rows`). Chunks of :data:`pisc_plant.kernel.CHUNK` rigs are shared
+    (:func:`_sample_rows`). Chunks of :data:`pisc_plant.kernel_batch.CHUNK` rigs are shared
     between numba's threads.
     """
-    if args[0].shape[0] > kernel.CHUNK:
+    if args[0].shape[0] > kernel_batch.CHUNK:
         _step_many(arm, filt, *args)
     else:
         _step_rows(0, args[0].shape[0], arm, filt, *args)

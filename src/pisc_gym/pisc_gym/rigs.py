@@ -8,9 +8,9 @@ command answering the last sample takes effect each rig's latency into the perio
 input held before it until then, as :class:`pisc_plant.sampled.SampledPlant` does),
 the plant integrates to the next sample, the reward is taken and the sensors measure.
 
-The rigs are a plant set (:func:`pisc_plant.plant.plant_set`): every rig has its own
-column of the kernel's constants (:func:`pisc_plant.plant.pack_constants`) and its own
-operator tables for its steps, in the kernel's blocks (:func:`pisc_plant.kernel.lanes`).
+The rigs are a plant set (:func:`pisc_plant.plant_config.plant_set`): every rig has its own
+column of the kernel's constants (:func:`pisc_plant.plant_config.pack_constants`) and its own
+operator tables for its steps, in the kernel's blocks (:func:`pisc_plant.kernel_sets.lanes`).
 Each rig takes, in each part of the period, the substeps a plant of its own takes for
 that part's duration (:meth:`pisc_plant.plant.Plant.advance`); the rigs of one number of
 substeps step together (a group), the others keep their state in that call. A reset
@@ -33,8 +33,9 @@ import numpy as np
 from pisc_control import current_loop, estimator
 from pisc_gym import compiled
 from pisc_gym.task import RigDraws, Task
-from pisc_plant import kernel, layout
-from pisc_plant.plant import Plant, pack_constants, plant_set
+from pisc_plant import kernel_sets, layout
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import pack_constants, plant_set
 
 __all__ = ["NOISE_BLOCK", "Rigs"]
 
@@ -60,11 +61,11 @@ class Rigs:
         self.period_s = base.loop.period_s
         p0 = pack_constants(base)
         self.constants = np.repeat(p0[:, None], n, axis=1)  # (N_CONSTANTS, n)
-        self._lanes = kernel.lanes(self.constants)
+        self._lanes = kernel_sets.lanes(self.constants)
         self._full = base.models.has_current_state
         self._rates = np.zeros(n)
         if self._full:
-            kernel.armature_rates(self.constants, self._rates)
+            kernel_sets.armature_rates(self.constants, self._rates)
         filters = base.models.sensor_filters
         self._w = (p0[layout.P_WIR] if filters else 0.0, p0[layout.P_WCUR] if filters else 0.0,
                    p0[layout.P_WCUR] / p0[layout.P_CURSCALE])
@@ -135,7 +136,7 @@ class Rigs:
     # -- the parts of a period -----------------------------------------------------------
 
     def _no_groups(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        width = kernel.N_TABLE * kernel.BLOCK if self._method == layout.EXPRK4 else 0
+        width = kernel_sets.N_TABLE * kernel_sets.BLOCK if self._method == layout.EXPRK4 else 0
         blocks = self._lanes.shape[0]
         return (np.zeros(0, dtype=np.int64), np.zeros((0, self.n)),
                 np.zeros((0, blocks, width)))
@@ -181,18 +182,18 @@ class Rigs:
 
     def _tables_of(self, tables: np.ndarray, rigs: np.ndarray, steps: np.ndarray) -> None:
         """The exponential scheme's operators of ``rigs`` for their ``steps``
-        (:func:`pisc_plant.kernel.exp_tables`, the same numbers a plant of its own uses)
+        (:func:`pisc_plant.kernel_sets.exp_tables`, the same numbers a plant of its own uses)
         into their lanes of ``tables`` (blocks, N_TABLE * BLOCK)."""
         if self._method != layout.EXPRK4:
             return
         m = len(rigs)
-        block = kernel.BLOCK
-        out = np.empty((-(-m // block), kernel.N_TABLE * block))
-        kernel.exp_tables(*self._w, np.ascontiguousarray(self._rates[rigs]),
-                          np.ascontiguousarray(steps, dtype=float), out)
+        block = kernel_sets.BLOCK
+        out = np.empty((-(-m // block), kernel_sets.N_TABLE * block))
+        kernel_sets.exp_tables(*self._w, np.ascontiguousarray(self._rates[rigs]),
+                               np.ascontiguousarray(steps, dtype=float), out)
         j = np.arange(m)
-        values = out.reshape(-1, kernel.N_TABLE, block)[j // block, :, j % block]
-        tables.reshape(-1, kernel.N_TABLE, block)[rigs // block, :, rigs % block] = values
+        values = out.reshape(-1, kernel_sets.N_TABLE, block)[j // block, :, j % block]
+        tables.reshape(-1, kernel_sets.N_TABLE, block)[rigs // block, :, rigs % block] = values
 
     # -- resets --------------------------------------------------------------------------
 
@@ -209,11 +210,11 @@ class Rigs:
         else:
             columns = np.repeat(pack_constants(self.task.plant)[:, None], m, axis=1)
         self.constants[:, idx] = columns
-        blocks = self._lanes.reshape(self._lanes.shape[0], layout.N_CONSTANTS, kernel.BLOCK)
-        blocks[idx // kernel.BLOCK, :, idx % kernel.BLOCK] = columns.T
+        blocks = self._lanes.reshape(self._lanes.shape[0], layout.N_CONSTANTS, kernel_sets.BLOCK)
+        blocks[idx // kernel_sets.BLOCK, :, idx % kernel_sets.BLOCK] = columns.T
         if self._full:
             rates = np.zeros(m)
-            kernel.armature_rates(np.ascontiguousarray(columns), rates)
+            kernel_sets.armature_rates(np.ascontiguousarray(columns), rates)
             self._rates[idx] = rates
         self.latency_s[idx] = draws.latency_s
         self._set_parts(idx)

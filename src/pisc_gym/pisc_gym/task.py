@@ -129,7 +129,7 @@ class Task:
     task: str
     scene: Any  # pisc_sim.scene.Scene
     config: Any  # pisc_sim.configuration.GraphConfig, with the distribution's fixed initial
-    plant: Any  # pisc_plant.plant.PlantConfig: the base plant the draws vary
+    plant: Any  # pisc_plant.plant_config.PlantConfig: the base plant the draws vary
     distribution: Any | None  # pisc_robust.uncertainty.Distribution
     action: str
     velocities: bool

@@ -15,15 +15,18 @@ it at start-up, naming it and the closest known name:
   are written, or ``parameter_overrides`` from a runner that hands the whole
   configuration to each node) must be declared by this node when it is in one of this
   node's sections, and otherwise be in a section some PISC node reads
-  (:data:`PISC_SECTIONS`): the node that reads it checks the rest.
+  (:data:`pisc_msgs_py.node_params.PISC_SECTIONS`): the node that reads it checks the
+  rest (:func:`pisc_msgs_py.node_params.check_overrides`).
 
-:func:`run_node` reads ``--ros-args`` before rclpy does, so a missing or broken
+:func:`run_node` reads ``--ros-args`` before rclpy does
+(:func:`pisc_msgs_py.node_params.parse_ros_arguments`), so a missing or broken
 parameter file and a malformed ``-p`` are a one-line refusal, not an rcl traceback.
 
-**Start.** Every node also reads ``start.*`` (:class:`StartParams`): before its first
-subscription it can wait until its publishers have matched the readers a runner counts
-for them (:meth:`PiscNode.await_subscribers`). A thread that destroys a node leaves
-SCHED_FIFO first (:func:`leave_realtime`).
+**Start.** Every node also reads ``start.*``
+(:class:`pisc_msgs_py.node_params.StartParams`): before its first subscription it can
+wait until its publishers have matched the readers a runner counts for them
+(:meth:`PiscNode.await_subscribers`). A thread that destroys a node leaves SCHED_FIFO
+first (:func:`leave_realtime`).
 
 **Inputs answer to the graph alone.** Each input topic with a publisher in
 ``start.publishers`` (:data:`pisc_msgs_py.watchdog.GRAPH_PUBLISHERS` unless set; /clock
@@ -37,26 +40,22 @@ node).
 
 **Shell code said once.** :meth:`PiscNode.parse` turns a message into its core type or
 says on ``/diagnostics`` why it was rejected; :meth:`PiscNode.diagnose` publishes a
-status and logs an error, at most :class:`LogLimit`'s burst of one kind a window; :meth:`PiscNode.routine_diagnostics` is the
-cadence of routine statuses (:data:`DIAGNOSTIC_EVERY`); :class:`ResendCache` answers a
-sample a lockstep plant sent again with the messages already published for it.
+status and logs an error, at most :class:`pisc_msgs_py.node_support.LogLimit`'s burst of
+one kind a window; :meth:`PiscNode.routine_diagnostics` is the cadence of routine
+statuses (:data:`DIAGNOSTIC_EVERY`); :class:`ResendCache` answers a sample a lockstep
+plant sent again with the messages already published for it.
 """
 
 from __future__ import annotations
 
-import fnmatch
 import gc
 import importlib
 import os
 import re
-import struct
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
-
-import yaml
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -79,12 +78,20 @@ from pisc_msgs_py.convert import (
     stamp_from_msg,
     stamp_to_msg,
 )
+from pisc_msgs_py.node_params import (
+    Override,
+    StartError,
+    StartParams,
+    await_entries,
+    check_overrides,
+    parse_ros_arguments,
+)
+from pisc_msgs_py.node_support import LogLimit, header_stamp_ns
 from pisc_msgs_py.topics import CLOCK, DIAGNOSTICS, QosSpec, Topic
 from pisc_msgs_py.watchdog import GRAPH_PUBLISHERS, InputGuard, parse_publishers
 
-__all__ = ["DIAGNOSTIC_EVERY", "PISC_SECTIONS", "LogLimit", "NewestStamps", "Override",
-           "PiscNode", "ResendCache", "StartError", "StartParams", "freeze_startup_objects",
-           "leave_realtime", "message_class", "parse_ros_arguments", "qos_profile",
+__all__ = ["DIAGNOSTIC_EVERY", "NewestStamps", "PiscNode", "ResendCache",
+           "freeze_startup_objects", "leave_realtime", "message_class", "qos_profile",
            "raw_subscription", "run_node"]
 
 OK = DiagnosticStatus.OK
@@ -113,186 +120,6 @@ def message_class(type_name: str) -> type:
 
 def _ros_value(value: Any) -> Any:
     return list(value) if isinstance(value, tuple) else value
-
-
-#: The sections some PISC node reads (plant, estimator, supervisor, current loop, driver,
-#: markers); test_nodes checks this against the nodes' own lists.
-PISC_SECTIONS = frozenset({
-    "actuator", "adaptation", "catch", "current_loop", "driver", "estimator", "experiment",
-    "friction", "initial", "integrator", "loop", "markers", "models", "motor", "noise", "rig",
-    "safety", "sensors", "simulation", "start", "startup", "swing_up", "switching", "track"})
-
-
-def _await_entries(text: str) -> list[tuple[str, int]]:
-    """``start.await_subscribers``' ``TOPIC=N,...`` as (topic, N); raises ConfigError
-    with what is wrong (the rule's words, after the value)."""
-    entries: list[tuple[str, int]] = []
-    for item in text.split(","):
-        topic, sep, count = (part.strip() for part in item.partition("="))
-        if not sep or not topic.startswith("/") or not count.isdigit():
-            raise cfg.ConfigError(f"must list TOPIC=N (an absolute topic name, a count "
-                                  f">= 0): {item.strip()!r} is not")
-        if any(topic == t for t, _ in entries):
-            raise cfg.ConfigError(f"names {topic} twice")
-        entries.append((topic, int(count)))
-    return entries
-
-
-def _await_rule(value: Any) -> str | None:
-    if value:
-        try:
-            _await_entries(value)
-        except cfg.ConfigError as exc:
-            return str(exc)
-    return None
-
-
-def _publishers_rule(value: Any) -> str | None:
-    try:
-        parse_publishers(value)
-    except ValueError as exc:
-        return str(exc)
-    return None
-
-
-@dataclass(frozen=True)
-class StartParams:
-    """What every PISC node waits for before it takes its first input."""
-
-    await_subscribers: str = cfg.param(
-        "", "TOPIC=N[,TOPIC=N...]: before its first subscription the node waits until each "
-        "of these publications of its own has matched at least N subscribers, so that "
-        "nothing it publishes is lost to a reader that matches it late (a DDS writer "
-        "learns of a reader apart from the reader learning of it). pisc_graph sets it for "
-        "the nodes it starts as processes (its recorder and the graph's other nodes); '': "
-        "no wait", "", _await_rule)
-    await_timeout_s: float = cfg.param(
-        30.0, "the longest wait for start.await_subscribers; after it the node does not "
-        "start (exit status 1), naming each publication still short of its subscribers",
-        "s", cfg.in_range(0.01, 600.0))
-    publishers: str = cfg.param(
-        "", "TOPIC=NODE[|NODE...][,TOPIC=...]: the node that publishes each input topic of "
-        "this node (and /clock); its publisher is pinned at the start, and while any other "
-        "publisher is there the node uses none of its inputs and says so on /diagnostics. "
-        "A topic not named keeps the graph's own name (the plant or the driver, estimator, "
-        "supervisor, current_loop); pisc_graph sets it from the launch file", "",
-        _publishers_rule)
-
-
-class StartError(RuntimeError):
-    """A node's start condition was not met in time (:class:`StartParams`)."""
-
-
-# parameter file sections every node of the graph reads
-_SHARED_KEYS = ("/**", "/*")
-# --ros-args options that take one argument, and those that take none (rcl's arguments.c)
-_ROS_OPTIONS_WITH_VALUE = ("-r", "--remap", "-e", "--enclave", "--log-level",
-                           "--log-config-file", "--log-file-name")
-
-
-@dataclass(frozen=True)
-class Override:
-    """A parameter a process's command line sets, and for which nodes.
-
-    ``target`` is None for ``-p NAME:=VALUE`` (every node of the process), a key of
-    :data:`_SHARED_KEYS` for a parameter file's shared section, else the node name or
-    pattern a file section or ``-p NODE:NAME:=VALUE`` names.
-    """
-
-    target: str | None
-    name: str
-    origin: str  # the argument or file, for the message
-
-
-def _yaml_problem(exc: yaml.YAMLError) -> str:
-    mark = getattr(exc, "problem_mark", None)
-    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-    return f"line {mark.line + 1}, column {mark.column + 1}: {problem}" if mark else problem
-
-
-def _params_file_overrides(path: str) -> list[Override]:
-    origin = f"--params-file {path}"
-    try:
-        with open(path, encoding="utf-8") as handle:
-            tree = yaml.safe_load(handle)
-    except OSError as exc:
-        raise cfg.ConfigError(f"{origin}: cannot read it ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise cfg.ConfigError(f"{origin}: not valid YAML ({_yaml_problem(exc)})") from None
-    rule = "a ROS 2 parameter file is '<node or /**>: ros__parameters: {...}'"
-    if not isinstance(tree, Mapping):
-        raise cfg.ConfigError(f"{origin}: {rule}")
-    out = []
-    for key, section in tree.items():
-        if not isinstance(section, Mapping) or not isinstance(
-                section.get("ros__parameters"), Mapping):
-            raise cfg.ConfigError(f"{origin}: section '{key}' has no 'ros__parameters' mapping "
-                                  f"({rule})")
-        out += [Override(str(key), name, origin)
-                for name in cfg.flatten(section["ros__parameters"])]
-    return out
-
-
-def parse_ros_arguments(argv: Sequence[str]) -> tuple[Override, ...]:
-    """The parameters ``--ros-args`` set, checked as rcl will read them.
-
-    Raises :class:`ConfigError` naming the argument or file: ``-p`` without
-    ``NAME:=VALUE`` or with a value that is not YAML, a parameter file that cannot be
-    read, is not YAML or is not a ROS 2 parameter file.
-    """
-    out: list[Override] = []
-    inside = False
-    items = list(argv)
-    k = 0
-    while k < len(items):
-        arg = items[k]
-        k += 1
-        if arg == "--ros-args":
-            inside = True
-            continue
-        if not inside:
-            continue
-        if arg == "--":
-            inside = False
-        elif arg in ("-p", "--param", "--params-file"):
-            if k >= len(items):
-                raise cfg.ConfigError(f"{arg}: expected "
-                                      f"{'a file' if arg == '--params-file' else 'NAME:=VALUE'} "
-                                      "after it")
-            value = items[k]
-            k += 1
-            if arg == "--params-file":
-                out += _params_file_overrides(value)
-                continue
-            origin = f"{arg} {value}"
-            head, sep, text = value.partition(":=")
-            if not sep or not head:
-                raise cfg.ConfigError(f"{origin}: expected NAME:=VALUE "
-                                      "(e.g. -p rig.cart_mass_kg:=0.4735)")
-            try:
-                yaml.safe_load(text)
-            except yaml.YAMLError as exc:
-                raise cfg.ConfigError(f"{origin}: the value is not valid YAML "
-                                      f"({_yaml_problem(exc)})") from None
-            node, colon, name = head.rpartition(":")
-            out.append(Override(node if colon else None, name, origin))
-        elif arg in _ROS_OPTIONS_WITH_VALUE:
-            k += 1
-    return tuple(out)
-
-
-def _aims_at(target: str, fully_qualified_name: str) -> bool:
-    pattern = target if target.startswith("/") else "/" + target
-    return fnmatch.fnmatchcase(fully_qualified_name, pattern.replace("/**", "*"))
-
-
-def _header_stamp_ns(data: bytes) -> int | None:
-    """The stamp of a little-endian CDR message that starts with a std_msgs/Header (or a
-    builtin_interfaces/Time, as rosgraph_msgs/Clock), else None."""
-    if len(data) < 12 or data[1] not in (0x01, 0x03):  # CDR_LE or PL_CDR_LE
-        return None
-    sec, nanosec = struct.unpack_from("<iI", data, 4)
-    return sec * 1_000_000_000 + nanosec
 
 
 class ResendCache:
@@ -378,36 +205,6 @@ class NewestStamps:
         self._readers = []
 
 
-class LogLimit:
-    """At most ``burst`` log lines of one kind (an error's text before its first colon)
-    per ``window_s``; the lines held back are counted and said in one line with the next
-    error of that kind after the window (every status still goes on /diagnostics, into
-    the bag). A 10-minute driver soak under load logged 1,364 errors, 260 KB, one per
-    frame gap and watchdog trip (docs/soak.md)."""
-
-    def __init__(self, burst: int = 5, window_s: float = 10.0) -> None:
-        if burst < 1 or not window_s > 0.0:
-            raise ValueError(f"burst {burst} must be >= 1 and window {window_s} s > 0")
-        self.burst, self.window_s = burst, window_s
-        self._windows: dict[str, list] = {}  # kind -> [start_s, logged, held back]
-
-    def admit(self, message: str, now_s: float) -> tuple[bool, str | None]:
-        """(whether to log ``message``, a line saying what was held back, or None)."""
-        kind = message.partition(":")[0]
-        window = self._windows.get(kind)
-        said = None
-        if window is None or now_s - window[0] >= self.window_s:
-            if window is not None and window[2]:
-                said = (f"{window[2]} more '{kind}' error(s) not logged ({self.burst} "
-                        f"are logged per {self.window_s:g} s; all are on /diagnostics)")
-            window = self._windows[kind] = [now_s, 0, 0]
-        if window[1] < self.burst:
-            window[1] += 1
-            return True, said
-        window[2] += 1
-        return False, said
-
-
 class PiscNode(Node):
     """Base of the PISC nodes. Subclasses pass their sections and implement ``build``."""
 
@@ -471,31 +268,10 @@ class PiscNode(Node):
 
     def _check_unknown_overrides(self, command_line: Sequence[Override]) -> None:
         """Refuse a name this node would ignore (module docstring, "Names")."""
-        declared = [name for name in self._parameters]
-        me = self.get_fully_qualified_name()
-        for override in command_line:
-            aimed = override.target is None or (
-                override.target not in _SHARED_KEYS and _aims_at(override.target, me))
-            if aimed and override.name not in declared:
-                raise cfg.ConfigError(
-                    f"{override.name} ({override.origin}): not a parameter of node "
-                    f"'{self.get_name()}'{cfg.closest(override.name, declared)} (it reads "
-                    f"{', '.join(self._sections)})")
         # rclpy keeps every value given to this node in _parameter_overrides
-        overrides = getattr(self, "_parameter_overrides", {}) or {}
-        for section, cls in self._sections.items():
-            cfg.check_names(cls, overrides, section)
-        for name in sorted(overrides):
-            section, _, rest = name.partition(".")
-            if name in declared or section in PISC_SECTIONS:
-                continue
-            hint = cfg.closest(name, declared)
-            match = cfg.closest(section, PISC_SECTIONS)
-            if not hint and match and rest:
-                hint = f"; did you mean {match[len('; did you mean '):-1]}.{rest}?"
-            raise cfg.ConfigError(
-                f"{name}: unknown parameter{hint} (not a parameter of node "
-                f"'{self.get_name()}', and '{section}' is no section of a PISC node)")
+        check_overrides(self.get_name(), self.get_fully_qualified_name(),
+                        list(self._parameters), self._sections, command_line,
+                        getattr(self, "_parameter_overrides", {}) or {})
 
     def _validate_change(self, params: list[Parameter]) -> SetParametersResult:
         flat = self.flat_parameters()
@@ -538,24 +314,31 @@ class PiscNode(Node):
         owners = self._pinned_publishers.get(topic.name) if guarded else None
         guard = None if owners is None else self._guard(topic.name, owners)
         decode = cdr.DECODERS.get(topic.type)
+
+        def hand_over(msg: Any, data: bytes | None = None) -> None:
+            """``msg`` to the callback, or the value ``read`` makes of it (refused on
+            /diagnostics); ``data``, its bytes, shape the next read's fast path."""
+            if read is None:
+                callback(msg)
+                return
+            value = self.parse(msg, read, what, level)
+            if value is not None:
+                if data is not None:
+                    note_read(read, data)
+                callback(value)
+
         if decode is None:
             def on_msg(msg: Any) -> None:
                 header = getattr(msg, "header", None)
                 stamp = None if header is None else stamp_from_msg(header.stamp)
-                if not self._admit(topic, guard, stamp):
-                    return
-                if read is None:
-                    callback(msg)
-                    return
-                value = self.parse(msg, read, what, level)
-                if value is not None:
-                    callback(value)
+                if self._admit(topic, guard, stamp):
+                    hand_over(msg)
 
             sub = self.create_subscription(
                 message_class(topic.type), topic.name, on_msg, qos_profile(topic.qos))
         else:
             def on_bytes(data: bytes) -> None:
-                if not self._admit(topic, guard, _header_stamp_ns(data)):
+                if not self._admit(topic, guard, header_stamp_ns(data)):
                     return
                 if read is not None:
                     value = fast_read(read, data)
@@ -567,13 +350,7 @@ class PiscNode(Node):
                 except MessageError as exc:
                     self.diagnose(ERROR, f"rejected {topic.name}: {exc}")
                     return
-                if read is None:
-                    callback(msg)
-                    return
-                value = self.parse(msg, read, what, level)
-                if value is not None:
-                    note_read(read, data)
-                    callback(value)
+                hand_over(msg, data)
 
             sub = self.create_subscription(message_class(topic.type), topic.name, on_bytes,
                                            qos_profile(topic.qos), raw=True)
@@ -643,7 +420,7 @@ class PiscNode(Node):
         this node does not publish."""
         if not self._start_params.await_subscribers:
             return
-        wanted = _await_entries(self._start_params.await_subscribers)
+        wanted = await_entries(self._start_params.await_subscribers)
         mine = {p.topic_name: p for p in self.publishers}
         for topic, _ in wanted:
             if topic not in mine:

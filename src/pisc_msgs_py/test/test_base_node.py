@@ -93,7 +93,7 @@ def test_parse_lets_other_errors_through():
 
 
 def test_errors_of_one_kind_are_logged_a_burst_a_window_and_the_rest_counted():
-    from pisc_msgs_py.base_node import LogLimit
+    from pisc_msgs_py.node_support import LogLimit
 
     limit = LogLimit(burst=2, window_s=10.0)
     trip = "command watchdog: no command answered samples 1 .. 3: 0 V from sample 3"

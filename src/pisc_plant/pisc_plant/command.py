@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from numpy.typing import ArrayLike
 
 if TYPE_CHECKING:
-    from pisc_plant.plant import PlantConfig
+    from pisc_plant.plant_config import PlantConfig
 
 __all__ = ["plant_command"]
 

@@ -1,12 +1,11 @@
 """The plant kernel's layout: its methods, armature codes, the indices of its packed
 constants and :class:`Layout`, without the kernel (numba) itself.
 
-What a configuration needs (:class:`pisc_plant.plant.PlantConfig` checks the method
-against :data:`METHODS`, :func:`pisc_plant.plant.pack_constants` fills the ``P_*``
-slots) is here, so that a process that loads a configuration but runs no plant (the
+What a configuration needs (:class:`pisc_plant.plant_config.PlantConfig` checks the
+method against :data:`METHODS`, :func:`pisc_plant.plant_config.pack_constants` fills the
+``P_*`` slots) is here, so that a process that loads a configuration but runs no plant (the
 controller nodes, ``pisc_bag replay``) does not import numba: 75 MB of resident memory
 and about 0.3 s (``python -X importtime -c "import pisc_plant.kernel"``).
-:mod:`pisc_plant.kernel` re-exports every name.
 """
 
 from __future__ import annotations

@@ -17,264 +17,50 @@ saturation and 7-bit quantisation, or, for an ideal force source
 values (ADC codes, encoder count) and the same values decoded to SI, as the driver does,
 or the true values for ideal sensors. The arithmetic is in :mod:`pisc_plant.kernel`.
 
-A plant set (:func:`plant_set`) is a configuration whose ``rig``, ``motor``,
-``friction`` and ``noise.*_std_*`` fields may hold one value a rig (1-D arrays of one
-length n): its :class:`Plant` steps n rigs, state (n, size), each with its own
-constants, and each rig gives the same bits as a plant built from its own values.
-:meth:`Plant.advance` also takes one duration a rig.
+The configuration is :class:`pisc_plant.plant_config.PlantConfig`. The plant of a plant
+set (:func:`pisc_plant.plant_config.plant_set`) steps n rigs, state (n, size), each with
+its own constants, and each rig gives the same bits as a plant built from its own
+values. :meth:`Plant.advance` also takes one duration a rig.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from pisc_msgs_py.config import ConfigError, in_range, one_of, param
+from pisc_msgs_py.config import ConfigError
 from pisc_model import sensors
 from pisc_plant import layout
-from pisc_model.params import (
-    ActuatorParams,
-    FrictionParams,
-    LoopParams,
-    ModelParams,
-    MotorParams,
-    NoiseParams,
-    RigParams,
-    SensorParams,
-    TrackParams,
-)
+from pisc_plant.plant_config import PlantConfig, pack_constants, rigs_of
 
-__all__ = [
-    "PER_RIG_SECTIONS",
-    "PLANT_SECTIONS",
-    "IntegratorParams",
-    "Plant",
-    "PlantConfig",
-    "STATE_NAMES",
-    "pack_constants",
-    "plant_set",
-    "rigs_of",
-]
+__all__ = ["Plant", "STATE_NAMES"]
 
 STATE_NAMES = ("x", "x_dot", "theta", "theta_dot", "i", "v_ir", "v_cur")
 X, X_DOT, THETA, THETA_DOT = range(4)
 
-#: :mod:`pisc_plant.kernel`, imported by the first :class:`Plant` (it imports numba: a
-#: configuration alone does not need it, :mod:`pisc_plant.layout`)
+#: The kernel's modules, imported by the first :class:`Plant` (they import numba: a
+#: configuration alone does not need it, :mod:`pisc_plant.plant_config`)
 kernel: Any = None
+kernel_batch: Any = None
+kernel_operators: Any = None
+kernel_rhs: Any = None
+kernel_sets: Any = None
 
 
 def _import_kernel() -> None:
-    global kernel
+    global kernel, kernel_batch, kernel_operators, kernel_rhs, kernel_sets
     if kernel is None:
-        from pisc_plant import kernel as module
-        kernel = module
+        from pisc_plant import kernel as k, kernel_batch as b, kernel_operators as o
+        from pisc_plant import kernel_rhs as r, kernel_sets as s
+        kernel, kernel_batch, kernel_operators, kernel_rhs, kernel_sets = k, b, o, r, s
 
 
 RK4_STABILITY = 2.785  # classical RK4 is stable on the negative real axis for h |lam| < 2.785
 ARMATURE_CODES = {"full": layout.ARM_FULL, "quasi_static": layout.ARM_QUASI_STATIC,
                   "ideal_force": layout.ARM_FORCE}
-
-
-@dataclass(frozen=True)
-class IntegratorParams:
-    """Numerical integration of the plant between control samples.
-
-    ``exprk4`` (the default, 2 steps per period) is an exponential Runge-Kutta method of
-    stiff order four that treats the armature's transient and the sensor filters in
-    closed form and is stable at any step up to the period (:mod:`pisc_plant.kernel`).
-    ``rk4`` is the classical Runge-Kutta method; it is stable only while each step
-    resolves the armature (h R / L < 2.785), which the plant checks. README, "Scenes and
-    integrators", measures both against SciPy.
-    """
-
-    method: str = param("exprk4", "'exprk4' (exponential, stable at any step) or 'rk4' "
-                        "(classical Runge-Kutta)", "", one_of(*layout.METHODS))
-    substeps: int = param(2, "integration steps per control period", "", in_range(1, 100000))
-
-
-@dataclass(frozen=True)
-class PlantConfig:
-    rig: RigParams = field(default_factory=RigParams)
-    motor: MotorParams = field(default_factory=MotorParams)
-    sensors: SensorParams = field(default_factory=SensorParams)
-    actuator: ActuatorParams = field(default_factory=ActuatorParams)
-    track: TrackParams = field(default_factory=TrackParams)
-    loop: LoopParams = field(default_factory=LoopParams)
-    integrator: IntegratorParams = field(default_factory=IntegratorParams)
-    models: ModelParams = field(default_factory=ModelParams)
-    friction: FrictionParams = field(default_factory=FrictionParams)
-    noise: NoiseParams = field(default_factory=NoiseParams)
-
-
-#: The parameter sections a plant is built from, as :class:`PlantConfig`'s fields.
-PLANT_SECTIONS: dict[str, type] = {
-    "rig": RigParams, "motor": MotorParams, "sensors": SensorParams, "actuator": ActuatorParams,
-    "track": TrackParams, "loop": LoopParams, "integrator": IntegratorParams,
-    "models": ModelParams, "friction": FrictionParams, "noise": NoiseParams,
-}
-
-
-#: The sections whose fields a plant set may give one value a rig (noise: ``*_std_*``).
-PER_RIG_SECTIONS = ("rig", "motor", "friction", "noise")
-
-
-def _per_rig_fields(section: str) -> dict[str, dataclasses.Field]:
-    fields = {f.name: f for f in dataclasses.fields(PLANT_SECTIONS[section])}
-    if section == "noise":
-        fields = {name: f for name, f in fields.items() if "_std_" in name}
-    return fields
-
-
-def rigs_of(config: PlantConfig) -> int | None:
-    """The number of rigs of a plant set (:func:`plant_set`), None for one rig."""
-    return _rig_count(config)[0]
-
-
-def _rig_count(config: PlantConfig) -> tuple[int | None, str]:
-    """The number of rigs of a plant set and the first parameter that says so."""
-    rigs: int | None = None
-    first = ""
-    for section in PER_RIG_SECTIONS:
-        values = getattr(config, section)
-        for f in dataclasses.fields(values):
-            value = getattr(values, f.name)
-            if not isinstance(value, np.ndarray):
-                continue
-            name = f"{section}.{f.name}"
-            if value.ndim != 1:
-                raise ConfigError(f"{name}: one value a rig (a 1-D array), not shape "
-                                  f"{value.shape}")
-            if rigs is None:
-                rigs, first = len(value), name
-            elif len(value) != rigs:
-                raise ConfigError(f"{name}: {len(value)} values, but {first} has {rigs}")
-    return rigs, first
-
-
-def plant_set(base: PlantConfig, values: Mapping[str, ArrayLike]) -> PlantConfig:
-    """A plant set: ``base`` with one value a rig for the parameters named.
-
-    Parameters
-    ----------
-    base
-        The configuration every rig shares otherwise (itself a set or one rig).
-    values
-        Dotted parameter names of the sections :data:`PER_RIG_SECTIONS` (``rig.*``,
-        ``motor.*``, ``friction.*``, ``noise.*_std_*``), each with a 1-D array of one
-        value a rig, all of one length n, or a number for every rig.
-
-    Returns
-    -------
-    PlantConfig
-        ``base`` with the fields named holding read-only float64 arrays of shape (n,);
-        a :class:`Plant` of it steps n rigs.
-
-    Raises
-    ------
-    ConfigError
-        Starting with the parameter's name: a name that is unknown or outside those
-        sections, arrays of different lengths (or of another length than ``base``'s
-        rigs), no array at all, or a value that breaks the field's rule.
-    """
-    rigs, first = _rig_count(base)
-    arrays: dict[str, np.ndarray] = {}
-    for name, value in values.items():
-        section, _, field_name = name.partition(".")
-        if section not in PLANT_SECTIONS or field_name not in {
-                f.name for f in dataclasses.fields(PLANT_SECTIONS[section])}:
-            raise ConfigError(f"{name}: unknown parameter")
-        fields = _per_rig_fields(section) if section in PER_RIG_SECTIONS else {}
-        if field_name not in fields:
-            raise ConfigError(f"{name}: not a parameter a plant set may vary from rig to rig "
-                              "(rig.*, motor.*, friction.*, noise.*_std_*)")
-        try:
-            array = np.array(value, dtype=float)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{name}: must be a number or a 1-D array of numbers") from None
-        if array.ndim > 1:
-            raise ConfigError(f"{name}: must be a number or a 1-D array of numbers, not an "
-                              f"array of shape {array.shape}")
-        if array.ndim == 1:
-            if len(array) == 0:
-                raise ConfigError(f"{name}: no values (a plant set has at least one rig)")
-            if rigs is None:
-                rigs, first = len(array), name
-            elif len(array) != rigs:
-                raise ConfigError(f"{name}: {len(array)} values, but {first} has {rigs}")
-        rule = fields[field_name].metadata["rule"]
-        numbers = array.ravel().tolist()
-        problem = rule(numbers)
-        if problem:
-            bad = next(k for k, v in enumerate(numbers) if rule(v))
-            raise ConfigError(f"{name}: {problem} (rig {bad}: {numbers[bad]})" if array.ndim
-                              else f"{name} = {numbers[0]}: {problem}")
-        arrays[name] = array
-    if rigs is None:
-        raise ConfigError(f"{next(iter(values), 'plant_set')}: a plant set needs one value a "
-                          "rig (a 1-D array) for at least one parameter")
-    sections: dict[str, dict[str, np.ndarray]] = {}
-    for name, array in arrays.items():
-        section, _, field_name = name.partition(".")
-        column = np.array(np.broadcast_to(array, (rigs,)), dtype=float)
-        column.setflags(write=False)
-        sections.setdefault(section, {})[field_name] = column
-    return dataclasses.replace(base, **{
-        section: dataclasses.replace(getattr(base, section), **changes)
-        for section, changes in sections.items()})
-
-
-def _reflected(m: MotorParams) -> tuple:
-    """J_m / r^2 and b_m / r^2; with one radius a rig, r^2 with Python's arithmetic (as a
-    plant of one rig computes it: numpy's square can differ from pow in the last bit)."""
-    if isinstance(m.wheel_radius_m, np.ndarray):
-        r2 = np.array([r**2 for r in m.wheel_radius_m.tolist()])
-        return m.rotor_inertia_kgm2 / r2, m.viscous_friction_nms / r2
-    return m.reflected_mass_kg, m.reflected_damping_ns_per_m
-
-
-def pack_constants(c: PlantConfig) -> np.ndarray:
-    """The configuration as the kernel's constants (``kernel.P_*``): (N_CONSTANTS,), or
-    for a plant set of n rigs (N_CONSTANTS, n), rig k's constants in column k (the
-    kernel reads them in the blocks of :func:`pisc_plant.kernel.lanes`)."""
-    rigs = rigs_of(c)
-    p = np.zeros(layout.N_CONSTANTS if rigs is None else (layout.N_CONSTANTS, rigs))
-    rig, m, s, t, f = c.rig, c.motor, c.sensors, c.track, c.friction
-    friction = c.models.friction
-    reflected_mass, reflected_damping = _reflected(m)
-    p[layout.P_A1] = rig.a1
-    # the rotor's inertia reflected to the cart, J_m / r^2, joins the cart row only
-    p[layout.P_A2] = rig.a2 + (reflected_mass if c.models.has_current else 0.0)
-    p[layout.P_ML] = rig.ml
-    p[layout.P_G] = rig.gravity_mps2
-    p[layout.P_KF] = m.force_per_amp
-    p[layout.P_BM] = reflected_damping
-    p[layout.P_R] = m.resistance_ohm
-    p[layout.P_L] = m.inductance_h
-    p[layout.P_KER] = m.back_emf_v_s_per_rad / m.wheel_radius_m
-    if friction != "none":
-        p[layout.P_BC] = f.cart_viscous_ns_per_m
-        p[layout.P_BP] = f.pivot_viscous_nms
-    if friction == "coulomb":
-        p[layout.P_FC] = f.cart_coulomb_n
-    p[layout.P_VC] = f.coulomb_velocity_mps
-    p[layout.P_WIR] = 2.0 * math.pi * s.ir_filter_hz
-    p[layout.P_WCUR] = 2.0 * math.pi * s.current_filter_hz
-    p[layout.P_IRO] = s.ir_origin_m
-    p[layout.P_IRS] = s.ir_scale_m
-    p[layout.P_IRX] = -1.0 / s.ir_exponent
-    p[layout.P_CUROFF] = s.current_offset_a
-    p[layout.P_CURSCALE] = s.current_scale_a_per_v
-    p[layout.P_XMIN] = t.min_m
-    p[layout.P_XMAX] = t.max_m
-    p[layout.P_JROT] = rig.pendulum_inertia_kgm2 + rig.ml * rig.pendulum_com_m
-    return p
 
 
 class Plant:
@@ -283,8 +69,8 @@ class Plant:
     The object holds only constants derived from the configuration; the state is an
     array passed in and returned, so one ``Plant`` steps any number of rigs, with the
     same compiled arithmetic for one rig and for many. The plant of a plant set
-    (:func:`plant_set`, :attr:`rigs` = n) steps states of shape (n, size), rig k with
-    its own constants; its :attr:`lam` is (n, size).
+    (:func:`pisc_plant.plant_config.plant_set`, :attr:`rigs` = n) steps states of shape
+    (n, size), rig k with its own constants; its :attr:`lam` is (n, size).
     """
 
     #: The number of rigs of a plant set; None for a plant whose rigs share one
@@ -327,7 +113,7 @@ class Plant:
         self._lanes: dict[int, np.ndarray] = {}
         if self.rigs is not None:
             self._p_rows = np.ascontiguousarray(self._p.T)  # rig k's constants, contiguous
-            self._lanes[self.rigs] = kernel.lanes(self._p)
+            self._lanes[self.rigs] = kernel_sets.lanes(self._p)
         self._u1 = np.zeros(1)  # the one rig's input, for the kernel's rows
         # measurement_one: the IR sensor's decoded position by ADC code (a function of
         # the code alone, so the same bits; at most adc_levels entries)
@@ -398,7 +184,7 @@ class Plant:
         out = np.empty_like(ys)
         arm, filters = self.layout.armature, self.layout.filters
         for row in range(ys.shape[0]):
-            kernel.rhs_one(ys[row], us[row], self._constants_of(row), arm, filters, out[row])
+            kernel_rhs.rhs_one(ys[row], us[row], self._constants_of(row), arm, filters, out[row])
         return out.reshape(np.shape(y))
 
     def applied_derivative(self, y: np.ndarray, applied: float,
@@ -408,9 +194,9 @@ class Plant:
         if self.rigs is not None and rig is None:
             raise ValueError(f"this plant is a set of {self.rigs} rigs: say which (rig=k)")
         out = np.empty(self.size)
-        kernel.rhs_one(np.asarray(y, dtype=float), float(applied),
-                       self._constants_of(0 if rig is None else rig),
-                       self.layout.armature, self.layout.filters, out)
+        kernel_rhs.rhs_one(np.asarray(y, dtype=float), float(applied),
+                           self._constants_of(0 if rig is None else rig),
+                           self.layout.armature, self.layout.filters, out)
         return out
 
     def _constants_of(self, row: int) -> np.ndarray:
@@ -421,7 +207,7 @@ class Plant:
 
     def coefficients(self, step_s: float) -> np.ndarray:
         """The exponential scheme's operator table for a step, (15, OP_WIDTH)
-        (:func:`pisc_plant.kernel.exp_coefficients`); of a plant set, every rig's, as
+        (:func:`pisc_plant.kernel_operators.exp_coefficients`); of a plant set, every rig's, as
         :meth:`rig_coefficients`."""
         coef = self._coefficients.get(step_s)
         if coef is None:
@@ -429,20 +215,20 @@ class Plant:
                 return self.rig_coefficients(np.full(self.rigs, float(step_s)))
             filters = self.config.models.sensor_filters
             full = self.config.models.has_current_state
-            coef = kernel.exp_coefficients(
+            coef = kernel_operators.exp_coefficients(
                 self._p[layout.P_WIR] if filters else 0.0,
                 self._p[layout.P_WCUR] if filters else 0.0,
                 self._p[layout.P_WCUR] / self._p[layout.P_CURSCALE],
-                kernel.armature_rate(self._p) if full else 0.0, step_s)
+                kernel_operators.armature_rate(self._p) if full else 0.0, step_s)
             if len(self._coefficients) < 64:
                 self._coefficients[step_s] = coef
         return coef
 
     def rig_coefficients(self, steps_s: np.ndarray) -> np.ndarray:
         """Every rig's operator table for its own step ``steps_s[k]``, in the kernel's
-        blocks: ``kernel.lanes`` of (N_TABLE, rigs), rig k's table (rows 0-12 of
+        blocks: ``kernel_sets.lanes`` of (N_TABLE, rigs), rig k's table (rows 0-12 of
         :meth:`coefficients`, row-major) in column k; the same numbers, computed by
-        :func:`pisc_plant.kernel.exp_tables`. The last four sets of steps are kept (a
+        :func:`pisc_plant.kernel_sets.exp_tables`. The last four sets of steps are kept (a
         rig's latency, the rest of its period and the period, say)."""
         steps_s = np.ascontiguousarray(steps_s, dtype=float)
         key = steps_s.tobytes()
@@ -453,33 +239,35 @@ class Plant:
                 raise ValueError(f"{rigs} steps for a set of {self.rigs} rigs")
             p = self._p if self.rigs is None else self._p_rows[0]  # the sensors are common
             filters = self.config.models.sensor_filters
-            tables = np.empty((-(-rigs // kernel.BLOCK), kernel.N_TABLE * kernel.BLOCK))
-            kernel.exp_tables(p[layout.P_WIR] if filters else 0.0,
-                              p[layout.P_WCUR] if filters else 0.0,
-                              p[layout.P_WCUR] / p[layout.P_CURSCALE],
-                              self._armature_rates(rigs), steps_s, tables)
+            block = kernel_sets.BLOCK
+            tables = np.empty((-(-rigs // block), kernel_sets.N_TABLE * block))
+            kernel_sets.exp_tables(p[layout.P_WIR] if filters else 0.0,
+                                   p[layout.P_WCUR] if filters else 0.0,
+                                   p[layout.P_WCUR] / p[layout.P_CURSCALE],
+                                   self._armature_rates(rigs), steps_s, tables)
             while len(self._rig_tables) >= 4:
                 del self._rig_tables[next(iter(self._rig_tables))]
         self._rig_tables[key] = tables
         return tables
 
     def _armature_rates(self, rigs: int) -> np.ndarray:
-        """Each rig's :func:`pisc_plant.kernel.armature_rate` (0 without the armature)."""
+        """Each rig's :func:`pisc_plant.kernel_operators.armature_rate` (0 without the armature)."""
         if self._rates is None or self._rates.shape[0] != rigs:
             rates = np.zeros(rigs)
             if self.config.models.has_current_state:
                 if self.rigs is None:
-                    rates[:] = kernel.armature_rate(self._p)
+                    rates[:] = kernel_operators.armature_rate(self._p)
                 else:
-                    kernel.armature_rates(self._p, rates)
+                    kernel_sets.armature_rates(self._p, rates)
             self._rates = rates
         return self._rates
 
     def _lane_constants(self, rigs: int) -> np.ndarray:
-        """The constants of ``rigs`` rigs in the kernel's blocks (:func:`kernel.lanes`)."""
+        """The constants of ``rigs`` rigs in the kernel's blocks
+        (:func:`pisc_plant.kernel_sets.lanes`)."""
         p = self._lanes.get(rigs)
         if p is None:
-            p = kernel.lanes(np.repeat(self._p[:, None], rigs, axis=1))
+            p = kernel_sets.lanes(np.repeat(self._p[:, None], rigs, axis=1))
             self._lanes = {rigs: p}
         return p
 
@@ -533,7 +321,7 @@ class Plant:
     def _step_rows(self, ys: np.ndarray, us: np.ndarray, n: int, h: float,
                    coef: np.ndarray) -> None:
         stops = self.layout.end_stops
-        if ys.shape[0] <= kernel.CHUNK:
+        if ys.shape[0] <= kernel_batch.CHUNK:
             self._kernels.advance(ys, us, 0, ys.shape[0], self._p, stops, self._method, n, h,
                                   coef)
         else:
@@ -594,7 +382,7 @@ class Plant:
         tables = (self.rig_coefficients(steps) if self._method == layout.EXPRK4
                   else np.empty((p.shape[0], 0)))
         stops = self.layout.end_stops
-        if rigs <= kernel.CHUNK:
+        if rigs <= kernel_batch.CHUNK:
             self._kernels.advance_set(ys, us, 0, rigs, p, stops, self._method, n, steps,
                                       tables)
         else:
@@ -611,7 +399,7 @@ class Plant:
         """
         ys, _ = self._rows(y, 0.0)
         for k, row in enumerate(ys):
-            kernel.end_stops(row, self._constants_of(k))
+            kernel_rhs.end_stops(row, self._constants_of(k))
         return ys.reshape(np.shape(y))
 
     # -- measurement ---------------------------------------------------------------------

@@ -91,7 +91,8 @@ from pisc_model.params import (
     check_models_use,
 )
 from pisc_plant.command import plant_command
-from pisc_plant.plant import PLANT_SECTIONS, Plant, PlantConfig
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import PLANT_SECTIONS, PlantConfig
 from pisc_plant.sampled import SampledPlant
 
 

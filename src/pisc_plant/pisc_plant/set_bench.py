@@ -1,4 +1,4 @@
-"""Benchmark of plant sets (:func:`pisc_plant.plant.plant_set`): prints, asserts nothing.
+"""Benchmark of plant sets (:func:`pisc_plant.plant_config.plant_set`): prints, asserts nothing.
 
 10 000 rigs of the default plant (full armature, RC filters, end stops, exprk4 at two
 steps a period) driven open loop for 400 periods (2 s), stepped by
@@ -18,7 +18,8 @@ from collections.abc import Callable
 import numpy as np
 
 from pisc_msgs_py.progress import progress_bar
-from pisc_plant.plant import Plant, PlantConfig, plant_set
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import PlantConfig, plant_set
 
 __all__ = ["main"]
 

@@ -16,8 +16,8 @@ Without AVX2 or without ``libmvec`` (not glibc on x86-64), the functions are the
 library's scalar ones and nothing is vectorised; results then differ from a machine with
 them in the last bits (glibc documents its vector functions to within 4 ulp). numba's
 cache is keyed on the CPU, so the two kinds of code never mix in one cache. numba's
-cache does not notice a change of this file, only of the kernel's: after editing it,
-delete ``pisc_plant/__pycache__/kernel.*`` (``./pisc`` then compiles anew).
+cache does not notice a change of this file, only of the kernel's own files: ``./pisc``
+removes the kernel's entries when this file is newer (:mod:`pisc_plant.kernel_jit`).
 """
 
 from __future__ import annotations

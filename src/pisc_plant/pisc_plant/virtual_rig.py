@@ -19,23 +19,13 @@ without one, it sets the duty to 0 (0 V), between 50 and 55 ms after the last by
 the next byte is applied as usual and ends the trip (``--watchdog-ms 0``: no watchdog,
 the thesis's firmware, which holds the last byte's PWM for ever).
 
-This file is the firmware's side of the protocol written on its own, from SPEC section 4,
-not with the driver's codec: the tests check that the two agree byte for byte.
-
-Faults on request, from the command line or as JSON lines on standard input::
-
-    {"drop_rate": 0.01}   lose each sent byte with this probability (0..1)
-    {"flip_rate": 0.001}  flip one bit of each sent byte with this probability (0..1)
-    {"silence_s": 0.1}    send nothing for this long (the device goes quiet; 0 .. 3600 s)
-    {"garbage": 20}       send this many random bytes before the next frame (0..1024)
-    {"status": true}      print the rig's status as one JSON line
-    {"quit": true}        stop
-
-A request is one JSON object of these keys. Anything else (not JSON, an unknown key, a
-value of the wrong type, not finite, negative or out of range) is refused whole, nothing
-of it applied: the rig says why on standard error, naming the key and the rule, answers
-``{"error": ...}`` on standard output (for a client waiting for a status line) and keeps
-running.
+Faults on request, from the command line or as JSON lines on standard input (one JSON
+object a line: :mod:`pisc_plant.rig_faults` says which). A request refused (not JSON,
+an unknown key, a value of the wrong type, not finite, negative or out of range) is
+refused whole, nothing of it applied: the rig says why on standard error, naming the key
+and the rule, answers ``{"error": ...}`` on standard output (for a client waiting for a
+status line) and keeps running. The firmware's behaviour is :mod:`pisc_plant.firmware`;
+:class:`pisc_plant.rig_process.RigProcess` runs this command as a child process.
 
 On exit (end of input is not an exit; SIGINT, SIGTERM or quit are) it prints its
 status as the last line. ``--log`` writes the true state of every period as CSV, with
@@ -46,22 +36,15 @@ time, the Unix clock, so a bag and the log line up).
 from __future__ import annotations
 
 import argparse
-import collections
-import difflib
 import json
 import math
 import os
 import select
 import signal
-import struct
-import subprocess
 import sys
-import threading
 import time
 import tty
-import weakref
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, TextIO
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -70,236 +53,12 @@ from pisc_model.params import (
     InitialParams,
     check_models_use,
 )
-from pisc_plant.plant import (
-    PLANT_SECTIONS,
-    THETA,
-    THETA_DOT,
-    X_DOT,
-    Plant,
-    PlantConfig,
-    X,
-)
+from pisc_plant.firmware import DEFAULT_WATCHDOG_MS, Firmware
+from pisc_plant.plant import THETA, THETA_DOT, X_DOT, Plant, X
+from pisc_plant.plant_config import PLANT_SECTIONS, PlantConfig
+from pisc_plant.rig_faults import MAX_REQUEST, RequestError, RigFaults
 
-__all__ = ["Firmware", "RequestError", "Rig", "RigFaults", "RigProcess", "check_request",
-           "main"]
-
-HEADER = 0xAA
-DEFAULT_WATCHDOG_MS = 50.0  # 10 periods; docs/driver-protocol.md says why
-MAX_GARBAGE = 1024  # bytes per request: 89 ms of the line at 115200 baud
-MAX_REQUEST = 4096  # bytes of one request line
-
-
-class RequestError(ValueError):
-    """A fault request the rig refuses; the message names the key and the rule."""
-
-
-def _number(key: str, value: Any, rule: str) -> float:
-    """``value`` as a finite float, or RequestError naming ``key`` and ``rule``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise RequestError(f"{key} = {json.dumps(value)} must be a number ({rule}), "
-                           f"not {_json_type(value)}")
-    try:
-        number = float(value)
-    except OverflowError:
-        number = math.inf
-    if not math.isfinite(number):
-        raise RequestError(f"{key} = {json.dumps(value)} must be a finite number ({rule})")
-    return number
-
-
-def _json_type(value: Any) -> str:
-    for cls, name in ((bool, "true/false"), ((int, float), "a number"), (str, "a string"),
-                      (list, "a list"), (dict, "an object"), (type(None), "null")):
-        if isinstance(value, cls):
-            return name
-    return type(value).__name__
-
-
-def _probability(key: str, value: Any) -> float:
-    rule = "a probability per byte, 0 to 1"
-    number = _number(key, value, rule)
-    if not 0.0 <= number <= 1.0:
-        raise RequestError(f"{key} = {json.dumps(value)} must lie in [0, 1] ({rule})")
-    return number
-
-
-MAX_SILENCE_S = 3600.0  # a longer silence is no test of a link (1e308 was taken)
-
-
-def _silence(key: str, value: Any) -> float:
-    rule = f"seconds without frames, 0 .. {MAX_SILENCE_S:g}"
-    number = _number(key, value, rule)
-    if number < 0.0:
-        raise RequestError(f"{key} = {json.dumps(value)} must not be negative ({rule})")
-    if number > MAX_SILENCE_S:
-        raise RequestError(f"{key} = {json.dumps(value)} is too long ({rule})")
-    return number
-
-
-def _garbage(key: str, value: Any) -> int:
-    rule = f"random bytes to send, a whole number from 0 to {MAX_GARBAGE}"
-    number = _number(key, value, rule)
-    if number != math.floor(number) or not 0 <= number <= MAX_GARBAGE:
-        raise RequestError(f"{key} = {json.dumps(value)} must be a whole number from 0 to "
-                           f"{MAX_GARBAGE} (random bytes to send before the next frame)")
-    return int(number)
-
-
-def _flag(key: str, value: Any) -> bool:
-    if not isinstance(value, bool):
-        raise RequestError(f"{key} = {json.dumps(value)} must be true or false, "
-                           f"not {_json_type(value)}")
-    return value
-
-
-REQUESTS = {"drop_rate": _probability, "flip_rate": _probability, "silence_s": _silence,
-            "garbage": _garbage, "status": _flag, "quit": _flag}
-
-
-def check_request(request: Any) -> dict[str, Any]:
-    """A fault request (a parsed JSON value) checked whole: the values to apply, or
-    RequestError for the first key that breaks its rule (nothing is applied then)."""
-    if not isinstance(request, dict):
-        raise RequestError(f"a request is a JSON object of {', '.join(REQUESTS)}; "
-                           f"got {_json_type(request)}")
-    checked = {}
-    for key, value in request.items():
-        if key not in REQUESTS:
-            match = difflib.get_close_matches(key, list(REQUESTS), n=1)
-            hint = f"; did you mean {match[0]}?" if match else ""
-            raise RequestError(f"{json.dumps(key)} is not a request (known: "
-                               f"{', '.join(REQUESTS)}){hint}")
-        checked[key] = REQUESTS[key](key, value)
-    return checked
-
-
-@dataclass
-class RigFaults:
-    drop_rate: float = 0.0
-    flip_rate: float = 0.0
-    silent_until: float = -math.inf  # monotonic time
-    garbage: int = 0
-
-    def update(self, request: dict[str, Any], now: float) -> None:
-        """Apply a request (:func:`check_request` first: all of it or, refused, none)."""
-        request = check_request(request)
-        if self.garbage + request.get("garbage", 0) > MAX_GARBAGE:
-            raise RequestError(f"garbage = {request['garbage']}: {self.garbage} bytes are "
-                               f"already waiting, and at most {MAX_GARBAGE} may")
-        for key in ("drop_rate", "flip_rate"):
-            if key in request:
-                setattr(self, key, request[key])
-        if "silence_s" in request:
-            self.silent_until = now + request["silence_s"]
-        self.garbage += request.get("garbage", 0)
-
-
-@dataclass
-class Firmware:
-    """The PIC's behaviour around a simulated plant; times are passed in (seconds).
-
-    ``frame()`` is the 7 bytes of the current sample; ``receive(byte, t)`` applies a
-    command byte at time ``t`` into the current period; ``advance()`` integrates the
-    period with the voltage changing where the bytes arrived, then runs the period's
-    timer tick: the command watchdog (``watchdog_s``, 0 = none) counts the ticks since the
-    last byte and, at the first tick more than ``ceil(watchdog_s / period)`` of them
-    after it, applies 0 V until the next byte. It is armed by the first byte (before it
-    the duty is 0 anyway).
-    """
-
-    plant: Plant
-    state: np.ndarray
-    applied_v: float = 0.0
-    time_s: float = 0.0
-    watchdog_s: float = DEFAULT_WATCHDOG_MS * 1e-3
-    silent_ticks: int = 0  # timer ticks since the last command byte
-    armed: bool = False
-    tripped: bool = False
-    trips: int = 0
-    last_byte_s: float | None = None  # firmware time of the last command byte
-    trip_delay_s: float | None = None  # last trip: its time after the last byte
-    # a hand on the rig (``--hold``): the state stays as it is until the first command
-    # byte of a nonzero voltage, from which it moves; time and frames go on meanwhile
-    held: bool = False
-    released_s: float | None = None  # firmware time of that byte
-    _changes: list[tuple[float, float]] = field(default_factory=list)
-    # the sensors' noise (``noise.*``), drawn as the simulator's sampled plant draws it
-    _noise: np.random.Generator | None = field(default=None, init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.watchdog_s) and self.watchdog_s >= 0.0):
-            raise ValueError(f"watchdog = {self.watchdog_s} s must be a finite number >= 0")
-        noise = self.plant.config.noise
-        self._noise = np.random.default_rng(noise.seed) if noise.any else None
-
-    @property
-    def watchdog_periods(self) -> int:
-        """N: the watchdog trips at the (N+1)th tick without a byte (0 = no watchdog)."""
-        if self.watchdog_s == 0.0:
-            return 0
-        return max(1, math.ceil(self.watchdog_s / self.plant.config.loop.period_s - 1e-9))
-
-    def frame(self) -> bytes:
-        """The frame of the state now: the sensors read with the voltage applied (the
-        current of a quasi-static armature depends on it) and the parameter file's
-        measurement noise (``noise.*``, one standard normal draw per sensor and frame
-        from ``noise.seed``, as the simulator's plant node draws them)."""
-        noise = None if self._noise is None else self._noise.standard_normal(3)
-        ir, cur, count = self.plant.raw_measurement(self.state, self.applied_v, noise)
-        count16 = ((int(count) + 0x8000) & 0xFFFF) - 0x8000  # the 16-bit counter register
-        return struct.pack(">BHHh", HEADER, int(ir), int(cur), count16)
-
-    def voltage(self, command: int) -> float:
-        """PWM duty = magnitude << 1; duty 254 = full scale; bit 7 = negative."""
-        a = self.plant.config.actuator
-        duty = (command & 0x7F) << 1
-        volts = a.full_scale_v * min(duty, 254) / 254
-        return -volts if command & 0x80 else volts
-
-    def receive(self, command: int, offset_s: float) -> None:
-        """A command byte ``offset_s`` into the current period: applied from there (it
-        also ends a watchdog trip) and the watchdog's count starts again."""
-        self._changes.append((offset_s, self.voltage(command)))
-        period = self.plant.config.loop.period_s
-        self.last_byte_s = self.time_s + min(max(offset_s, 0.0), period)
-        self.silent_ticks = 0
-        self.armed = True
-        self.tripped = False
-
-    def advance(self) -> None:
-        period = self.plant.config.loop.period_s
-        t = 0.0
-        if self.held:  # the state moves from the first nonzero byte on, or not at all
-            release = next((o for o, volts in self._changes if volts != 0.0), None)
-            if release is None:
-                t = period
-            else:
-                t = min(max(release, 0.0), period)
-                self.held = False
-                self.released_s = self.time_s + t
-        for offset, volts in self._changes:
-            offset = min(max(offset, 0.0), period)
-            if offset > t:
-                self.state = self.plant.advance(self.state, self.applied_v, offset - t)
-                t = offset
-            self.applied_v = volts
-        if period > t:
-            self.state = self.plant.advance(self.state, self.applied_v, period - t)
-        self._changes.clear()
-        self.time_s += period
-        self._tick()
-
-    def _tick(self) -> None:
-        """The timer tick at the end of a period: the command watchdog."""
-        n = self.watchdog_periods
-        if not n or not self.armed:
-            return
-        self.silent_ticks += 1
-        if self.silent_ticks > n and not self.tripped:
-            self.applied_v = 0.0
-            self.tripped = True
-            self.trips += 1
-            self.trip_delay_s = self.time_s - self.last_byte_s
+__all__ = ["Rig", "load_plant", "main"]
 
 
 def load_plant(params_file: str | None, overrides: dict[str, Any]
@@ -532,85 +291,6 @@ class Rig:
                 os.close(fd)
             except OSError:
                 pass
-
-
-class RigProcess:
-    """``pisc_virtual_rig`` as a child process, controlled through its standard input.
-
-    For tests and runners: ``device`` is the path to give the driver; ``request``
-    sends a fault request; ``status()`` asks for and returns the status; ``stop()``
-    ends the rig (SIGTERM) and returns its final status. ``stderr_lines()`` is what the
-    rig said on standard error (a thread reads it, so that it never fills the pipe).
-    """
-
-    #: the rigs started and not stopped (a test's fixture stops what its test left)
-    running: ClassVar[weakref.WeakSet[RigProcess]] = weakref.WeakSet()
-
-    def __init__(self, args: list[str] = (), env: dict[str, str] | None = None,
-                 timeout_s: float = 30.0) -> None:
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "pisc_plant.virtual_rig", *args], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, bufsize=1)
-        RigProcess.running.add(self)
-        self._final: dict[str, Any] | None = None
-        self._stderr: collections.deque[str] = collections.deque(maxlen=1000)
-        self._stderr_reader = threading.Thread(target=self._read_stderr, daemon=True,
-                                               name="pisc_virtual_rig_stderr")
-        self._stderr_reader.start()
-        line = self._line(timeout_s)
-        if not line.startswith("device "):
-            if self.process.poll() is not None:
-                self._stderr_reader.join(timeout=5.0)
-            raise RuntimeError(f"pisc_virtual_rig did not start: {line!r} "
-                               f"{''.join(self._stderr)}")
-        self.device = line.split(" ", 1)[1].strip()
-
-    def _read_stderr(self) -> None:
-        for line in self.process.stderr:
-            self._stderr.append(line)
-
-    def stderr_lines(self) -> list[str]:
-        return [line.rstrip("\n") for line in self._stderr]
-
-    def _line(self, timeout_s: float) -> str:
-        ready, _, _ = select.select([self.process.stdout], [], [], timeout_s)
-        if not ready:
-            raise TimeoutError(f"pisc_virtual_rig said nothing for {timeout_s} s")
-        return self.process.stdout.readline()
-
-    def request(self, **request: Any) -> None:
-        self.send_line(json.dumps(request))
-
-    def send_line(self, line: str) -> None:
-        """One raw line on the rig's standard input (a request, or anything)."""
-        self.process.stdin.write(line + "\n")
-        self.process.stdin.flush()
-
-    def reply(self, timeout_s: float = 10.0) -> dict[str, Any]:
-        """The next JSON line on the rig's standard output (a status or an error)."""
-        return json.loads(self._line(timeout_s))
-
-    def status(self, timeout_s: float = 10.0) -> dict[str, Any]:
-        self.request(status=True)
-        reply = self.reply(timeout_s)
-        if "error" in reply:
-            raise ValueError(reply["error"])
-        return reply
-
-    def stop(self, timeout_s: float = 10.0) -> dict[str, Any]:
-        """End the rig (once; later calls return the same final status)."""
-        if self._final is None:
-            if self.process.poll() is None:
-                self.process.send_signal(signal.SIGTERM)
-            try:
-                out, _ = self.process.communicate(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                out, _ = self.process.communicate()
-            RigProcess.running.discard(self)
-            lines = [line for line in out.splitlines() if line.startswith("{")]
-            self._final = json.loads(lines[-1]) if lines else {}
-        return self._final
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,14 +6,14 @@
 uses (full armature, sampled PI loop, quantised sensors with their RC filters, exprk4)
 for one rig, the way the plant node and the virtual rig call them. ``all`` (before the
 test suite): every layout, and the default's with Coulomb friction (its own entry
-points, :mod:`pisc_plant.kernel`), for one rig, for rows and for the parallel batch.
-The entry points of plant sets (a model per rig: the robustness and identification work) are not
-among them and compile on first use (``test_plant_set.py`` took 59 s in the first suite
-run of 2026-12-04, ``all`` already warm).
+points, :mod:`pisc_plant.kernel_batch`), for one rig, for rows and for the parallel batch.
+The entry points of plant sets (a model per rig: the robustness and identification work)
+are not among them and compile on first use (``test_plant_set.py`` took 59 s in the
+first suite run of 2026-12-04, ``all`` already warm).
 
 numba compiles an entry point the first time it is called and caches it on disk
-(``cache=True`` in :mod:`pisc_plant.kernel`), so what is not compiled here is compiled on
-first use, once, by whatever uses it. Compiling ahead matters for two reasons: a plant
+(``cache=True``, :mod:`pisc_plant.kernel_jit`), so what is not compiled here is compiled
+on first use, once, by whatever uses it. Compiling ahead matters for two reasons: a plant
 node that compiles at start-up misses the graph's start, and processes started in
 parallel (tests) would each compile the same entry point. Each step prints one line with
 its time, so set-up never sits silent.
@@ -52,8 +52,9 @@ def steps(scope: str) -> Iterator[tuple[str, Callable[[], None]]]:
     """(what, compile it) for each step of ``scope``."""
     if scope not in SCOPES:
         raise ValueError(f"scope {scope!r}: one of {', '.join(SCOPES)}")
-    from pisc_plant.kernel import CHUNK
-    from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
+    from pisc_plant.kernel_batch import CHUNK
+    from pisc_plant.plant import Plant
+    from pisc_plant.plant_config import IntegratorParams, PlantConfig
 
     layouts = LAYOUTS[:1] if scope == "run" else LAYOUTS
     for armature, filters, coulomb in layouts:

@@ -19,7 +19,8 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from pisc_model.dynamics import energy
-from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import IntegratorParams, PlantConfig
 
 __all__ = [
     "Result",

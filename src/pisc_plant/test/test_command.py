@@ -8,7 +8,7 @@ import pytest
 
 from pisc_model.params import ModelParams, MotorParams
 from pisc_plant.command import plant_command
-from pisc_plant.plant import PlantConfig
+from pisc_plant.plant_config import PlantConfig
 
 VOLTAGE_PLANT = PlantConfig()
 FORCE_PLANT = PlantConfig(models=ModelParams(armature="ideal_force", current_loop="ideal",

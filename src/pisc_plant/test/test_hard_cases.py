@@ -10,7 +10,8 @@ import pytest
 
 from pisc_model.dynamics import energy, wrap_to_upright
 from pisc_model.params import ModelParams, MotorParams, NoiseParams, TrackParams
-from pisc_plant.plant import IntegratorParams, Plant, PlantConfig
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import IntegratorParams, PlantConfig
 
 CONSERVATIVE = ModelParams(armature="ideal_force", current_loop="ideal", sensors="ideal",
                            sensor_filters=False, end_stops=False)

@@ -12,9 +12,16 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
 from pisc_plant import kernel
+from pisc_plant import kernel_batch
+from pisc_plant import kernel_operators
+from pisc_plant import kernel_steps
 from pisc_model.dynamics import accelerations
 from pisc_model.params import FrictionParams, ModelParams
-from pisc_plant.plant import IntegratorParams, Plant, PlantConfig, pack_constants
+from pisc_plant.layout import (
+    ARM_FORCE, ARM_FULL, ARM_QUASI_STATIC, P_A1, P_A2, P_KER, P_KF, P_L, P_R, Layout,
+)
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import IntegratorParams, PlantConfig, pack_constants
 
 
 @pytest.mark.parametrize("z", [-60.0, -7.0, -4.0001, -3.9999, -2.0, -0.3, -1e-5, 0.0, 0.5, 3.0])
@@ -24,12 +31,12 @@ def test_phi_matches_its_series_and_closed_form(z):
         # the series in exact rational arithmetic (no cancellation at any z)
         terms = int(3 * abs(z)) + 60
         series = float(sum(exact_z**j / math.factorial(j + k) for j in range(terms)))
-        assert kernel.phi(k, z) == pytest.approx(series, rel=1e-12, abs=1e-300)
+        assert kernel_operators.phi(k, z) == pytest.approx(series, rel=1e-12, abs=1e-300)
         out = np.empty(8)
-        kernel._phis(z, out)
+        kernel_operators._phis(z, out)
         assert out[k] == pytest.approx(series, rel=1e-11, abs=1e-300)
     if abs(z) >= 1.0:  # where the closed form itself is accurate
-        assert kernel.phi(2, z) == pytest.approx((math.exp(z) - 1 - z) / z**2, rel=1e-9)
+        assert kernel_operators.phi(2, z) == pytest.approx((math.exp(z) - 1 - z) / z**2, rel=1e-9)
 
 
 def _phi_matrix(k, a):
@@ -58,12 +65,12 @@ def test_structured_operators_equal_the_matrix_phi_functions():
     a[4, 4] = a[7, 7] = a[8, 8] = lam
     a[7, 4] = a[8, 7] = 1.0
     a[5, 5], a[6, 6], a[6, 4] = -w_ir, -w_cur, c_v * c[5]
-    table = kernel.exp_coefficients(w_ir, w_cur, c_v, lam, h)
-    for op in range(kernel.N_OPERATORS):
+    table = kernel_operators.exp_coefficients(w_ir, w_cur, c_v, lam, h)
+    for op in range(kernel_operators.N_OPERATORS):
         expected = np.zeros((9, 9))
-        for si, s in enumerate(kernel.STAGE_FRACTIONS):
+        for si, s in enumerate(kernel_operators.STAGE_FRACTIONS):
             for k in range(4):
-                w = kernel.OP_WEIGHTS[op, si, k]
+                w = kernel_operators.OP_WEIGHTS[op, si, k]
                 if w:
                     expected += w * _phi_matrix(k, s * h * a)
         expected *= 1.0 if op < 2 else h
@@ -72,7 +79,7 @@ def test_structured_operators_equal_the_matrix_phi_functions():
             v = np.zeros(9)
             v[j] = 1.0
             out = np.zeros(9)
-            kernel.apply_add(table[op], v, c, out)
+            kernel_steps.apply_add(table[op], v, c, out)
             got[:, j] = out
         np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-13 * np.abs(expected).max())
         # the form for the nonlinear part's vectors (zero x, theta, r, s) agrees
@@ -80,33 +87,33 @@ def test_structured_operators_equal_the_matrix_phi_functions():
             v = np.zeros(9)
             v[j] = 1.0
             out = np.zeros(9)
-            kernel.apply_add_n(table[op], v, c, out)
+            kernel_steps.apply_add_n(table[op], v, c, out)
             np.testing.assert_allclose(out, got[:, j], rtol=1e-12, atol=1e-300)
 
 
 def _exp_coefficients_one_by_one(w_ir, w_cur, c_v, lam, h):
-    """kernel.exp_coefficients as it was first written, in Python: every term a Python
+    """kernel_operators.exp_coefficients as it was first written, in Python: every term a Python
     float, added one at a time in the order s = 1/2, 1, k = 0..3, skipping alpha = 0."""
-    table = np.zeros((15, kernel.OP_WIDTH))
-    phi_cur = np.array([[kernel.phi(k, -s * h * w_cur) for k in range(4)]
-                        for s in kernel.STAGE_FRACTIONS])
-    for op, weights in enumerate(kernel.OP_WEIGHTS):
+    table = np.zeros((15, kernel_operators.OP_WIDTH))
+    phi_cur = np.array([[kernel_operators.phi(k, -s * h * w_cur) for k in range(4)]
+                        for s in kernel_operators.STAGE_FRACTIONS])
+    for op, weights in enumerate(kernel_operators.OP_WEIGHTS):
         scale = 1.0 if op < 2 else h
-        for si, s in enumerate(kernel.STAGE_FRACTIONS):
+        for si, s in enumerate(kernel_operators.STAGE_FRACTIONS):
             sh = s * h
             for k in range(4):
                 alpha = scale * weights[si, k]
                 if alpha == 0.0:
                     continue
-                table[op, kernel.OP_D0] += alpha / math.factorial(k)
-                table[op, kernel.OP_D1] += alpha * sh / math.factorial(k + 1)
-                table[op, kernel.OP_DIR] += alpha * kernel.phi(k, -sh * w_ir)
-                table[op, kernel.OP_DCUR] += alpha * phi_cur[si, k]
-    table[kernel.ROW_PHI_CUR, 0:4] = phi_cur[0]
-    table[kernel.ROW_PHI_CUR, 4:8] = phi_cur[1]
-    table[kernel.ROW_CONST, 0:3] = (c_v, w_cur, h)
+                table[op, kernel_operators.OP_D0] += alpha / math.factorial(k)
+                table[op, kernel_operators.OP_D1] += alpha * sh / math.factorial(k + 1)
+                table[op, kernel_operators.OP_DIR] += alpha * kernel_operators.phi(k, -sh * w_ir)
+                table[op, kernel_operators.OP_DCUR] += alpha * phi_cur[si, k]
+    table[kernel_operators.ROW_PHI_CUR, 0:4] = phi_cur[0]
+    table[kernel_operators.ROW_PHI_CUR, 4:8] = phi_cur[1]
+    table[kernel_operators.ROW_CONST, 0:3] = (c_v, w_cur, h)
     if lam != 0.0:
-        kernel._armature_operators(lam, table, np.empty((2, 8)))
+        kernel_operators.armature_operators(lam, table, np.empty((2, 8)))
     return table
 
 
@@ -124,7 +131,7 @@ def test_operator_tables_are_the_one_by_one_sums_bit_for_bit():
         cases.append((w_ir, w_cur, w_cur / 5.0, lam, 10 ** rng.uniform(-8, -1.5)))
     switched = 0
     for case in cases:
-        got = kernel.exp_coefficients(*case)
+        got = kernel_operators.exp_coefficients(*case)
         expected = _exp_coefficients_one_by_one(*case)
         assert got.tobytes() == expected.tobytes(), (case, np.argwhere(got != expected))
         switched += max(case[0], case[1]) * case[4] >= 2.0
@@ -137,13 +144,13 @@ def test_armature_rate_is_the_middle_of_the_rates_the_angle_gives():
     (computed here from the parameters)."""
     plant = Plant(PlantConfig())
     p = pack_constants(plant.config)
-    d = p[kernel.P_KER] / p[kernel.P_R]
-    rates = [-p[kernel.P_R] / p[kernel.P_L] + d * p[kernel.P_KF] / (p[kernel.P_A2] - p[kernel.P_A1]
+    d = p[P_KER] / p[P_R]
+    rates = [-p[P_R] / p[P_L] + d * p[P_KF] / (p[P_A2] - p[P_A1]
                                                                    * math.cos(t) ** 2)
              for t in np.linspace(0, math.pi, 181)]
-    lam = kernel.armature_rate(p)
-    assert lam == pytest.approx(-14.0 / 0.002 + d * p[kernel.P_KF]
-                                / (p[kernel.P_A2] - 0.5 * p[kernel.P_A1]), rel=1e-15)
+    lam = kernel_operators.armature_rate(p)
+    assert lam == pytest.approx(-14.0 / 0.002 + d * p[P_KF]
+                                / (p[P_A2] - 0.5 * p[P_A1]), rel=1e-15)
     assert min(rates) < lam < max(rates)
     assert max(abs(r - lam) for r in rates) < 0.005  # 1/s, against R/L = 7000 1/s
 
@@ -154,32 +161,32 @@ def test_each_layout_has_its_own_kernels():
     (the end stops are a run-time flag); each has a second set with the Coulomb term
     (those of plant sets have it always)."""
     seen = set()
-    for arm in (kernel.ARM_FULL, kernel.ARM_QUASI_STATIC, kernel.ARM_FORCE):
+    for arm in (ARM_FULL, ARM_QUASI_STATIC, ARM_FORCE):
         for filters in (True, False):
-            layout = kernel.Layout(arm, filters, True)
+            layout = Layout(arm, filters, True)
             k = kernel.for_layout(layout)
-            assert kernel.for_layout(kernel.Layout(arm, filters, False)).advance is k.advance
+            assert kernel.for_layout(Layout(arm, filters, False)).advance is k.advance
             seen.add(k.advance)
-            coulomb = kernel.for_layout(kernel.Layout(arm, filters, True, True))
+            coulomb = kernel.for_layout(Layout(arm, filters, True, True))
             assert coulomb.advance is not k.advance
             assert coulomb.advance_many is not k.advance_many
             assert coulomb.advance_set is k.advance_set
             seen.add(coulomb.advance)
             models = ModelParams(
-                armature={kernel.ARM_FULL: "full", kernel.ARM_QUASI_STATIC: "quasi_static",
-                          kernel.ARM_FORCE: "ideal_force"}[arm],
-                current_loop="sampled_pi" if arm != kernel.ARM_FORCE else "ideal",
+                armature={ARM_FULL: "full", ARM_QUASI_STATIC: "quasi_static",
+                          ARM_FORCE: "ideal_force"}[arm],
+                current_loop="sampled_pi" if arm != ARM_FORCE else "ideal",
                 sensors="quantised" if filters else "ideal", sensor_filters=filters)
             plant = Plant(PlantConfig(models=models))
-            assert plant.size == layout.size == 4 + (arm == kernel.ARM_FULL) + 2 * filters
+            assert plant.size == layout.size == 4 + (arm == ARM_FULL) + 2 * filters
             # the right-hand side's indices: at rest with the filters settled on the
             # state, the filters do not move and the positions move with the rates
             rest = plant.initial_state(0.02, 0.0, 3.0, 1.5)
             f = plant.derivative(rest, 0.0)
             assert f[0] == 0.0 and f[2] == 1.5
-            np.testing.assert_allclose(f[4 + (arm == kernel.ARM_FULL):], 0.0, atol=1e-9)
+            np.testing.assert_allclose(f[4 + (arm == ARM_FULL):], 0.0, atol=1e-9)
             # the step's indices: one period against solve_ivp on that right-hand side
-            u = 0.5 if arm == kernel.ARM_FORCE else 3.0
+            u = 0.5 if arm == ARM_FORCE else 3.0
             y0 = plant.initial_state(0.02, 0.1, 3.0, 1.5)
             fine = Plant(PlantConfig(models=models, integrator=IntegratorParams("exprk4", 64)))
             reference = solve_ivp(lambda t, y: plant.applied_derivative(y, plant.applied(u)),
@@ -299,13 +306,13 @@ def test_batch_and_single_rig_are_bit_identical():
     and in a loop's remainder, in the parallel path (more than two chunks) and the
     serial one."""
     plant = Plant(PlantConfig(integrator=IntegratorParams("exprk4", 2)))
-    rigs = 2 * kernel.CHUNK + 87
+    rigs = 2 * kernel_batch.CHUNK + 87
     starts = np.linspace(-0.1, 0.1, rigs)
     commands = np.linspace(-11, 11, rigs)
     batch = plant.initial_state(starts, 0.1, 3.0, 1.0)
     out = plant.advance(batch, commands, 0.005)
     few = plant.advance(batch[:7], commands[:7], 0.005)  # the serial path
     np.testing.assert_array_equal(few, out[:7])
-    for k in (0, 3, 4, 6, kernel.CHUNK - 1, kernel.CHUNK, rigs - 2, rigs - 1):
+    for k in (0, 3, 4, 6, kernel_batch.CHUNK - 1, kernel_batch.CHUNK, rigs - 2, rigs - 1):
         single = plant.advance(plant.initial_state(starts[k], 0.1, 3.0, 1.0), commands[k], 0.005)
         np.testing.assert_array_equal(out[k], single)

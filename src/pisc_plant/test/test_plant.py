@@ -10,15 +10,8 @@ from pisc_msgs_py.config import ConfigError
 from pisc_model import motor as motor_model
 from pisc_model.dynamics import energy
 from pisc_model.params import MotorParams, RigParams, TrackParams
-from pisc_plant.plant import (
-    THETA,
-    THETA_DOT,
-    X_DOT,
-    IntegratorParams,
-    Plant,
-    PlantConfig,
-    X,
-)
+from pisc_plant.plant import THETA, THETA_DOT, X_DOT, Plant, X
+from pisc_plant.plant_config import IntegratorParams, PlantConfig
 from pisc_plant.sampled import SampledPlant
 
 DEFAULT = PlantConfig()
@@ -157,7 +150,7 @@ def test_advance_in_place_is_advance(rigs):
     for duration in (-0.001, math.nan, math.inf):
         with pytest.raises(ValueError, match="must be finite and not negative"):
             plant.advance_in_place(ys, np.zeros(rigs), duration)
-    from pisc_plant.plant import plant_set
+    from pisc_plant.plant_config import plant_set
     rigs_set = Plant(plant_set(DEFAULT, {"motor.resistance_ohm": np.full(rigs, 14.0)}))
     with pytest.raises(ValueError, match="a plant set takes advance"):
         rigs_set.advance_in_place(ys, np.zeros(rigs), 0.005)

@@ -1,5 +1,5 @@
 """Plant sets: every rig its own parameters and its own duration, each rig bit for bit
-the plant of its own values (pisc_plant.plant.plant_set, the kernel's per-rig entry
+the plant of its own values (pisc_plant.plant_config.plant_set, the kernel's per-rig entry
 points and its compiled operator tables)."""
 
 import dataclasses
@@ -8,9 +8,12 @@ import numpy as np
 import pytest
 
 from pisc_msgs_py.config import ConfigError
-from pisc_plant import kernel
+from pisc_plant import kernel_batch
+from pisc_plant import kernel_operators
+from pisc_plant import kernel_sets
 from pisc_model.params import FrictionParams, ModelParams, NoiseParams
-from pisc_plant.plant import IntegratorParams, Plant, PlantConfig, plant_set, rigs_of
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import IntegratorParams, PlantConfig, plant_set, rigs_of
 
 PERIOD = 0.005
 # full armature, RC filters, end stops, and every friction term
@@ -84,11 +87,11 @@ def _voltages(rigs: int, periods: int, seed: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("integrator", [EXPRK4, RK4], ids=["exprk4", "rk4"])
-@pytest.mark.parametrize("rigs", [7, kernel.CHUNK + 44], ids=["serial", "parallel"])
+@pytest.mark.parametrize("rigs", [7, kernel_batch.CHUNK + 44], ids=["serial", "parallel"])
 def test_a_set_of_equal_rigs_steps_bit_for_bit_as_the_uniform_plant(rigs, integrator):
     """Values all equal to the base configuration: the per-rig entry points give the
     uniform plant's bits, in the serial path (7 rigs) and the parallel one (more than
-    kernel.CHUNK rigs), through filters, friction and end stops."""
+    kernel_batch.CHUNK rigs), through filters, friction and end stops."""
     base = dataclasses.replace(BASE, integrator=integrator)
     uniform = Plant(base)
     values = {name: np.full(rigs, float(getattr(getattr(base, name.split(".")[0]),
@@ -117,7 +120,7 @@ def test_each_rig_of_a_set_is_the_plant_of_its_own_values(integrator):
     bit, that of a plant built from its own values; then the same with every period
     split at a latency of the rig's own, the old voltage before it and the new after."""
     base = dataclasses.replace(BASE, integrator=integrator)
-    rigs = 2 * kernel.BLOCK + 5  # blocks of the kernel's layout, full and partial
+    rigs = 2 * kernel_sets.BLOCK + 5  # blocks of the kernel's layout, full and partial
     values = _varied(rigs, 3)
     plant = Plant(plant_set(base, values))
     singles = [Plant(_rig_config(base, values, k)) for k in range(rigs)]
@@ -154,9 +157,9 @@ def test_each_rig_of_a_set_is_the_plant_of_its_own_values(integrator):
 
 
 def test_the_rigs_of_a_large_set_are_the_plants_of_their_own_values():
-    """The parallel path (more than kernel.CHUNK rigs), per-rig durations included: a
+    """The parallel path (more than kernel_batch.CHUNK rigs), per-rig durations included: a
     few rigs across the chunks against plants of their own."""
-    rigs = kernel.CHUNK + 61
+    rigs = kernel_batch.CHUNK + 61
     values = _varied(rigs, 7)
     plant = Plant(plant_set(BASE, values))
     starts = _starts(rigs, 8)
@@ -169,7 +172,7 @@ def test_the_rigs_of_a_large_set_are_the_plants_of_their_own_values():
         y = plant.advance(y, u_old, delays)
         y = plant.advance(y, u, PERIOD - delays)
         history.append(y)
-    for k in (0, 1, 15, 16, kernel.CHUNK - 1, kernel.CHUNK, rigs - 1):
+    for k in (0, 1, 15, 16, kernel_batch.CHUNK - 1, kernel_batch.CHUNK, rigs - 1):
         single = Plant(_rig_config(BASE, values, k))
         one = _own_states([single], y_start[k:k + 1], tuple(s[k:k + 1] for s in starts))[0]
         for (u_old, u), expected in zip(zip(voltages, voltages[1:], strict=False), history,
@@ -217,17 +220,17 @@ def test_a_plant_sets_operator_tables_equal_one_rigs_exactly(case):
     """exp_tables (a table a rig) against exp_coefficients, which test_kernel.py pins
     to the sums in Python."""
     w_ir, w_cur, c_v, lam, h = case
-    out = np.empty((1, kernel.N_TABLE * kernel.BLOCK))
-    kernel.exp_tables(w_ir, w_cur, c_v, np.array([lam]), np.array([h]), out)
-    expected = kernel.exp_coefficients(w_ir, w_cur, c_v, lam, h)
-    np.testing.assert_array_equal(kernel.from_lanes(out, 1)[:, 0],
-                                  expected[:kernel.N_OPERATORS].ravel())
+    out = np.empty((1, kernel_sets.N_TABLE * kernel_sets.BLOCK))
+    kernel_sets.exp_tables(w_ir, w_cur, c_v, np.array([lam]), np.array([h]), out)
+    expected = kernel_operators.exp_coefficients(w_ir, w_cur, c_v, lam, h)
+    np.testing.assert_array_equal(kernel_sets.from_lanes(out, 1)[:, 0],
+                                  expected[:kernel_operators.N_OPERATORS].ravel())
 
 
 def test_the_tables_of_many_rigs_equal_one_rigs_exactly():
     """Steps and rates of their own, repeated ones (which reuse the previous rig's work)
     and zeros, across blocks."""
-    rigs = 3 * kernel.BLOCK + 3
+    rigs = 3 * kernel_sets.BLOCK + 3
     rng = np.random.default_rng(14)
     lam = rng.uniform(-20000.0, -3000.0, rigs)
     steps = rng.uniform(0.0, 0.005, rigs)
@@ -236,20 +239,21 @@ def test_the_tables_of_many_rigs_equal_one_rigs_exactly():
     lam[8] = 0.0  # the step of the rig before it, without the armature
     steps[20] = 0.0
     lam[30] = 0.0
-    tables = np.empty((-(-rigs // kernel.BLOCK), kernel.N_TABLE * kernel.BLOCK))
-    kernel.exp_tables(64.5, 452.4, 90.5, lam, steps, tables)
-    columns = kernel.from_lanes(tables, rigs)
+    tables = np.empty((-(-rigs // kernel_sets.BLOCK), kernel_sets.N_TABLE * kernel_sets.BLOCK))
+    kernel_sets.exp_tables(64.5, 452.4, 90.5, lam, steps, tables)
+    columns = kernel_sets.from_lanes(tables, rigs)
     for k in range(rigs):
-        expected = kernel.exp_coefficients(64.5, 452.4, 90.5, lam[k], steps[k])
-        np.testing.assert_array_equal(columns[:, k], expected[:kernel.N_OPERATORS].ravel())
+        expected = kernel_operators.exp_coefficients(64.5, 452.4, 90.5, lam[k], steps[k])
+        np.testing.assert_array_equal(columns[:, k],
+                                      expected[:kernel_operators.N_OPERATORS].ravel())
 
 
 def test_lanes_is_undone_by_from_lanes():
     a = np.arange(3 * 37, dtype=float).reshape(3, 37)
-    blocked = kernel.lanes(a)
-    assert blocked.shape == (3, 3 * kernel.BLOCK)
-    assert blocked[2, 1 * kernel.BLOCK + 4] == a[1, 2 * kernel.BLOCK + 4]
-    np.testing.assert_array_equal(kernel.from_lanes(blocked, 37), a)
+    blocked = kernel_sets.lanes(a)
+    assert blocked.shape == (3, 3 * kernel_sets.BLOCK)
+    assert blocked[2, 1 * kernel_sets.BLOCK + 4] == a[1, 2 * kernel_sets.BLOCK + 4]
+    np.testing.assert_array_equal(kernel_sets.from_lanes(blocked, 37), a)
 
 
 def test_measurement_and_the_other_methods_work_rig_by_rig():

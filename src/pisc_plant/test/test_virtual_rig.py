@@ -12,17 +12,13 @@ import numpy as np
 import pytest
 
 from pisc_msgs_py.config import ConfigError
-from pisc_plant.plant import THETA, Plant, PlantConfig
+from pisc_plant.plant import THETA, Plant
+from pisc_plant.plant_config import PlantConfig
 from pisc_plant.sampled import SampledPlant
-from pisc_plant.virtual_rig import (
-    Firmware,
-    RequestError,
-    RigFaults,
-    RigProcess,
-    check_request,
-    load_plant,
-    main,
-)
+from pisc_plant.firmware import Firmware
+from pisc_plant.rig_faults import RequestError, RigFaults, check_request
+from pisc_plant.rig_process import RigProcess
+from pisc_plant.virtual_rig import load_plant, main
 
 
 @pytest.fixture

@@ -40,7 +40,8 @@ from pisc_robust.experiment import Experiment, Traces, judge, measure
 from pisc_robust.uncertainty import LATENCY, Distribution, Draws, Range
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import ConfigError
-from pisc_plant.plant import Plant, PlantConfig, plant_set
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import PlantConfig, plant_set
 from pisc_sim.configuration import GraphConfig
 
 __all__ = ["CHUNK_DRAWS", "Calibration", "Generation", "calibrate", "distance",

@@ -305,7 +305,7 @@ def run_graph(rig: Rig, args: list[str], env: Mapping[str, str], duration_s: flo
     on a port, or through a ``pisc_virtual_rig`` started for the run (``rig_args``: its
     own options, e.g. the start). The run's output and exit status; :class:`CommissionError`
     when the graph could not run (exit 2, or no end)."""
-    from pisc_plant.virtual_rig import RigProcess
+    from pisc_plant.rig_process import RigProcess
 
     command = [sys.executable, "-m", "pisc_bringup.graph", *args]
     if rig.realtime and rig.kind != "lockstep":

@@ -146,8 +146,9 @@ def main(argv: list[str] | None = None) -> int:
 
     import numpy as np
 
-    from pisc_analysis.feasibility import (Transcription, clopper_pearson, exact_plant,
-                                           find_witness, make_rig)
+    from pisc_analysis.feasibility import clopper_pearson, exact_plant, make_rig
+    from pisc_analysis.feasibility_search import find_witness
+    from pisc_analysis.feasibility_shooting import Transcription
     from pisc_analysis.witnesses import write_witness_csv
     from pisc_robust.robustness import load_benchmark
     from pisc_msgs_py.config import ConfigError

@@ -83,8 +83,9 @@ from pisc_msgs_py.convert import MessageError, joint_sample_from_msg, motor_samp
 from pisc_msgs_py.topics import JOINT_STATES, MOTOR_CURRENT, VOLTAGE, VOLTAGE_SENT
 from pisc_model import sensors
 from pisc_model.params import ModelParams, NoiseParams, SensorParams
-from pisc_plant import kernel
-from pisc_plant.plant import Plant, PlantConfig, plant_set
+from pisc_plant import kernel_batch as kernel
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import PlantConfig, plant_set
 
 __all__ = ["DEFAULT_FIT", "UNKNOWNS", "FitError", "IdentifyError", "Recording", "Result", "Unknown",
            "format_report", "identify", "load_base", "parse_fit", "plot_overlay",

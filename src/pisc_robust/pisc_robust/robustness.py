@@ -27,7 +27,7 @@ from pisc_robust.uncertainty import LATENCY, Distribution, Draws
 from pisc_runs.verdict import Criteria, Outcomes, judge
 from pisc_msgs_py.config import from_flat, to_flat
 from pisc_model.params import InitialParams
-from pisc_plant.plant import PlantConfig, plant_set
+from pisc_plant.plant_config import PlantConfig, plant_set
 
 __all__ = ["CHUNK_DRAWS", "base_plant", "load_benchmark", "binomial_interval", "evaluate",
            "evaluate_chunk", "prepare", "rerun_command", "success_by_value"]

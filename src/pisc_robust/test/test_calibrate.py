@@ -22,7 +22,7 @@ from pisc_robust.experiment import judge, load_experiment, measure
 from pisc_robust.robustness import prepare
 from pisc_robust.uncertainty import load_distribution
 from pisc_msgs_py.config import ConfigError
-from pisc_plant.plant import plant_set
+from pisc_plant.plant_config import plant_set
 from pisc_sim.closed_loop import simulate_batch
 from pisc_sim.configuration import load_graph_config, load_run_config
 

@@ -1,7 +1,7 @@
-"""The feasibility study (pisc_analysis.feasibility, pisc_feasibility): a
-witness found for the nominal rig meets every rule when re-simulated on the plant, a
-rig made infeasible on purpose is refused by its energy bound, and bad input is refused
-by name."""
+"""The feasibility study (pisc_analysis.feasibility and its feasibility_* modules,
+pisc_feasibility): a witness found for the nominal rig meets every rule when
+re-simulated on the plant, a rig made infeasible on purpose is refused by its energy
+bound, and bad input is refused by name."""
 
 from __future__ import annotations
 
@@ -12,11 +12,16 @@ import numpy as np
 import pytest
 
 from pisc_analysis import feasibility as F
+from pisc_analysis import feasibility_bound as B
+from pisc_analysis import feasibility_feedback as FB
+from pisc_analysis import feasibility_search as S
+from pisc_analysis import feasibility_shooting as SH
+from pisc_plant.plant_config import PlantConfig
 from pisc_sim.configuration import load_graph_config
 
 
 @pytest.fixture(scope="module")
-def nominal() -> F.PlantConfig:
+def nominal() -> PlantConfig:
     config, _ = load_graph_config("default")
     return F.exact_plant(config.plant)
 
@@ -68,7 +73,7 @@ def test_the_optimiser_swings_the_nominal_rig_up_and_the_witness_meets_every_rul
     the voltage and current limits, reaches the catch region by 3 s and holds."""
     limits = F.Limits()
     rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
-    found = F.find_witness(rig, limits, np.random.default_rng(3))
+    found = S.find_witness(rig, limits, np.random.default_rng(3))
     assert found.feasible and found.how in ("feedback", "shooting")
     u = found.voltages
     assert u.shape == (2000,)
@@ -104,7 +109,7 @@ def test_verify_names_what_a_sequence_misses(nominal):
 def test_the_hold_catches_a_pendulum_near_upright_and_centres_the_cart(nominal):
     rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
     start = np.array([[0.05, 0.1, 0.1, -0.5, 0.0], [-0.03, -0.05, -0.08, 0.2, 0.0]])
-    volts, states = F.hold_from(rig, F.Limits(), start, 800)
+    volts, states = FB.hold_from(rig, F.Limits(), start, 800)
     end = states[:, -1]
     assert np.all(np.abs(F.wrap(end[:, 2])) < 0.01) and np.all(np.abs(end[:, 0]) < 0.01)
     assert np.all(states[..., 0] > -0.225) and np.all(states[..., 0] < 0.125)
@@ -118,7 +123,7 @@ def test_a_rig_made_infeasible_on_purpose_is_refused_with_its_energy_bound(nomin
     plant = F.exact_plant(viscous, {"friction.pivot_viscous_nms": 1e-3})
     limits = F.Limits(current_a=0.005)
     rig = F.make_rig(plant, 0.0, 0.0, math.pi, 0.0)
-    bound = F.energy_bound(rig, limits)
+    bound = B.energy_bound(rig, limits)
     mgl = 0.01055 * 9.81 * 0.0865
     # from hanging at rest to the edge of the catch region (4.1): E* = m g l (cos
     # sqrt(0.2363) - 1) = -0.115842 m g l, so 1.884158 m g l, not the 2 m g l of upright
@@ -136,10 +141,10 @@ def test_a_rig_made_infeasible_on_purpose_is_refused_with_its_energy_bound(nomin
     # the comparison lemma is at least as sharp: G(E) <= (m l a_b)^2 / (4 b_p) pointwise
     assert bound.least_time_s >= bound.needed_j / ((rig.ml * bound.accel_bound_mps2) ** 2
                                                    / (4 * 1e-3)) > 3.0
-    found = F.find_witness(rig, limits, np.random.default_rng(0))
+    found = S.find_witness(rig, limits, np.random.default_rng(0))
     assert not found.feasible and found.how == "bound" and found.voltages is None
     # the nominal rig's budget is unbounded without pivot friction: nothing is proved
-    free = F.energy_bound(F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0), F.Limits())
+    free = B.energy_bound(F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0), F.Limits())
     assert math.isinf(free.largest_gain_j) and not free.infeasible
 
 
@@ -200,8 +205,8 @@ def test_the_batch_check_and_verify_agree_on_the_catch_time(nominal):
     never caught (worse than any late catch)."""
     limits = F.Limits()
     rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
-    gains = F.Gains.from_unit(np.random.default_rng(5).random((9, 6)), limits)
-    volts, states = F.feedback_rollouts(rig, limits, gains, 2000)
+    gains = FB.Gains.from_unit(np.random.default_rng(5).random((9, 6)), limits)
+    volts, states = FB.feedback_rollouts(rig, limits, gains, 2000)
     ok, badness = F.check(limits, volts, states, 0.005)
     for j in range(6):
         verdict = F.verify(rig, limits, volts[j])
@@ -225,15 +230,15 @@ def test_the_climb_time_bound_of_the_frictionless_nominal_rig_by_hand(nominal):
     below it, never above."""
     rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
     limits = F.Limits()
-    assert F.accel_bound(rig, limits) == pytest.approx(4.5646, abs=2e-4)
+    assert B.accel_bound(rig, limits) == pytest.approx(4.5646, abs=2e-4)
     exact = 0.4524
-    least = F.climb_time(rig, limits)
+    least = B.climb_time(rig, limits)
     assert 0.95 * exact < least < exact
-    assert F.energy_bound(rig, limits).least_time_s == least and least < 3.0
+    assert B.energy_bound(rig, limits).least_time_s == least and least < 3.0
     # more cells come closer from below
-    assert least < F.climb_time(rig, limits, cells=1600) < exact
+    assert least < B.climb_time(rig, limits, cells=1600) < exact
     # already in the region: no time needed
-    assert F.climb_time(F.make_rig(nominal, 0.0, 0.0, 0.1, 0.0), limits) == 0.0
+    assert B.climb_time(F.make_rig(nominal, 0.0, 0.0, 0.1, 0.0), limits) == 0.0
 
 
 def test_multiple_shooting_brings_a_late_catch_forward_to_a_witness(nominal):
@@ -242,20 +247,20 @@ def test_multiple_shooting_brings_a_late_catch_forward_to_a_witness(nominal):
     of them, the deadline brought down by continuation, meets 1.48 s, and its sequence,
     re-simulated alone and handed to the LQR hold, passes verify."""
     rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
-    found, verdict, pool, _ = F.feedback_search(rig, F.Limits(), np.random.default_rng(3))
+    found, verdict, pool, _ = FB.feedback_search(rig, F.Limits(), np.random.default_rng(3))
     assert found is not None and verdict.caught_at_s == pytest.approx(1.58)
     tight = F.Limits(catch_by_s=1.48)
     ok, badness = F.check(tight, pool.voltages, pool.states, 0.005)
     assert not ok.any()
-    result = F.transcribe(rig, tight, F.Pool(pool.voltages, pool.states, badness),
-                          F.Transcription(guesses=1))
+    result = SH.transcribe(rig, tight, FB.Pool(pool.voltages, pool.states, badness),
+                          SH.Transcription(guesses=1))
     assert result.voltages is not None and result.earliest_s == pytest.approx(1.48)
     again = F.verify(rig, tight, result.voltages)
     assert again.ok and again.caught_at_s <= 1.48
     assert np.max(np.abs(result.voltages)) <= 11.47 and again.largest_current_a <= 0.918
     with pytest.raises(ValueError, match=r"segment_periods \(30\) must be a multiple of "
                                          r"knot_periods \(4\)"):
-        F.transcribe(rig, tight, pool, F.Transcription(knot_periods=4, segment_periods=30))
+        SH.transcribe(rig, tight, pool, SH.Transcription(knot_periods=4, segment_periods=30))
 
 
 CAUGHT_RULES = dict(catch_by_s=8.0, hold_start_s=9.0, duration_s=12.0)
@@ -269,15 +274,15 @@ def test_the_energy_bounds_horizon_is_the_catch_deadline(nominal):
     viscous = replace(nominal, models=replace(nominal.models, friction="viscous"))
     rig = F.make_rig(F.exact_plant(viscous, {"friction.pivot_viscous_nms": 3e-4}),
                      0.0, 0.0, math.pi, 0.0)
-    fast, caught = F.energy_bound(rig, F.Limits()), F.energy_bound(rig, F.Limits(**CAUGHT_RULES))
+    fast, caught = B.energy_bound(rig, F.Limits()), B.energy_bound(rig, F.Limits(**CAUGHT_RULES))
     assert fast.horizon_s == 3.0 and caught.horizon_s == 8.0
     assert 3.0 < fast.least_time_s == caught.least_time_s < 8.0
     assert fast.infeasible and not caught.infeasible
-    assert F.find_witness(rig, F.Limits(), np.random.default_rng(0)).how == "bound"
+    assert S.find_witness(rig, F.Limits(), np.random.default_rng(0)).how == "bound"
     lossy = F.make_rig(F.exact_plant(viscous, {"friction.pivot_viscous_nms": 1e-3}),
                        0.0, 0.0, math.pi, 0.0)
-    three = F.energy_bound(lossy, F.Limits())
-    eight = F.energy_bound(lossy, F.Limits(**CAUGHT_RULES))
+    three = B.energy_bound(lossy, F.Limits())
+    eight = B.energy_bound(lossy, F.Limits(**CAUGHT_RULES))
     assert eight.largest_gain_j == pytest.approx(three.largest_gain_j * 8.0 / 3.0, rel=1e-12)
     assert eight.largest_gain_j == pytest.approx(
         (lossy.ml * eight.accel_bound_mps2) ** 2 * 8.0 / (4 * 1e-3), rel=1e-12)
@@ -289,7 +294,7 @@ def test_the_witness_and_its_check_follow_the_run_length(nominal):
     verify all take the run's length from the rules."""
     limits = F.Limits(**CAUGHT_RULES)
     rig = F.make_rig(nominal, 0.0, 0.0, math.pi, 0.0)
-    found = F.find_witness(rig, limits, np.random.default_rng(3))
+    found = S.find_witness(rig, limits, np.random.default_rng(3))
     assert found.feasible and found.voltages.shape == (2400,)
     y = F.rollout(rig, found.voltages)
     t = np.arange(2401) * 0.005

@@ -64,9 +64,9 @@ LAW_MODULES = (floatmath, estimator, adaptation, swing_up, catch, supervisor, cu
 
 def drop_stale_cache(module_file: str, pattern: str, sources) -> None:
     """Remove the numba cache indexes ``pattern`` of ``module_file`` that are older than
-    one of the modules ``sources``, whose code the compiled functions of ``module_file``
-    hold (numba compares the time stamp of ``module_file`` alone)."""
-    newest = max(Path(m.__file__).stat().st_mtime for m in sources)
+    one of ``sources`` (modules or paths), whose code the compiled functions of
+    ``module_file`` hold (numba compares the time stamp of ``module_file`` alone)."""
+    newest = max(Path(getattr(m, "__file__", m)).stat().st_mtime for m in sources)
     cache = Path(module_file).parent / "__pycache__"
     try:
         for index in cache.glob(f"{Path(module_file).stem}.{pattern}.nbi"):

@@ -22,7 +22,8 @@ from pisc_control.supervisor import OneRigSupervisor, Supervisor, SupervisorStat
 from pisc_msgs_py.types import Mode
 from pisc_model.dynamics import wrap_to_upright
 from pisc_plant.command import plant_command
-from pisc_plant.plant import THETA, Plant, PlantConfig, X
+from pisc_plant.plant import THETA, Plant, X
+from pisc_plant.plant_config import PlantConfig
 from pisc_plant.sampled import SampledPlant
 
 __all__ = ["BatchOutcome", "Controllers", "CycleLog", "CycleOutputs", "simulate",
@@ -155,7 +156,7 @@ def simulate_batch(
     instructions.
 
     ``plant`` is the simulated plant (default ``config.simulated_plant``); a plant set
-    (:func:`pisc_plant.plant.plant_set`) gives every rig its own physical parameters,
+    (:func:`pisc_plant.plant_config.plant_set`) gives every rig its own physical parameters,
     while the controllers keep ``config``'s model. ``noise_seed`` replaces the plant's
     ``noise.seed`` (a batch draws one generator for all its rigs).
 

@@ -34,20 +34,8 @@ from pisc_control.supervisor import (
 )
 from pisc_control.swing_up import SwingUpParams
 from pisc_msgs_py.config import ConfigError, find_file, from_flat, load_params_file, package_dir
-from pisc_model.params import (
-    ActuatorParams,
-    FrictionParams,
-    InitialParams,
-    LoopParams,
-    ModelParams,
-    MotorParams,
-    NoiseParams,
-    RigParams,
-    SensorParams,
-    TrackParams,
-    check_models_use,
-)
-from pisc_plant.plant import IntegratorParams, PlantConfig
+from pisc_model.params import InitialParams, LoopParams, check_models_use
+from pisc_plant.plant_config import PLANT_SECTIONS, PlantConfig
 
 __all__ = ["CONFIG_DIR", "PLANT_READS", "GraphConfig", "check_plant_overrides", "config_path",
            "load_graph_config", "load_run_config", "params_file_text", "plant_only",
@@ -56,10 +44,7 @@ __all__ = ["CONFIG_DIR", "PLANT_READS", "GraphConfig", "check_plant_overrides", 
 CONFIG_DIR = package_dir("pisc_sim", "config")  # the named configurations
 
 SECTIONS: dict[str, type] = {
-    "rig": RigParams, "motor": MotorParams, "sensors": SensorParams,
-    "actuator": ActuatorParams, "track": TrackParams, "loop": LoopParams,
-    "integrator": IntegratorParams, "models": ModelParams, "friction": FrictionParams,
-    "noise": NoiseParams, "initial": InitialParams, "estimator": EstimatorParams,
+    **PLANT_SECTIONS, "initial": InitialParams, "estimator": EstimatorParams,
     "swing_up": SwingUpParams, "catch": CatchParams, "switching": SwitchingParams,
     "startup": StartupParams, "safety": SafetyParams, "current_loop": CurrentLoopParams,
     "experiment": ExperimentParams, "adaptation": AdaptationParams,

@@ -19,7 +19,8 @@ from pisc_control.estimator import (
 from pisc_control.supervisor import OneRigSupervisor, Supervisor, SupervisorState
 from pisc_msgs_py.types import Mode
 from pisc_plant.command import plant_command
-from pisc_plant.plant import Plant, plant_set
+from pisc_plant.plant import Plant
+from pisc_plant.plant_config import plant_set
 from pisc_sim.batch_controllers import BatchControllers, supported
 from pisc_sim.closed_loop import simulate_batch
 from pisc_sim.scene import load_scene
