@@ -148,9 +148,9 @@ class VoltageWatch:
 
 
 def start_graph_with_watch(args: list[str], bag: Path, env, ros_context):
-    """``python -m pisc_bringup.graph --bag BAG ARGS`` and, once it has found its
+    """``python -m pisc_bringup.graph_cli --bag BAG ARGS`` and, once it has found its
     recorder, a :class:`VoltageWatch` of it."""
-    graph = subprocess.Popen([sys.executable, "-m", "pisc_bringup.graph", "--bag", str(bag),
+    graph = subprocess.Popen([sys.executable, "-m", "pisc_bringup.graph_cli", "--bag", str(bag),
                               *args], env=env, stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60.0

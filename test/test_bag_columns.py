@@ -244,7 +244,7 @@ def test_decimation_keeps_every_peak_and_leaves_short_runs_alone():
 def test_pisc_bag_analyse_loads_neither_rclpy_nor_the_graph(tmp_path):
     code = ("import sys; from pisc_bringup.bag_cli import main; "
             f"rc = main(['analyse', {str(SWINGUP)!r}, '--out', {str(tmp_path)!r}]); "
-            "print(rc, 'rclpy' in sys.modules, 'pisc_bringup.graph' in sys.modules)")
+            "print(rc, 'rclpy' in sys.modules, 'pisc_bringup.run_start' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert out.stdout.strip().splitlines()[-1] == "0 False False", out.stderr

@@ -28,7 +28,8 @@ from pisc_bag.bag import (
     read_bag,
 )
 from pisc_bag.bag_readers import READERS, read_every_way
-from pisc_bringup.graph import RECORDER_LAG_SAMPLES, RunOptions, run_graph
+from pisc_bringup.graph import RunOptions, run_graph
+from pisc_bringup.run_start import RECORDER_LAG_SAMPLES
 from pisc_msgs_py.base_node import qos_profile
 from pisc_msgs_py.convert import (
     cart_force_to_msg,
@@ -267,7 +268,8 @@ def test_a_run_records_what_it_is_asked_and_its_own_topics(tmp_path, domain_id):
     """``record`` (a scene's, or ``--record``) keeps the estimator's state and drops the
     cart force and diagnostics; the run's own topics are recorded anyway, the summary
     works, and replay compares what the bag holds and says what it does not."""
-    from pisc_bringup.graph import RUN_TOPICS, main, recorded_topics
+    from pisc_bringup.graph_cli import main
+    from pisc_bringup.launch_graph import RUN_TOPICS, recorded_topics
     from pisc_runs.replay import replay_bag
     from pisc_msgs_py.config import ConfigError
 
