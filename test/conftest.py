@@ -111,7 +111,7 @@ def recorder_pid(bag: Path) -> int | None:
         except OSError:
             continue
         if str(bag).encode() in cmdline and any(c.endswith(b"pisc_record") or
-                                                c == b"pisc_bag.record" for c in cmdline):
+                                                c == b"pisc_bag.record_cli" for c in cmdline):
             return int(proc.name)
     return None
 

@@ -31,7 +31,7 @@ from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 
 from conftest import spin_until
-from pisc_bag.bag import index_problems
+from pisc_bag.bag_repair import index_problems
 from pisc_runs.replay import replay_bag
 from pisc_runs.summary import foreign_in_bag, summarise_bag
 from pisc_control.current_loop_node import CurrentLoopNode
@@ -435,7 +435,7 @@ def test_the_recorder_outlives_its_runner_without_a_traceback(tmp_path, domain_i
     bag = tmp_path / "bag"
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
     read, write = os.pipe()
-    recorder = subprocess.Popen([sys.executable, "-m", "pisc_bag.record", "--bag", str(bag),
+    recorder = subprocess.Popen([sys.executable, "-m", "pisc_bag.record_cli", "--bag", str(bag),
                                  "--topic", VOLTAGE.name], env=env, stdout=write,
                                 stderr=subprocess.PIPE, text=True)
     os.close(write)

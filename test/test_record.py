@@ -20,13 +20,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from conftest import VoltageWatch, recorder_pid, spin_until, start_graph_with_watch
-from pisc_bag.bag import (
-    bag_files,
-    bag_topics,
-    header_stamp_ns,
-    index_problems,
-    read_bag,
-)
+from pisc_bag.bag import bag_files, bag_topics, header_stamp_ns, read_bag
+from pisc_bag.bag_repair import index_problems
 from pisc_bag.bag_readers import READERS, read_every_way
 from pisc_bringup.graph import RunOptions, run_graph
 from pisc_bringup.run_start import RECORDER_LAG_SAMPLES
@@ -114,7 +109,7 @@ def stream_cycles(bag, ros_context, env, stop_signal, cycles):
     ready = bag.parent / f"{bag.name}.ready"
     silent = [arg for t in GRAPH_TOPICS if t not in CYCLE for arg in ("--expect", f"{t.name}=0")]
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bag.record", "--bag", str(bag),
+        [sys.executable, "-m", "pisc_bag.record_cli", "--bag", str(bag),
          "--ready-file", str(ready), *silent],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     node = Node("cycle_source", context=ros_context)
@@ -154,7 +149,7 @@ def test_the_recorder_says_it_is_ready_once_it_has_matched_every_publisher(
 
     ready = tmp_path / "ready"
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bag.record", "--bag", str(tmp_path / "bag"),
+        [sys.executable, "-m", "pisc_bag.record_cli", "--bag", str(tmp_path / "bag"),
          "--topic", STATE.name, "--topic", VOLTAGE.name,
          "--ready-file", str(ready), "--expect", f"{VOLTAGE.name}=2"],
         env=env_for_domain, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -204,7 +199,7 @@ def test_the_recorder_says_it_is_ready_once_it_has_matched_every_publisher(
 def test_the_recorder_refuses_bad_arguments_before_creating_the_bag(tmp_path, args, error):
     (tmp_path / "taken").touch()
     completed = subprocess.run(
-        [sys.executable, "-m", "pisc_bag.record", "--bag", str(tmp_path / "bag"), *args],
+        [sys.executable, "-m", "pisc_bag.record_cli", "--bag", str(tmp_path / "bag"), *args],
         capture_output=True, text=True, timeout=60, cwd=tmp_path)
     assert completed.returncode == 2
     assert completed.stderr.strip() == f"pisc_record: {error}"

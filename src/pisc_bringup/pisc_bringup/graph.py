@@ -83,7 +83,8 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from pisc_bag.bag import BagError, repair_bag
+from pisc_bag.bag import BagError
+from pisc_bag.bag_repair import repair_bag
 from pisc_bringup.children import ExitAlarm, exit_description, spawn, stderr_of, stop, stop_all
 from pisc_bringup.launch_graph import Graph
 from pisc_bringup.run_guard import (

@@ -22,7 +22,7 @@ from rclpy.node import Node
 
 import yaml
 
-from pisc_bag.bag import RepairReport
+from pisc_bag.bag_repair import RepairReport
 from pisc_bringup.children import spawn, stderr_of, stop
 from pisc_bringup.dds import dds_environment
 from pisc_bringup.launch_graph import (
@@ -262,7 +262,7 @@ def recorder_args(options: RunOptions, plan: RunPlan, bag_dir: Path, ready: Path
     must not pass for it)."""
     graph, recorded = plan.graph, plan.recorded
     lockstep = options.clock == "lockstep"
-    args = [*console_command("pisc_record", "pisc_bag.record"), "--bag", str(bag_dir)]
+    args = [*console_command("pisc_record", "pisc_bag.record_cli"), "--bag", str(bag_dir)]
     if options.record is not None or graph.observers:
         args += [arg for t in recorded for arg in ("--topic", t.name)]
     publishers = list(graph.nodes)
