@@ -48,10 +48,6 @@ JOINT_STATE = "sensor_msgs/msg/JointState"
 WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
 FIELDS = ("position", "velocity", "effort")
 
-# where a message record's publish time lies: after its opcode, length, channel, sequence
-# and log time (MCAP specification, "Message")
-_PUBLISH_AT = 9 + 2 + 4 + 8
-
 
 class FastPathRefused(Exception):
     """The columns cannot be read without guessing; read the bag message by message."""
@@ -227,7 +223,7 @@ def _columns_of_block(scan: RecordScan, batch: Batch, parts: dict[str, _TopicPar
                       layouts: dict[tuple[str, int], _Layout]) -> None:
     buf, channel = batch.data, batch.channel
     log = batch.log.astype(np.int64)
-    publish = _gather(buf, batch.starts + _PUBLISH_AT, 8).view("<u8")[:, 0].astype(np.int64)
+    publish = batch.publish
     starts = batch.starts + MESSAGE_HEAD  # each message's data
     sizes = batch.sizes - MESSAGE_HEAD
     for cid in np.unique(channel):

@@ -5,8 +5,9 @@
 The file is read in blocks of :data:`BLOCK_BYTES` and walked record by record by opcode
 and length (MCAP specification, "Records"); a record that does not fit in a block is
 read whole. Messages are taken at the top level (a stream, as the recorder writes it) and
-inside chunks (an indexed file; a compressed chunk is opened, and every chunk's CRC
-checked, by the ``mcap`` library). The walk stops taking records at the first one that
+inside chunks (an indexed file: an uncompressed chunk's messages are read where they lie
+in the block, a compressed chunk is opened by the ``mcap`` library; every chunk's CRC is
+checked). The walk stops taking records at the first one that
 is incomplete or corrupt (a message shorter than its fixed fields, a schema, channel or
 chunk that does not parse, a chunk whose CRC is wrong) and at the data end or footer
 (:attr:`RecordScan.stopped` says which); it goes on reading only the framing, to give the
@@ -14,9 +15,11 @@ offset after the last whole record (what repair reports as dropped) and to count
 summary's records. A message whose channel has no channel record before it (MCAP
 requires one) cannot be read and is dropped (:attr:`RecordScan.unknown` counts them).
 
-The messages come in :class:`Batch`es: a buffer (a block of the file, or a chunk's
-records) and, as numpy columns, where each message record starts in it, its size, log
-time and channel, so that their callers handle a block's messages at once.
+The messages come in :class:`Batch`es: a buffer (a block of the file, or a compressed
+chunk's records) and, as numpy columns, where each message record starts in it, its
+size, log time, channel and publish time, so that their callers handle a block's
+messages at once (the messages of a block's uncompressed chunks in one batch: the column
+reader's cost is per batch as much as per message).
 
 Memory: one block and one chunk, whatever the length of the file.
 """
@@ -25,15 +28,16 @@ from __future__ import annotations
 
 import io
 import struct
+import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 __all__ = ["BLOCK_BYTES", "MCAP_MAGIC", "MESSAGE_HEAD", "Batch", "NotMcap", "RecordScan",
-           "concat", "message_batch"]
+           "concat", "message_batch"]  # and the opcodes, OP_*
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 BLOCK_BYTES = 4 * 1024 * 1024  # the file is read this much at a time
@@ -58,14 +62,17 @@ class NotMcap(ValueError):
 
 @dataclass
 class Batch:
-    """Message records in ``data``, with the fields the ordering and indexes need."""
+    """Message records in ``data``, with the fields the ordering and indexes need (and
+    the publish times, which the column reader reads; None in a batch :meth:`take`
+    made)."""
 
-    data: bytes
+    data: bytes | memoryview  # a block of the file, a chunk's records, or a copy
     starts: np.ndarray  # int64: where each record starts (its opcode) in data
     sizes: np.ndarray  # int64: each record's size, opcode and length included
     log: np.ndarray  # uint64 log times
     channel: np.ndarray  # uint16 channel ids
     in_chunk: bool = False  # the messages of a chunk record
+    publish: np.ndarray | None = None  # int64 publish times
 
     def __len__(self) -> int:
         return len(self.starts)
@@ -90,14 +97,17 @@ def message_batch(data: bytes, starts: list[int]) -> Batch:
     """The messages whose records start at ``starts`` in ``data``."""
     at = np.asarray(starts, dtype=np.int64)
     if not len(at):
-        return Batch(data, at, at, np.zeros(0, np.uint64), np.zeros(0, np.uint16))
+        return Batch(data, at, at, np.zeros(0, np.uint64), np.zeros(0, np.uint16),
+                     publish=at)
     whole = np.frombuffer(data, dtype=np.uint8)
-    heads = np.lib.stride_tricks.sliding_window_view(whole, MESSAGE_HEAD)[at]
-    length = heads[:, 1:9].copy().view("<u8")[:, 0]
-    channel = heads[:, 9:11].copy().view("<u2")[:, 0]
-    log = heads[:, 15:23].copy().view("<u8")[:, 0]
-    return Batch(data, at, length.astype(np.int64) + 9, log.astype(np.uint64),
-                 channel.astype(np.uint16))
+    heads = np.lib.stride_tricks.sliding_window_view(whole, MESSAGE_HEAD)[at]  # a copy
+
+    def field(offset: int, dtype: str) -> np.ndarray:  # one field of every head, a view
+        return np.ndarray((len(at),), dtype, heads, offset, (MESSAGE_HEAD,))
+
+    return Batch(data, at, field(1, "<u8").astype(np.int64) + 9,
+                 field(15, "<u8").astype(np.uint64), field(9, "<u2").astype(np.uint16),
+                 publish=field(23, "<u8").astype(np.int64))
 
 
 def concat(parts: list[Batch]) -> Batch:
@@ -105,11 +115,18 @@ def concat(parts: list[Batch]) -> Batch:
     if len(parts) == 1:
         return parts[0]
     shift = np.cumsum([0] + [len(p.data) for p in parts[:-1]])
-    return Batch(b"".join(p.data for p in parts),
-                 np.concatenate([p.starts + s for p, s in zip(parts, shift, strict=True)]),
+    return _joined(b"".join(p.data for p in parts),
+                   [replace(p, starts=p.starts + s) for p, s in zip(parts, shift, strict=True)])
+
+
+def _joined(data: bytes | memoryview, parts: list[Batch], in_chunk: bool = False) -> Batch:
+    """The messages of ``parts``, whose starts are in ``data``, as one batch."""
+    publish = (None if any(p.publish is None for p in parts)
+               else np.concatenate([p.publish for p in parts]))
+    return Batch(data, np.concatenate([p.starts for p in parts]),
                  np.concatenate([p.sizes for p in parts]),
                  np.concatenate([p.log for p in parts]),
-                 np.concatenate([p.channel for p in parts]))
+                 np.concatenate([p.channel for p in parts]), in_chunk, publish)
 
 
 class RecordScan:
@@ -192,7 +209,7 @@ class RecordScan:
                     starts = []
                     inner = self._chunk(buf, pos + 9, nxt)
                     if inner is not None:
-                        found.append(inner)
+                        _add(found, inner, True)
                     live = self.stopped is None
                 elif op == OP_DATA_END or op == OP_FOOTER:
                     live = self._stop("")
@@ -229,9 +246,10 @@ class RecordScan:
             self.stopped = why
         return False
 
-    def _close_batch(self, buf: bytes, starts: list[int], found: list[Batch]) -> list[Batch]:
+    def _close_batch(self, buf: bytes, starts: list[int], found: list[Batch],
+                     in_chunk: bool = False) -> list[Batch]:
         if starts:
-            found.append(self._known(message_batch(buf, starts)))
+            _add(found, self._known(message_batch(buf, starts)), in_chunk)
         return found
 
     def _known(self, batch: Batch) -> Batch:
@@ -242,7 +260,7 @@ class RecordScan:
             return batch
         self.unknown += int(np.count_nonzero(~known))
         return Batch(batch.data, batch.starts[known], batch.sizes[known], batch.log[known],
-                     batch.channel[known])
+                     batch.channel[known], publish=batch.publish[known])
 
     def _definition(self, op: int, body: bytes) -> bool:
         from mcap.data_stream import ReadDataStream
@@ -262,58 +280,91 @@ class RecordScan:
 
     def _chunk(self, buf: bytes, body: int, end: int) -> Batch | None:
         """The messages of the chunk record ``buf[body:end]`` (its schemas and channels
-        taken), or None when it does not parse or its CRC is wrong (none of its records
-        are taken then)."""
-        from mcap.records import Chunk
-        from mcap.stream_reader import get_chunk_data_stream
-
+        taken), or None when it holds none, does not parse or its CRC is wrong (none of
+        its records are taken then: :attr:`stopped` says so). An uncompressed chunk's
+        messages are read where they lie in ``buf`` (the batch's data is ``buf``); a
+        compressed one is opened by the mcap library."""
         try:
             start, stop, size, crc, n = _CHUNK_HEAD.unpack_from(buf, body)
             at = body + _CHUNK_HEAD.size + n
             (length,) = struct.unpack_from("<Q", buf, at)
-            if at + 8 + length > end:
+            compression = bytes(buf[at - n:at]).decode()
+            at += 8
+            if at + length > end:
                 raise ValueError("the chunk's records run past it")
-            # decompressed and its CRC checked by the mcap library
-            stream, size = get_chunk_data_stream(Chunk(
-                compression=bytes(buf[at - n:at]).decode(), data=buf[at + 8:at + 8 + length],
-                message_end_time=stop, message_start_time=start, uncompressed_crc=crc,
-                uncompressed_size=size), validate_crc=True)
-            data = stream.read(size)
-            starts, definitions = _chunk_records(data)
+            if compression:
+                data = _decompressed(compression, buf[at:at + length], start, stop, size, crc)
+                first, last = 0, len(data)
+            else:  # read where they lie
+                data, first, last = buf, at, at + length
+                # the check the mcap library makes of a chunk's uncompressed records
+                if crc and zlib.crc32(memoryview(buf)[first:last]) != crc:
+                    raise ValueError("the chunk's CRC is wrong")
+            starts, definitions = _chunk_records(data, first, last)
         except Exception:  # noqa: BLE001 - whatever the chunk's decoding raises
             self._stop("a chunk that does not parse")
             return None
         batches: list[Batch] = []
         taken = 0  # messages before the definition at hand
         for k, op, pos, nxt in definitions:
-            self._close_batch(data, starts[taken:k], batches)
+            self._close_batch(data, starts[taken:k], batches, True)
             taken = k
-            if not self._definition(op, data[pos + 9:nxt]):
+            if not self._definition(op, bytes(data[pos + 9:nxt])):
                 taken = len(starts)  # nothing after a definition that does not parse
                 break
-        self._close_batch(data, starts[taken:], batches)
-        inner = concat(batches) if batches else message_batch(b"", [])
-        inner.in_chunk = True
-        return inner
+        self._close_batch(data, starts[taken:], batches, True)
+        if not batches:
+            return None
+        return batches[0] if len(batches) == 1 else concat(batches)
 
 
-def _chunk_records(data: bytes) -> tuple[list[int], list[tuple[int, int, int, int]]]:
-    """Where a chunk's message records start, and its schemas and channels as (messages
-    before it, opcode, start, end); ValueError when a record runs past the chunk."""
+def _add(found: list[Batch], batch: Batch, in_chunk: bool) -> None:
+    """``batch`` after ``found``'s: joined to the last one when they share a buffer (the
+    messages of a block's uncompressed chunks, one after the other), so that a block's
+    messages come in one batch, whatever its chunks."""
+    batch.in_chunk = in_chunk
+    last = found[-1] if found else None
+    if last is None or last.data is not batch.data or last.in_chunk != in_chunk:
+        found.append(batch)
+        return
+    found[-1] = _joined(last.data, [last, batch], in_chunk)
+
+
+def _decompressed(compression: str, data: bytes, start: int, stop: int, size: int,
+                  crc: int) -> bytes:
+    """A compressed chunk's records, decompressed and their CRC checked by the mcap
+    library."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import get_chunk_data_stream
+
+    stream, size = get_chunk_data_stream(Chunk(
+        compression=compression, data=data, message_end_time=stop, message_start_time=start,
+        uncompressed_crc=crc, uncompressed_size=size), validate_crc=True)
+    return stream.read(size)
+
+
+def _chunk_records(data: bytes, pos: int,
+                   end: int) -> tuple[list[int], list[tuple[int, int, int, int]]]:
+    """Where the message records of a chunk's records ``data[pos:end]`` start, and its
+    schemas and channels as (messages before it, opcode, start, end); ValueError when a
+    record runs past the chunk or a message is shorter than its fixed fields."""
     starts: list[int] = []
     definitions: list[tuple[int, int, int, int]] = []
-    unpack = RECORD.unpack_from
-    pos, end = 0, len(data)
-    while pos < end:
+    unpack, append = RECORD.unpack_from, starts.append
+    message, schema, channel = OP_MESSAGE, OP_SCHEMA, OP_CHANNEL
+    while pos < end:  # (a record cut by the chunk's end fails to unpack, or ends past it)
         op, length = unpack(data, pos)
-        nxt = pos + 9 + length
-        if nxt > end:
-            raise ValueError("a record runs past its chunk")
-        if op == OP_MESSAGE:
-            if length < MESSAGE_FIXED:
-                raise ValueError("a message record shorter than its fields")
-            starts.append(pos)
-        elif op == OP_SCHEMA or op == OP_CHANNEL:
-            definitions.append((len(starts), op, pos, nxt))
-        pos = nxt
+        if op == message:
+            append(pos)
+        elif op == schema or op == channel:
+            definitions.append((len(starts), op, pos, pos + 9 + length))
+        pos += 9 + length
+    if pos != end:
+        raise ValueError("a record runs past its chunk")
+    if starts:  # every message record holds its fixed fields (all at once)
+        at = np.asarray(starts, dtype=np.int64) + 1
+        lengths = np.lib.stride_tricks.sliding_window_view(
+            np.frombuffer(data, dtype=np.uint8), 8)[at].copy().view("<u8")
+        if int(lengths.min()) < MESSAGE_FIXED or int(at[-1]) + 8 + MESSAGE_FIXED > end:
+            raise ValueError("a message record shorter than its fields")
     return starts, definitions

@@ -46,24 +46,21 @@ The plant starts publishing once its subscribers are matched (in one process, on
 every controller's are too) and the recorder has matched every publisher (a recorder
 that matches late gets only the last 100 messages); a lockstep sample that is lost
 anyway is sent again; in lockstep the plant runs at most
-:data:`pisc_bringup.run_start.RECORDER_LAG_SAMPLES`
-samples ahead of the newest sample the recorder has written, so a recorder short of the
-CPU pauses the run instead of losing messages (docs/recording.md). With ``--processes
+:data:`pisc_bringup.run_start.RECORDER_LAG_SAMPLES` samples ahead of the newest sample
+the recorder has written, so a recorder short of the CPU pauses the run instead of
+losing messages (docs/recording.md). With ``--processes
 --clock wall`` the plant does not wait for the recorder. The run ends when the voltage
 answering the sample at ``--duration`` has been received; the bag is closed, read back
 and summarised, and judged by the robustness benchmark's rule (:mod:`pisc_runs.summary`:
-each tier, safe, caught and fast, with its rule). Exit status: 0 when the run passes the
-tier ``--tier`` names (default ``caught``: caught for good by 8 s and held from 9 s to
-the end), 1 when it does not, 2 bad configuration or the graph did not run. An experiment
-run (``experiment.kind``) gets no swing-up verdict: the summary says what the experiment
-did, and it exits 0 when it ran without a fault, 1 when it faulted.
+each tier, safe, caught and fast, with its rule), whose verdict is ``pisc_graph``'s exit
+status (:mod:`pisc_bringup.graph_cli`). An experiment run (``experiment.kind``) gets no
+swing-up verdict: the summary says what the experiment did.
 
 **Other ends** (:mod:`pisc_bringup.run_guard`): every node answers to the graph's own
 publishers alone, and a publisher of any other node on a topic of the graph stops the
-run (exit status 3); SIGINT or SIGTERM stop it (130, 143), a serial port that went
-away and did not come back within ``--port-retry`` seconds too (4). Each time the
-source is stopped first (0 V), then the other nodes, the bag is finished and its summary
-printed with what ended the run.
+run; SIGINT or SIGTERM stop it, a serial port that went away and did not come back
+within ``--port-retry`` seconds too. Each time the source is stopped first (0 V), then
+the other nodes, the bag is finished and its summary printed with what ended the run.
 """
 
 from __future__ import annotations
