@@ -180,8 +180,8 @@ def _finish_stream(directory: Path, path: Path) -> Written:
     indexed and in log-time order, then ``metadata.yaml``."""
     written = write_indexed(path, "pisc")
     write_metadata(directory, path.name,
-                    topic_records(written.schemas, written.channels, topic_counts(written)),
-                    written.first_ns, written.last_ns)
+                   topic_records(written.schemas, written.channels, topic_counts(written)),
+                   written.first_ns, written.last_ns)
     return written
 
 
@@ -195,7 +195,7 @@ class _TopicRecord:
 
 
 def write_metadata(directory: Path, file_name: str, topics: Sequence[_TopicRecord],
-                    first_ns: int, last_ns: int) -> None:
+                   first_ns: int, last_ns: int) -> None:
     """rosbag2 ``metadata.yaml`` (version 9) for one MCAP file, written atomically."""
     duration = max(0, last_ns - first_ns)
     total = sum(t.count for t in topics)
@@ -353,7 +353,7 @@ def read_bag_raw(directory: str | Path,
 
 
 def write_indexed(path: Path, library: str,
-                   before_replace: Callable[[Written], None] | None = None) -> Written:
+                  before_replace: Callable[[Written], None] | None = None) -> Written:
     """Rewrite ``path`` (an MCAP file: a stream, finished or not, or an indexed file) as
     an indexed MCAP file in log-time order, in bounded memory
     (:func:`pisc_bag.bag_index.write_sorted`: the whole records up to the first
@@ -384,7 +384,7 @@ def write_indexed(path: Path, library: str,
 
 
 def topic_records(schemas: dict[int, Any], channels: dict[int, Any],
-                   counts: dict[str, int]) -> list[_TopicRecord]:
+                  counts: dict[str, int]) -> list[_TopicRecord]:
     topics = []
     for c in channels.values():
         schema = schemas.get(c.schema_id)

@@ -209,7 +209,7 @@ def repair_bag(directory: str | Path) -> RepairReport:
         times = ((stats.message_start_time, stats.message_end_time) if stats.message_count
                  else (0, 0))
         write_metadata(directory, path.name,
-                        topic_records(summary.schemas, summary.channels, counts), *times)
+                       topic_records(summary.schemas, summary.channels, counts), *times)
         removed = _remove(leftover)
         return RepairReport(path, None, counts, 0, (problem,), meta_backup, removed)
 
@@ -229,8 +229,8 @@ def repair_bag(directory: str | Path) -> RepairReport:
         found.append(problem)
         meta_backup = _keep_broken_metadata(directory)
     write_metadata(directory, path.name,
-                    topic_records(written.schemas, written.channels, counts),
-                    written.first_ns, written.last_ns)
+                   topic_records(written.schemas, written.channels, counts),
+                   written.first_ns, written.last_ns)
     dropped = written.size - written.whole_bytes if not finished else 0
     return RepairReport(path, backup, counts, dropped, tuple(found), meta_backup, removed)
 

@@ -57,7 +57,7 @@ STDERR_TAIL_LINES = 200  # of a child's standard error, kept for the message on 
 
 
 def spawn(args: list[str], env: dict[str, str], stdout: int,
-           batch_scheduling: bool = False) -> subprocess.Popen:
+          batch_scheduling: bool = False) -> subprocess.Popen:
     """Start a child; a thread reads its standard error as it comes and keeps the last
     :data:`STDERR_TAIL_LINES` lines. (Read only when stopping it, the pipe filled on a
     long run: 344 lines of the driver's faults in a 10-minute soak blocked its reader
@@ -104,7 +104,7 @@ STOP_LIMIT_S = 600.0  # and one still busy after this long
 
 
 def stop(child: subprocess.Popen, signalled: bool = False,
-          busy_limit_s: float | None = None, hang_is_failure: bool = True) -> tuple[str, str]:
+         busy_limit_s: float | None = None, hang_is_failure: bool = True) -> tuple[str, str]:
     """SIGTERM a child (SIGINT may be ignored in background jobs; not again when
     ``signalled``) and wait for it: while it keeps using the CPU (a recorder finishing a
     long bag on a loaded machine), up to ``busy_limit_s`` (default :data:`STOP_LIMIT_S`);
@@ -165,7 +165,7 @@ def stop_all(children: Sequence[subprocess.Popen]) -> list[str]:
     # STOP_PATIENCE_S is hung, busy or not (a supervisor spun for minutes in Fast DDS's
     # participant teardown, 2026-12-04), and is killed with a warning
     return failures + [stop(child, signalled=True, busy_limit_s=STOP_PATIENCE_S,
-                             hang_is_failure=False)[0] for child in reversed(rest)]
+                            hang_is_failure=False)[0] for child in reversed(rest)]
 
 # how often a runner without pidfds (:class:`ExitAlarm`) looks at its children
 EXIT_POLL_S = 0.05

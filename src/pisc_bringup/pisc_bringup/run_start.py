@@ -54,9 +54,11 @@ from pisc_sim.configuration import load_run_config, write_params_file
 
 __all__ = ["CONTROLLERS_PARAMS", "EXECUTORS", "MAX_DOMAIN_ID", "PLANT_PARAMS",
            "RECORDER_GATHER_S", "RECORDER_LAG_SAMPLES", "SAMPLE_TOPICS", "GraphError",
-           "RecorderDied", "RunOptions", "RunPlan", "awaiting", "checked_config",
+           "RecorderDied", "RunOptions", "RunPlan", "awaiting", "check_recorder",
+           "checked_config", "clock_subscribers", "controllers_matched", "default_bag_dir",
            "expected_messages", "launch_args", "plan_run", "plant_description", "read_again",
-           "recorder_args", "run_args", "start_processes", "write_params"]
+           "recorder_args", "recorder_matched", "recorder_ready", "run_args",
+           "start_processes", "wait_for", "write_params"]
 
 
 # The bag's parameter files: the controllers' (replay and analysis read it) and the plant's.
@@ -280,7 +282,7 @@ def recorder_args(options: RunOptions, plan: RunPlan, bag_dir: Path, ready: Path
 
 
 def write_params(directory: Path, flat: dict[str, Any],
-                  plant_flat: dict[str, Any] | None) -> dict[str, Path]:
+                 plant_flat: dict[str, Any] | None) -> dict[str, Path]:
     """The run's parameter files in ``directory``: the controllers' and, for the simulated
     plant, the plant's (:data:`CONTROLLERS_PARAMS`, :data:`PLANT_PARAMS`)."""
     files = {"params": directory / CONTROLLERS_PARAMS}
@@ -292,7 +294,7 @@ def write_params(directory: Path, flat: dict[str, Any],
 
 
 def launch_args(options: RunOptions, files: dict[str, Path],
-                 run: dict[str, str] | None = None) -> dict[str, str]:
+                run: dict[str, str] | None = None) -> dict[str, str]:
     """The arguments pisc_graph gives the launch file, as ``ros2 launch FILE name:=value``
     would: its parameter files, the clock, markers on request, and ``run`` (what the plant
     or the driver waits for, computed from the graph: :func:`run_args`; placeholders
@@ -335,7 +337,7 @@ def run_args(options: RunOptions, graph: Graph) -> dict[str, str]:
 
 
 def read_again(first: Graph, options: RunOptions, files: dict[str, Path],
-                run: dict[str, str]) -> Graph:
+               run: dict[str, str]) -> Graph:
     """The launch file read with the bag's parameter files and the run's arguments; it
     must start the nodes it started on the first reading."""
     graph = read_graph(first.path, launch_args(options, files, run),
@@ -382,7 +384,7 @@ def check_recorder(recorder: subprocess.Popen) -> None:
 
 
 def recorder_ready(watcher: Node, recorder: subprocess.Popen, recorded: Sequence[Topic],
-                    name: str) -> bool:
+                   name: str) -> bool:
     """The recorder runs and its own subscriptions (node ``name``) are seen on every
     recorded topic (before any node of the graph exists)."""
     check_recorder(recorder)
@@ -398,7 +400,7 @@ def recorder_matched(recorder: subprocess.Popen, ready: Path) -> bool:
 
 
 def controllers_matched(nodes: Sequence[Node], recorded: Sequence[Topic],
-             controllers: Sequence[GraphNode]) -> bool:
+                        controllers: Sequence[GraphNode]) -> bool:
     """Every controller publisher sees its subscribers among the controllers and recorder.
 
     The plant comes later and waits for its own edges (``simulation.min_subscribers``).
@@ -429,8 +431,8 @@ def awaiting(node: GraphNode, counted: Sequence[GraphNode],
 
 
 def start_processes(graph: Graph, watcher: Node, env: dict[str, str],
-                     recorded: Sequence[Topic] = GRAPH_TOPICS,
-                     source_waits: bool = False) -> list[subprocess.Popen]:
+                    recorded: Sequence[Topic] = GRAPH_TOPICS,
+                    source_waits: bool = False) -> list[subprocess.Popen]:
     """Start the launch file's controllers, each as its own process, and wait until they
     are connected; then start its source (the plant or the driver), last in the list.
 

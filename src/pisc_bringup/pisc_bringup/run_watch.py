@@ -130,7 +130,7 @@ class RecorderWatch:
 
 
 def count_publications(nodes: Sequence[Node],
-                        on_voltage: Callable[[bytes], None] | None = None) -> dict[str, int]:
+                       on_voltage: Callable[[bytes], None] | None = None) -> dict[str, int]:
     """Count every message the nodes publish, per topic, from now on (a live dict), and
     hand each voltage command to ``on_voltage`` as it is published (its CDR bytes)."""
     counts: dict[str, int] = {}
