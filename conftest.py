@@ -134,7 +134,7 @@ def recorder_pid(bag: Path) -> int | None:
         except OSError:
             continue
         if str(bag).encode() in cmdline and any(c.endswith(b"pisc_record") or
-                                                c == b"pisc_bag.record" for c in cmdline):
+                                                c == b"pisc_bag.record_cli" for c in cmdline):
             return int(proc.name)
     return None
 
@@ -171,10 +171,10 @@ class VoltageWatch:
 
 
 def start_graph_with_watch(args: list[str], bag: Path, env, ros_context):
-    """``python -m pisc_bringup.graph --bag BAG ARGS`` and, once it has found its
+    """``python -m pisc_bringup.graph_cli --bag BAG ARGS`` and, once it has found its
     recorder, a :class:`VoltageWatch` of it."""
-    graph = subprocess.Popen([sys.executable, "-m", "pisc_bringup.graph", "--bag", str(bag),
-                              *args], env=env, stdout=subprocess.PIPE,
+    graph = subprocess.Popen([sys.executable, "-m", "pisc_bringup.graph_cli", "--bag",
+                              str(bag), *args], env=env, stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60.0
     while not (bag / "pisc_params.yaml").exists():

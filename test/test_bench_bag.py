@@ -186,7 +186,7 @@ def kill_run(tmp_path: Path, env: dict[str, str], clock: str, duration_s: float,
     bag = tmp_path / name
     out = str(tmp_path / f"{name}.json")
     graph = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bringup.graph", "--bag", str(bag), "--clock", clock,
+        [sys.executable, "-m", "pisc_bringup.graph_cli", "--bag", str(bag), "--clock", clock,
          "--duration", str(duration_s)], env=env, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True)
     # subscribes once the graph has found its recorder (the parameter file is written

@@ -64,7 +64,7 @@ def start_rig(tmp_path, *args: str) -> RigProcess:
 
 def start_graph(env, port: str, bag, duration_s: float) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "pisc_bringup.graph", "--driver", port, "--duration",
+        [sys.executable, "-m", "pisc_bringup.graph_cli", "--driver", port, "--duration",
          str(duration_s), "--bag", str(bag), "--realtime", RT_GRAPH],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
@@ -704,7 +704,7 @@ def test_a_command_the_driver_cannot_read_is_refused_with_its_reason_and_writes_
 def test_the_driver_runs_on_the_wall_clock_only(tmp_path):
     completed = subprocess.run(
         # a port that opens: the clock is what is refused, not the port
-        [sys.executable, "-m", "pisc_bringup.graph", "--driver", "/dev/null",
+        [sys.executable, "-m", "pisc_bringup.graph_cli", "--driver", "/dev/null",
          "--clock", "lockstep", "--bag", str(tmp_path / "bag")],
         capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2
@@ -814,7 +814,7 @@ def _start_balancing(tmp_path, env, ros_context, processes: bool):
     try:  # a failure here stops the rig and the graph (a rig left at SCHED_FIFO loads
         # every later test of the run)
         graph = subprocess.Popen(
-            [sys.executable, "-m", "pisc_bringup.graph", "--driver", rig.device, "--duration",
+            [sys.executable, "-m", "pisc_bringup.graph_cli", "--driver", rig.device, "--duration",
              "60", "--bag", str(tmp_path / "bag"), "--realtime", RT_GRAPH,
              *(["--processes"] if processes else [])],
             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

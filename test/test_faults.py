@@ -21,7 +21,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from conftest import spin_until
-from pisc_bringup.graph import main
+from pisc_bringup.graph_cli import main
 from pisc_control.current_loop_node import CurrentLoopNode
 from pisc_control.estimator_node import EstimatorNode
 from pisc_control.supervisor_node import SupervisorNode
@@ -246,7 +246,7 @@ def test_sigkill_of_a_controller_while_balancing_zeroes_the_motor_and_fails_the_
         # this 2-core machine its latency faulted it before the catch in 2 of 9 runs.) At
         # the middle of the safe range [-0.225, 0.125] m: from x0 = +0.05 m the catch
         # carried the cart 80 mm, out of the range, under load (2026-12-03, p99 10 ms)
-        [sys.executable, "-m", "pisc_bringup.graph", "--processes", "--clock", "wall",
+        [sys.executable, "-m", "pisc_bringup.graph_cli", "--processes", "--clock", "wall",
          "--x0", "-0.05", "--set", "initial.theta_rad=0.05", "--duration", "60",
          "--bag", str(tmp_path / "bag"), "--domain-id", str(domain_id)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -12,7 +12,8 @@ from conftest import DomainClaim
 from pisc_bag.bag import read_bag
 from pisc_sim.closed_loop import simulate
 from pisc_sim.configuration import load_graph_config, load_run_config
-from pisc_bringup.graph import RunOptions, main, run_graph
+from pisc_bringup.graph import RunOptions, run_graph
+from pisc_bringup.graph_cli import main
 from pisc_control.supervisor import Supervisor
 from pisc_msgs_py.config import ConfigError, load_params_file
 from pisc_msgs_py.convert import mode_from_msg, motor_sample_from_msg
@@ -144,7 +145,7 @@ def test_plant_options_are_refused_with_the_driver(tmp_path, capsys):
 
 def test_a_scenes_plant_block_and_plant_set_reach_the_run(tmp_path, monkeypatch):
     """pisc_graph --scene: the scene's plant: block goes to the plant, --plant-set after it."""
-    import pisc_bringup.graph as graph
+    import pisc_bringup.graph_cli as graph_cli
 
     scene = tmp_path / "scene.yaml"
     scene.write_text("scene:\n  plant: {motor: {resistance_ohm: 18.2, inductance_h: 0.02}}\n")
@@ -154,7 +155,7 @@ def test_a_scenes_plant_block_and_plant_set_reach_the_run(tmp_path, monkeypatch)
         seen.append(options)
         raise ConfigError("stop here")
 
-    monkeypatch.setattr(graph, "run_graph", refuse)
+    monkeypatch.setattr(graph_cli, "run_graph", refuse)
     assert main(["--scene", str(scene), "--plant-set", "motor.inductance_h=0.03",
                  "--plant-config", "thesis"]) == 2
     assert seen[0].plant_overrides == {"motor.resistance_ohm": 18.2, "motor.inductance_h": 0.03}
@@ -172,7 +173,7 @@ def test_wall_clock_graph_in_one_process_catches(tmp_path, domain_id):
 
 def test_nodes_as_separate_processes_through_their_entry_points(tmp_path, env_for_domain):
     completed = subprocess.run(
-        [sys.executable, "-m", "pisc_bringup.graph", "--processes", "--x0", "-0.05",
+        [sys.executable, "-m", "pisc_bringup.graph_cli", "--processes", "--x0", "-0.05",
          "--duration", "10", "--bag", str(tmp_path / "procs")],
         env=env_for_domain, capture_output=True, text=True, timeout=240)
     assert completed.returncode == 0, completed.stdout + completed.stderr
@@ -181,14 +182,15 @@ def test_nodes_as_separate_processes_through_their_entry_points(tmp_path, env_fo
         completed.stdout)
     assert "result                 CAUGHT" in completed.stdout
     # with --processes the runner counts nothing the nodes publish: a message of each
-    # sample topic per sample is expected (graph.expected_messages)
+    # sample topic per sample is expected (run_start.expected_messages)
     assert "the bag misses" not in completed.stderr, completed.stderr
 
 
 def test_a_lockstep_run_expects_a_message_of_each_sample_topic_per_sample():
     """What --processes is checked against: samples 0 .. duration / period, each with a
     message on each recorded sample topic; a bag with fewer says what it misses."""
-    from pisc_bringup.graph import SAMPLE_TOPICS, RunResult, expected_messages
+    from pisc_bringup.graph import RunResult
+    from pisc_bringup.run_start import SAMPLE_TOPICS, expected_messages
     from pisc_msgs_py.topics import SIM_STATE
 
     expected = expected_messages(1.0, 0.005, GRAPH_TOPICS)
@@ -270,7 +272,7 @@ def test_a_scene_runs_through_the_graph_with_an_ideal_force_source(tmp_path, env
 
     bag = tmp_path / "ideal"
     completed = subprocess.run(
-        [sys.executable, "-m", "pisc_bringup.graph", "--scene", "ideal-cart-pole", "--bag",
+        [sys.executable, "-m", "pisc_bringup.graph_cli", "--scene", "ideal-cart-pole", "--bag",
          str(bag)], env=env_for_domain, capture_output=True, text=True, timeout=240)
     assert completed.returncode == 0, completed.stdout + completed.stderr
     assert "result                 CAUGHT" in completed.stdout

@@ -31,7 +31,7 @@ from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 
 from conftest import spin_until
-from pisc_bag.bag import index_problems
+from pisc_bag.bag_repair import index_problems
 from pisc_runs.replay import replay_bag
 from pisc_runs.summary import foreign_in_bag, summarise_bag
 from pisc_control.current_loop_node import CurrentLoopNode
@@ -340,7 +340,7 @@ def test_a_measurement_whose_stamp_is_not_the_next_is_refused(ros_context, sim_t
 
 def _graph(args: list[str], bag: Path, domain_id: int) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "pisc_bringup.graph", "--bag", str(bag), "--domain-id",
+        [sys.executable, "-m", "pisc_bringup.graph_cli", "--bag", str(bag), "--domain-id",
          str(domain_id), "--x0", "0.05", *args], stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True)
 
@@ -435,7 +435,7 @@ def test_the_recorder_outlives_its_runner_without_a_traceback(tmp_path, domain_i
     bag = tmp_path / "bag"
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
     read, write = os.pipe()
-    recorder = subprocess.Popen([sys.executable, "-m", "pisc_bag.record", "--bag", str(bag),
+    recorder = subprocess.Popen([sys.executable, "-m", "pisc_bag.record_cli", "--bag", str(bag),
                                  "--topic", VOLTAGE.name], env=env, stdout=write,
                                 stderr=subprocess.PIPE, text=True)
     os.close(write)
@@ -465,7 +465,7 @@ def _driver_graph(tmp_path, domain_id, *args: str):
     bag = tmp_path / "bag"
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
     graph = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bringup.graph", "--driver", rig.device, "--bag", str(bag),
+        [sys.executable, "-m", "pisc_bringup.graph_cli", "--driver", rig.device, "--bag", str(bag),
          "--realtime", "40", *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True)
     return rig, bag, graph
@@ -522,7 +522,7 @@ def test_a_port_that_goes_away_ends_the_run_within_its_retry_naming_it(tmp_path,
 # -- the smaller cases: each refused with a message naming it ----------------------------
 
 def test_a_domain_id_fast_dds_cannot_map_is_refused_before_anything_starts(tmp_path, capsys):
-    from pisc_bringup.graph import main
+    from pisc_bringup.graph_cli import main
 
     bag = tmp_path / "refused"
     assert main(["--domain-id", "300", "--bag", str(bag), "--duration", "1"]) == 2
@@ -610,7 +610,7 @@ def test_the_summary_flags_a_voltage_before_its_sample_and_a_foreign_publisher()
     assert summary.why["caught"] == "a foreign publisher on the graph's topics"
 
 
-@pytest.mark.parametrize("kind", [k for k in __import__("pisc_bringup.graph", fromlist=["x"])
+@pytest.mark.parametrize("kind", [k for k in __import__("pisc_bringup.launch_graph", fromlist=["x"])
                                   .NODE_KINDS if k != ("pisc_driver", "driver_node")],
                          ids=lambda k: k[1])
 def test_every_topic_a_node_publishes_is_declared_for_the_runner(ros_context, kind):
@@ -620,7 +620,7 @@ def test_every_topic_a_node_publishes_is_declared_for_the_runner(ros_context, ki
     the plant's, test_driver.)"""
     import importlib
 
-    from pisc_bringup.graph import NODE_KINDS
+    from pisc_bringup.launch_graph import NODE_KINDS
 
     spec = NODE_KINDS[kind]
     cls = getattr(importlib.import_module(spec.module), spec.cls)

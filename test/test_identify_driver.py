@@ -86,7 +86,7 @@ def test_identified_from_driver_runs_within_the_issues_tolerances(tmp_path, env_
 
 def test_graph_topics_carry_what_identification_reads():
     # the recorded topics pisc_identify needs are among what every run records
-    from pisc_bringup.graph import RUN_TOPICS
+    from pisc_bringup.launch_graph import RUN_TOPICS
 
     assert {JOINT_STATES, MOTOR_CURRENT, VOLTAGE} <= set(RUN_TOPICS) <= set(GRAPH_TOPICS)
 

@@ -11,7 +11,7 @@ import textwrap
 
 import pytest
 
-from pisc_bringup.graph import main as graph_main
+from pisc_bringup.graph_cli import main as graph_main
 from pisc_robust.uncertainty import distribution_names, load_distribution
 from pisc_model.params import unused_by_models
 from pisc_msgs_py.config import ConfigError

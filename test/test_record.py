@@ -20,15 +20,11 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from conftest import VoltageWatch, recorder_pid, spin_until, start_graph_with_watch
-from pisc_bag.bag import (
-    bag_files,
-    bag_topics,
-    header_stamp_ns,
-    index_problems,
-    read_bag,
-)
+from pisc_bag.bag import bag_files, bag_topics, header_stamp_ns, read_bag
+from pisc_bag.bag_repair import index_problems
 from pisc_bag.bag_readers import READERS, read_every_way
-from pisc_bringup.graph import RECORDER_LAG_SAMPLES, RunOptions, run_graph
+from pisc_bringup.graph import RunOptions, run_graph
+from pisc_bringup.run_start import RECORDER_LAG_SAMPLES
 from pisc_msgs_py.base_node import qos_profile
 from pisc_msgs_py.convert import (
     cart_force_to_msg,
@@ -113,7 +109,7 @@ def stream_cycles(bag, ros_context, env, stop_signal, cycles):
     ready = bag.parent / f"{bag.name}.ready"
     silent = [arg for t in GRAPH_TOPICS if t not in CYCLE for arg in ("--expect", f"{t.name}=0")]
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bag.record", "--bag", str(bag),
+        [sys.executable, "-m", "pisc_bag.record_cli", "--bag", str(bag),
          "--ready-file", str(ready), *silent],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     node = Node("cycle_source", context=ros_context)
@@ -153,7 +149,7 @@ def test_the_recorder_says_it_is_ready_once_it_has_matched_every_publisher(
 
     ready = tmp_path / "ready"
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "pisc_bag.record", "--bag", str(tmp_path / "bag"),
+        [sys.executable, "-m", "pisc_bag.record_cli", "--bag", str(tmp_path / "bag"),
          "--topic", STATE.name, "--topic", VOLTAGE.name,
          "--ready-file", str(ready), "--expect", f"{VOLTAGE.name}=2"],
         env=env_for_domain, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -203,7 +199,7 @@ def test_the_recorder_says_it_is_ready_once_it_has_matched_every_publisher(
 def test_the_recorder_refuses_bad_arguments_before_creating_the_bag(tmp_path, args, error):
     (tmp_path / "taken").touch()
     completed = subprocess.run(
-        [sys.executable, "-m", "pisc_bag.record", "--bag", str(tmp_path / "bag"), *args],
+        [sys.executable, "-m", "pisc_bag.record_cli", "--bag", str(tmp_path / "bag"), *args],
         capture_output=True, text=True, timeout=60, cwd=tmp_path)
     assert completed.returncode == 2
     assert completed.stderr.strip() == f"pisc_record: {error}"
@@ -267,7 +263,8 @@ def test_a_run_records_what_it_is_asked_and_its_own_topics(tmp_path, domain_id):
     """``record`` (a scene's, or ``--record``) keeps the estimator's state and drops the
     cart force and diagnostics; the run's own topics are recorded anyway, the summary
     works, and replay compares what the bag holds and says what it does not."""
-    from pisc_bringup.graph import RUN_TOPICS, main, recorded_topics
+    from pisc_bringup.graph_cli import main
+    from pisc_bringup.launch_graph import RUN_TOPICS, recorded_topics
     from pisc_runs.replay import replay_bag
     from pisc_msgs_py.config import ConfigError
 

@@ -9,15 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from pisc_bag.bag import (
-    BagError,
-    BagWriter,
-    header_stamp_ns,
-    index_problems,
-    read_bag,
-    read_bag_raw,
-    repair_bag,
-)
+from pisc_bag.bag import BagError, BagWriter, header_stamp_ns, read_bag, read_bag_raw
+from pisc_bag.bag_repair import index_problems, repair_bag
 from pisc_bag.bag_readers import READERS, read_every_way
 from pisc_runs.replay import (
     COMPARED_TOPICS,

@@ -14,7 +14,8 @@ import pytest
 from conftest import DomainClaim
 from pisc_bag.bag import read_bag
 from pisc_sim.configuration import load_graph_config
-from pisc_bringup.graph import RunOptions, main, run_graph
+from pisc_bringup.graph import RunOptions, run_graph
+from pisc_bringup.graph_cli import main
 from pisc_msgs_py.convert import motor_sample_from_msg
 from pisc_msgs_py.topics import CURRENT_SETPOINT
 

@@ -18,7 +18,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'pisc_record = pisc_bag.record:main',
+            'pisc_record = pisc_bag.record_cli:main',
         ],
     },
 )

@@ -23,7 +23,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'pisc_graph = pisc_bringup.graph:main',
+            'pisc_graph = pisc_bringup.graph_cli:main',
             'pisc_bag = pisc_bringup.bag_cli:main',
         ],
     },

@@ -7,9 +7,8 @@ analysis need only a few numbers per message: the header stamp, the publish time
 joint values of each ``sensor_msgs/JointState``, and the rare mode reports. This module
 reads those as numpy columns:
 
-* the MCAP file is read in blocks of :data:`BLOCK_BYTES` (a record that does not fit is
-  read whole), and its records are walked by their opcode and length (MCAP
-  specification, "Records"): messages at the top level (a stream) or inside chunks
+* the MCAP file is walked a block at a time by :class:`pisc_bag.mcap_scan.RecordScan`, the
+  walk the indexer reads with too: messages at the top level (a stream) or inside chunks
   (an indexed file; compressed chunks are opened with the mcap library's decompressors);
 * the messages of a topic with the same length have the same layout when the publisher
   sends the same joint names (every PISC node does): the first one is decoded with
@@ -33,7 +32,7 @@ reads) and one block; the file itself is never held.
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,19 +40,13 @@ from typing import Any
 import numpy as np
 
 from pisc_bag.bag import TYPESTORE, BagError, bag_files
+from pisc_bag.mcap_scan import MESSAGE_HEAD, Batch, RecordScan
 
-__all__ = ["BLOCK_BYTES", "FastPathRefused", "JointColumns", "read_columns"]
+__all__ = ["FastPathRefused", "JointColumns", "read_columns"]
 
-BLOCK_BYTES = 8 * 1024 * 1024
 JOINT_STATE = "sensor_msgs/msg/JointState"
 WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
 FIELDS = ("position", "velocity", "effort")
-
-# MCAP record opcodes (MCAP specification, "Records")
-_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _DATA_END = 0x03, 0x04, 0x05, 0x06, 0x0F
-_RECORD = struct.Struct("<BQ")  # opcode, length
-_MESSAGE_HEAD = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time
-_CHUNK_HEAD = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed crc
 
 
 class FastPathRefused(Exception):
@@ -159,107 +152,6 @@ def _wrench_layout(data: bytes) -> _Layout:
 _LAYOUTS = {JOINT_STATE: _joint_layout, WRENCH_STAMPED: _wrench_layout}
 
 
-class _Scan:
-    """Walks an MCAP file's records block by block (see the module)."""
-
-    def __init__(self, path: Path, block_bytes: int) -> None:
-        self.path = path
-        self.block_bytes = block_bytes
-        self.schemas: dict[int, str] = {}  # id -> type name
-        self.channels: dict[int, tuple[str, int]] = {}  # id -> (topic, schema id)
-
-    def segments(self) -> Iterator[tuple[bytes, np.ndarray]]:
-        """(buffer, int64 offsets of message bodies in it) in file order; a buffer is a
-        block of the file or the contents of a compressed chunk."""
-        with self.path.open("rb") as stream:
-            buf = stream.read(self.block_bytes)
-            if not buf.startswith(b"\x89MCAP0\r\n"):
-                raise FastPathRefused(f"{self.path}: not an MCAP file")
-            pos = 8
-            while True:
-                found: list[tuple[bytes, list[int]]] = []
-                used, done, need = self._walk(buf, pos, len(buf), found)
-                for data, offsets in found:
-                    if offsets:
-                        yield data, np.asarray(offsets, dtype=np.int64)
-                if done:
-                    return
-                rest = buf[used:]
-                more = stream.read(max(self.block_bytes, need - len(rest)))
-                if not more:
-                    if rest:
-                        raise FastPathRefused(f"{self.path}: ends inside a record")
-                    return
-                buf, pos = rest + more, 0
-
-    def _walk(self, buf: bytes, start: int, end: int,
-              found: list[tuple[bytes, list[int]]], top: bool = True) -> tuple[int, bool, int]:
-        """Append (buffer, message body offsets) to ``found`` for the records in
-        ``buf[start:end]``; returns (end of the last whole record, the data section is
-        over, bytes the next record needs)."""
-        offsets: list[int] = []
-        found.append((buf, offsets))
-        unpack = _RECORD.unpack_from
-        pos = start
-        while pos + 9 <= end:
-            op, length = unpack(buf, pos)
-            body = pos + 9
-            nxt = body + length
-            if nxt > end:
-                if not top:
-                    raise FastPathRefused("a chunk's record runs past the chunk")
-                return pos, False, nxt - pos
-            if op == _MESSAGE:
-                offsets.append(body)
-            elif op == _CHUNK:
-                data, inner = self._chunk(buf, body)
-                if data is buf:
-                    offsets.extend(inner)
-                else:
-                    found.append((data, inner))
-                    offsets = []
-                    found.append((buf, offsets))
-            elif op == _SCHEMA:
-                sid, n = struct.unpack_from("<HI", buf, body)
-                self.schemas[sid] = bytes(buf[body + 6:body + 6 + n]).decode()
-            elif op == _CHANNEL:
-                cid, sid, n = struct.unpack_from("<HHI", buf, body)
-                self.channels[cid] = (bytes(buf[body + 8:body + 8 + n]).decode(), sid)
-            elif op == _DATA_END and top:
-                return nxt, True, 0
-            pos = nxt
-        if pos != end and not top:
-            raise FastPathRefused("a chunk ends inside a record")
-        return pos, False, 9
-
-    def _chunk(self, buf: bytes, body: int) -> tuple[bytes, list[int]]:
-        """(buffer, message body offsets) of a chunk: ``buf`` itself when uncompressed."""
-        pos = body + _CHUNK_HEAD.size
-        (n,) = struct.unpack_from("<I", buf, pos)
-        compression = bytes(buf[pos + 4:pos + 4 + n]).decode()
-        pos += 4 + n
-        (length,) = struct.unpack_from("<Q", buf, pos)
-        pos += 8
-        found: list[tuple[bytes, list[int]]] = []
-        if compression == "":
-            self._walk(buf, pos, pos + length, found, top=False)
-            return buf, [o for _, offsets in found for o in offsets]
-        from mcap.records import Chunk
-        from mcap.stream_reader import get_chunk_data_stream
-
-        start, end, size, crc = _CHUNK_HEAD.unpack_from(buf, body)
-        try:
-            stream, size = get_chunk_data_stream(
-                Chunk(compression=compression, data=bytes(buf[pos:pos + length]),
-                      message_end_time=end, message_start_time=start,
-                      uncompressed_crc=crc, uncompressed_size=size), validate_crc=True)
-            data = stream.read(size)
-        except Exception as exc:  # noqa: BLE001 - whatever the decompressor raises
-            raise FastPathRefused(f"chunk compression {compression!r}: {exc}") from None
-        self._walk(data, 0, len(data), found, top=False)
-        return data, [o for _, offsets in found for o in offsets]
-
-
 def _gather(buf: bytes, starts: np.ndarray, length: int) -> np.ndarray:
     """(n, length) uint8: ``length`` bytes of ``buf`` from each of ``starts``: rows of a
     sliding-window view of the buffer, so numpy copies whole rows."""
@@ -278,11 +170,12 @@ class _TopicParts:
 
 def read_columns(bag: str | Path, joint_topics: Sequence[str],
                  other_topics: Sequence[str] = (),
-                 block_bytes: int = BLOCK_BYTES) -> tuple[dict[str, JointColumns],
+                 block_bytes: int | None = None) -> tuple[dict[str, JointColumns],
                                                           list[tuple[str, int, int, Any]]]:
     """The JointState (or WrenchStamped) topics ``joint_topics`` of ``bag`` as columns,
     and the messages of ``other_topics`` decoded, as (topic, log time, publish time,
-    message) in file order.
+    message) in file order; ``block_bytes``: the walk's block (default
+    :data:`pisc_bag.mcap_scan.BLOCK_BYTES`).
 
     :class:`BagError` for a bag that cannot be read (as ``read_bag``);
     :class:`FastPathRefused` where the message path must decide.
@@ -291,15 +184,15 @@ def read_columns(bag: str | Path, joint_topics: Sequence[str],
     others: list[tuple[str, int, int, Any]] = []
     layouts: dict[tuple[str, int], _Layout] = {}
     for path in bag_files(bag):
-        scan = _Scan(path, block_bytes)
+        scan = RecordScan(path, block_bytes)
         try:
-            for buf, bodies in scan.segments():
-                _columns_of_block(scan, buf, bodies, parts, others, set(other_topics),
-                                  layouts)
+            for batch in scan.batches():
+                _columns_of_block(scan, batch, parts, others, set(other_topics), layouts)
         except (FastPathRefused, BagError):
             raise
         except Exception as exc:  # noqa: BLE001 - a damaged file: the message path names it
             raise FastPathRefused(f"{path}: {type(exc).__name__}: {exc}") from None
+        _check_walk(scan)
     out = {}
     for topic, p in parts.items():
         def cat(arrays: list[np.ndarray]) -> np.ndarray:
@@ -312,32 +205,40 @@ def read_columns(bag: str | Path, joint_topics: Sequence[str],
     return out, others
 
 
-def _columns_of_block(scan: _Scan, buf: bytes, bodies: np.ndarray,
-                      parts: dict[str, _TopicParts], others: list[tuple[str, int, int, Any]],
-                      other_topics: set[str], layouts: dict[tuple[str, int], _Layout]) -> None:
-    heads = _gather(buf, bodies, _MESSAGE_HEAD)
-    channel = heads[:, 0:2].copy().view("<u2")[:, 0]
-    log = heads[:, 6:14].copy().view("<u8")[:, 0].astype(np.int64)
-    publish = heads[:, 14:22].copy().view("<u8")[:, 0].astype(np.int64)
-    # each body's end: the record length sits 8 bytes before the body
-    lengths = _gather(buf, bodies - 8, 8).view("<u8")[:, 0].astype(np.int64)
-    starts = bodies + _MESSAGE_HEAD
-    sizes = lengths - _MESSAGE_HEAD
+def _check_walk(scan: RecordScan) -> None:
+    """FastPathRefused when the walk did not take every message of the file: a record
+    that stopped it, a message of a channel without a channel record, a file that ends
+    inside a record."""
+    if scan.stopped:
+        raise FastPathRefused(f"{scan.path}: {scan.stopped}")
+    if scan.unknown:
+        raise FastPathRefused(f"{scan.path}: {scan.unknown} messages on channels that have "
+                              "no channel record")
+    if scan.stopped is None and scan.whole_bytes != scan.size:
+        raise FastPathRefused(f"{scan.path}: ends inside a record")
+
+
+def _columns_of_block(scan: RecordScan, batch: Batch, parts: dict[str, _TopicParts],
+                      others: list[tuple[str, int, int, Any]], other_topics: set[str],
+                      layouts: dict[tuple[str, int], _Layout]) -> None:
+    buf, channel = batch.data, batch.channel
+    log = batch.log.astype(np.int64)
+    publish = batch.publish
+    starts = batch.starts + MESSAGE_HEAD  # each message's data
+    sizes = batch.sizes - MESSAGE_HEAD
     for cid in np.unique(channel):
-        if int(cid) not in scan.channels:
-            raise FastPathRefused(f"message on channel {cid}, which has no channel record")
-        topic, sid = scan.channels[int(cid)]
+        topic, sid = scan.channels[int(cid)].topic, scan.channels[int(cid)].schema_id
         mine = channel == cid
+        schema = scan.schemas.get(sid)
+        type_name = schema.name if schema is not None else None
         if topic in other_topics:
-            type_name = scan.schemas.get(sid, "")
             for s, n, lt, pt in zip(starts[mine], sizes[mine], log[mine], publish[mine],
                                     strict=True):
-                msg = TYPESTORE.deserialize_cdr(bytes(buf[s:s + n]), type_name)
+                msg = TYPESTORE.deserialize_cdr(bytes(buf[s:s + n]), type_name or "")
                 others.append((topic, int(lt), int(pt), msg))
             continue
         if topic not in parts:
             continue
-        type_name = scan.schemas.get(sid)
         if type_name not in _LAYOUTS:
             raise FastPathRefused(f"{topic}: not {' or '.join(_LAYOUTS)}")
         _joint_block(topic, type_name, buf, starts[mine], sizes[mine], log[mine], publish[mine],

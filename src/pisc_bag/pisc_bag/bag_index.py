@@ -1,19 +1,12 @@
 """An MCAP file rewritten indexed and in log-time order, in bounded memory.
 
-What :meth:`pisc_bag.bag.BagWriter.close` and :func:`pisc_bag.bag.repair_bag`
-use to finish a bag (issue 16, item 4: a 10-minute bag was finished by reading every
-message into memory, 12.5 s and +458 MB, through the mcap writer's 10 us a message).
+What :meth:`pisc_bag.bag.BagWriter.close` and :func:`pisc_bag.bag_repair.repair_bag`
+use to finish a bag (before, a 10-minute bag was finished by reading every message into
+memory, 12.5 s and +458 MB, through the mcap writer's 10 us a message).
 
-**Reading** (:class:`RecordScan`): the file is read in blocks of :data:`BLOCK_BYTES` and
-walked record by record by opcode and length (MCAP specification, "Records"); a record
-that does not fit in a block is read whole. Messages are taken at the top level (a
-stream, as the recorder writes it) and inside chunks (an indexed file). The walk stops
-taking records at the first one that is incomplete or corrupt (a message shorter than
-its fixed fields, a schema, channel or chunk that does not parse, a chunk whose CRC is
-wrong) and at the data end or footer; it goes on reading only the framing, to give the
-offset after the last whole record (what repair reports as dropped). A message whose
-channel has no channel record before it (MCAP requires one) cannot be read and is
-dropped.
+**Reading**: :class:`pisc_bag.mcap_scan.RecordScan` walks the file in blocks and gives its
+messages in batches (the whole records up to the first incomplete or corrupt one, without
+the messages of a channel that has no channel record before them).
 
 **Ordering**: the messages of a recording arrive almost in log-time order (the
 recorder takes them from several DDS readers: the reference bags had inversions of up to
@@ -41,7 +34,6 @@ of the bag; the merge holds one buffer per run.
 from __future__ import annotations
 
 import heapq
-import io
 import struct
 import tempfile
 import zlib
@@ -52,269 +44,32 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["BLOCK_BYTES", "CHUNK_SIZE", "HOLD_MESSAGES", "MCAP_MAGIC", "IndexCounts",
-           "IndexedWriter", "NotMcap", "RecordScan", "Written", "index_counts", "write_sorted"]
+from pisc_bag.mcap_scan import (
+    MCAP_MAGIC,
+    MESSAGE_HEAD,
+    OP_ATTACHMENT_INDEX,
+    OP_CHANNEL,
+    OP_CHUNK,
+    OP_CHUNK_INDEX,
+    OP_FOOTER,
+    OP_MESSAGE_INDEX,
+    OP_METADATA_INDEX,
+    OP_SCHEMA,
+    OP_STATISTICS,
+    Batch,
+    NotMcap,
+    RecordScan,
+    concat,
+    message_batch,
+)
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
+__all__ = ["CHUNK_SIZE", "HOLD_MESSAGES", "IndexCounts", "IndexedWriter", "Written",
+           "index_counts", "write_sorted"]
+
 CHUNK_SIZE = 768 * 1024  # libmcap's default chunk size, which rosbag2 writes with
-BLOCK_BYTES = 4 * 1024 * 1024  # the file is read this much at a time
 HOLD_MESSAGES = 8192  # held back to be sorted with the next block's messages
 MERGE_READ_BYTES = 256 * 1024  # each run's read buffer in the external merge
 SCRATCH_PREFIX = ".pisc-sort-"  # the external merge's temporary directory, beside the bag
-
-# MCAP record opcodes (MCAP specification, "Records")
-_HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
-_MESSAGE_INDEX, _CHUNK_INDEX, _ATTACHMENT_INDEX, _METADATA_INDEX = 0x07, 0x08, 0x0A, 0x0D
-_STATISTICS, _SUMMARY_OFFSET, _DATA_END = 0x0B, 0x0E, 0x0F
-_TALLIED = frozenset((_SCHEMA, _CHANNEL, _CHUNK, _MESSAGE_INDEX, _CHUNK_INDEX, _STATISTICS,
-                      _DATA_END, _FOOTER))
-_RECORD = struct.Struct("<BQ")  # opcode, length
-_MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time
-_MESSAGE_HEAD = 9 + _MESSAGE_FIXED  # a message record up to its data
-
-
-class NotMcap(ValueError):
-    """The file does not start with the MCAP magic."""
-
-
-@dataclass
-class Batch:
-    """Message records in ``data``, with the fields the ordering and indexes need."""
-
-    data: bytes
-    starts: np.ndarray  # int64: where each record starts (its opcode) in data
-    sizes: np.ndarray  # int64: each record's size, opcode and length included
-    log: np.ndarray  # uint64 log times
-    channel: np.ndarray  # uint16 channel ids
-    in_chunk: bool = False  # the messages of a chunk record
-
-    def __len__(self) -> int:
-        return len(self.starts)
-
-    def take(self, index: np.ndarray) -> Batch:
-        """The messages at ``index``, in that order, copied into a compact buffer (a
-        slice for each run of records that lie one after the other)."""
-        starts, sizes = self.starts[index], self.sizes[index]
-        ends = starts + sizes
-        cut = np.flatnonzero(starts[1:] != ends[:-1]) + 1
-        first = np.concatenate(([0], cut)).astype(np.int64)
-        last = np.concatenate((cut, [len(starts)])).astype(np.int64) - 1
-        view = memoryview(self.data)
-        data = b"".join([view[a:b] for a, b in zip(starts[first].tolist(),
-                                                   ends[last].tolist(), strict=True)]) \
-            if len(starts) else b""
-        return Batch(data, np.cumsum(sizes) - sizes, sizes, self.log[index],
-                     self.channel[index])
-
-
-def _batch(data: bytes, starts: list[int]) -> Batch:
-    """The messages whose records start at ``starts`` in ``data``."""
-    at = np.asarray(starts, dtype=np.int64)
-    if not len(at):
-        return Batch(data, at, at, np.zeros(0, np.uint64), np.zeros(0, np.uint16))
-    whole = np.frombuffer(data, dtype=np.uint8)
-    heads = np.lib.stride_tricks.sliding_window_view(whole, _MESSAGE_HEAD)[at]
-    length = heads[:, 1:9].copy().view("<u8")[:, 0]
-    channel = heads[:, 9:11].copy().view("<u2")[:, 0]
-    log = heads[:, 15:23].copy().view("<u8")[:, 0]
-    return Batch(data, at, length.astype(np.int64) + 9, log.astype(np.uint64),
-                 channel.astype(np.uint16))
-
-
-def _concat(parts: list[Batch]) -> Batch:
-    """One batch of several, their buffers joined."""
-    if len(parts) == 1:
-        return parts[0]
-    shift = np.cumsum([0] + [len(p.data) for p in parts[:-1]])
-    return Batch(b"".join(p.data for p in parts),
-                 np.concatenate([p.starts + s for p, s in zip(parts, shift, strict=True)]),
-                 np.concatenate([p.sizes for p in parts]),
-                 np.concatenate([p.log for p in parts]),
-                 np.concatenate([p.channel for p in parts]))
-
-
-class RecordScan:
-    """The records of an MCAP file, walked in blocks (see the module).
-
-    :meth:`batches` yields the messages in file order; the schemas and channels found on
-    the way are in :attr:`schemas` and :attr:`channels` (by id, in file order) and, until
-    a writer takes them, in :attr:`new_definitions`.
-    """
-
-    def __init__(self, path: Path, block_bytes: int | None = None) -> None:
-        self.path = Path(path)
-        self.block_bytes = block_bytes or BLOCK_BYTES
-        self.schemas: dict[int, Any] = {}
-        self.channels: dict[int, Any] = {}
-        self.new_definitions: list[Any] = []
-        self.size = 0
-        self.whole_bytes = 0  # offset after the last whole record
-        self.stopped: str | None = None  # why records stopped being taken before the end
-        # tallies for index_counts: messages dropped for want of a channel, chunk
-        # records, message index entries, chunk indexes, the last statistics' message
-        # count, a footer seen, and what makes the tallies unsure
-        self.unknown = self.chunk_records = self.indexed = self.chunk_indexes = 0
-        self.statistics: int | None = None
-        self.footer = False
-        self.unsure: str | None = None
-
-    def batches(self) -> Iterator[Batch]:
-        with self.path.open("rb") as stream:
-            stream.seek(0, io.SEEK_END)
-            self.size = stream.tell()
-            stream.seek(0)
-            if stream.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-                raise NotMcap("not an MCAP file (it does not start with the MCAP magic)")
-            buf_at = self.whole_bytes = len(MCAP_MAGIC)  # file offset of buf[0]
-            buf = b""
-            need = 0
-            while buf_at + len(buf) < self.size:
-                buf += stream.read(max(self.block_bytes, need))
-                pos, need, found = self._walk(buf, buf_at)
-                for batch in found:
-                    if len(batch):
-                        yield batch
-                self.whole_bytes = buf_at + pos
-                if need < 0:  # a record runs past the end of the file
-                    return
-                buf, buf_at = buf[pos:], buf_at + pos
-
-    def _walk(self, buf: bytes, buf_at: int) -> tuple[int, int, list[Batch]]:
-        """The whole records of ``buf``: (end of the last, bytes the next one needs, or -1
-        when it runs past the end of the file; the batches of messages found)."""
-        found: list[Batch] = []
-        starts: list[int] = []
-        unpack = _RECORD.unpack_from
-        pos, end = 0, len(buf)
-        live = self.stopped is None
-        while pos + 9 <= end:
-            op, length = unpack(buf, pos)
-            nxt = pos + 9 + length
-            if nxt > end:
-                return pos, (nxt - pos if buf_at + nxt <= self.size else -1), \
-                    self._close_batch(buf, starts, found)
-            if op in _TALLIED:
-                self._tally(op, buf[pos + 9:nxt], live)
-            if live:
-                if op == _MESSAGE:
-                    if length >= _MESSAGE_FIXED:
-                        starts.append(pos)
-                    else:
-                        live = self._stop("a message record shorter than its fields")
-                elif op in (_SCHEMA, _CHANNEL):
-                    # the messages before it are checked against the channels before it
-                    self._close_batch(buf, starts, found)
-                    starts = []
-                    live = self._definition(op, buf[pos + 9:nxt])
-                elif op == _CHUNK:
-                    self._close_batch(buf, starts, found)
-                    starts = []
-                    inner = self._chunk(buf[pos + 9:nxt])
-                    if inner is not None:
-                        found.append(inner)
-                    live = self.stopped is None
-                elif op in (_DATA_END, _FOOTER):
-                    live = self._stop("")
-            pos = nxt
-        return pos, 9, self._close_batch(buf, starts, found)
-
-    def _tally(self, op: int, body: bytes, live: bool) -> None:
-        from mcap.data_stream import ReadDataStream
-        from mcap.records import Channel, Schema, Statistics
-
-        try:
-            if op == _CHUNK:
-                self.chunk_records += 1
-            elif op == _MESSAGE_INDEX:
-                self.indexed += struct.unpack_from("<I", body, 2)[0] // 16
-            elif op == _CHUNK_INDEX:
-                self.chunk_indexes += 1
-            elif op == _STATISTICS:
-                self.statistics = Statistics.read(ReadDataStream(io.BytesIO(body))).message_count
-            elif op == _DATA_END:
-                if struct.unpack_from("<I", body)[0]:
-                    self.unsure = "a data section CRC"  # the reader checks it
-            elif op == _FOOTER:
-                self.footer = True
-            elif not live:  # a schema or channel of the summary
-                (Schema if op == _SCHEMA else Channel).read(ReadDataStream(io.BytesIO(body)))
-        except Exception as exc:  # noqa: BLE001 - a record that does not parse
-            self.unsure = f"{type(exc).__name__}: {exc}"
-
-    def _stop(self, why: str) -> bool:
-        if self.stopped is None:
-            self.stopped = why
-        return False
-
-    def _close_batch(self, buf: bytes, starts: list[int], found: list[Batch]) -> list[Batch]:
-        if starts:
-            found.append(self._known(_batch(buf, starts)))
-        return found
-
-    def _known(self, batch: Batch) -> Batch:
-        """Without the messages of channels that have no channel record (yet)."""
-        known = np.isin(batch.channel, np.fromiter(self.channels, dtype=np.uint16,
-                                                   count=len(self.channels)))
-        if known.all():
-            return batch
-        self.unknown += int(np.count_nonzero(~known))
-        return Batch(batch.data, batch.starts[known], batch.sizes[known], batch.log[known],
-                     batch.channel[known])
-
-    def _definition(self, op: int, body: bytes) -> bool:
-        from mcap.data_stream import ReadDataStream
-        from mcap.records import Channel, Schema
-
-        try:
-            stream = ReadDataStream(io.BytesIO(body))
-            record = (Schema if op == _SCHEMA else Channel).read(stream)
-            if stream.count > len(body):
-                raise ValueError("runs past its record")
-        except Exception:  # noqa: BLE001 - a record that does not parse ends the data
-            return self._stop(f"a {'schema' if op == _SCHEMA else 'channel'} record that "
-                              "does not parse")
-        (self.schemas if op == _SCHEMA else self.channels)[record.id] = record
-        self.new_definitions.append(record)
-        return True
-
-    def _chunk(self, body: bytes) -> Batch | None:
-        """The messages of a chunk record (its schemas and channels taken), or None when
-        it does not parse or its CRC is wrong (none of its records are taken then)."""
-        from mcap.data_stream import ReadDataStream
-        from mcap.records import Chunk
-        from mcap.stream_reader import get_chunk_data_stream
-
-        try:
-            chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
-            stream, size = get_chunk_data_stream(chunk, validate_crc=True)
-            data = stream.read(size)
-            records = []  # (opcode, start, end)
-            pos = 0
-            while pos < len(data):
-                op, length = _RECORD.unpack_from(data, pos)
-                nxt = pos + 9 + length
-                if nxt > len(data) or (op == _MESSAGE and length < _MESSAGE_FIXED):
-                    raise ValueError("a record runs past its chunk")
-                records.append((op, pos, nxt))
-                pos = nxt
-        except Exception:  # noqa: BLE001 - whatever the chunk's decoding raises
-            self._stop("a chunk that does not parse")
-            return None
-        batches: list[Batch] = []
-        starts: list[int] = []
-        for op, pos, nxt in records:
-            if op == _MESSAGE:
-                starts.append(pos)
-            elif op in (_SCHEMA, _CHANNEL):
-                self._close_batch(data, starts, batches)
-                starts = []
-                if not self._definition(op, data[pos + 9:nxt]):
-                    break
-        self._close_batch(data, starts, batches)
-        inner = _concat(batches) if batches else _batch(b"", [])
-        inner.in_chunk = True
-        return inner
-
 
 @dataclass
 class Written:
@@ -438,7 +193,7 @@ class IndexedWriter:
         log = np.concatenate([t for _, t, _ in self._index])
         at = np.concatenate([a for _, _, a in self._index])
         start = self._pos
-        head = struct.pack("<BQQQQIIQ", _CHUNK, 8 + 8 + 8 + 4 + 4 + 8 + len(data),
+        head = struct.pack("<BQQQQIIQ", OP_CHUNK, 8 + 8 + 8 + 4 + 4 + 8 + len(data),
                            int(log.min()), int(log.max()), len(data), zlib.crc32(data), 0,
                            len(data))
         self._write(head)
@@ -453,7 +208,7 @@ class IndexedWriter:
             pairs[:, 0] = log[mine]
             pairs[:, 1] = at[mine]
             offsets[cid] = index_start + sum(len(p) for p in parts)
-            parts.append(struct.pack("<BQHI", _MESSAGE_INDEX, 2 + 4 + pairs.nbytes, cid,
+            parts.append(struct.pack("<BQHI", OP_MESSAGE_INDEX, 2 + 4 + pairs.nbytes, cid,
                                      pairs.nbytes) + pairs.tobytes())
         indexes = b"".join(parts)
         self._write(indexes)
@@ -485,22 +240,22 @@ class IndexedWriter:
             offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + begin,
                                          group_length=summary.count - begin))
 
-        group(_SCHEMA, list(self.schemas.values()))
-        group(_CHANNEL, list(self.channels.values()))
-        group(_STATISTICS, [Statistics(
+        group(OP_SCHEMA, list(self.schemas.values()))
+        group(OP_CHANNEL, list(self.channels.values()))
+        group(OP_STATISTICS, [Statistics(
             attachment_count=0, channel_count=len(self.channels),
             channel_message_counts=dict(self.counts), chunk_count=len(self._chunk_indexes),
             message_count=self.messages, message_end_time=self.last_ns,
             message_start_time=self.first_ns, metadata_count=0,
             schema_count=len(self.schemas))])
-        group(_CHUNK_INDEX, self._chunk_indexes)
-        group(_ATTACHMENT_INDEX, [])
-        group(_METADATA_INDEX, [])
+        group(OP_CHUNK_INDEX, self._chunk_indexes)
+        group(OP_ATTACHMENT_INDEX, [])
+        group(OP_METADATA_INDEX, [])
         offset_start = summary_start + summary.count
         for offset in offsets:
             offset.write(summary)
         data = summary.end()
-        crc = zlib.crc32(struct.pack("<BQQQ", _FOOTER, 8 + 8 + 4, summary_start, offset_start),
+        crc = zlib.crc32(struct.pack("<BQQQ", OP_FOOTER, 8 + 8 + 4, summary_start, offset_start),
                          zlib.crc32(data))
         self._write(data)
         Footer(summary_start=summary_start, summary_offset_start=offset_start,
@@ -593,7 +348,7 @@ def _window(scan: RecordScan, writer: IndexedWriter, hold: int) -> None:
     for batch in scan.batches():
         if flushed is not None and len(batch) and int(batch.log.min()) < flushed:
             raise _OutOfWindow
-        pool = batch if held is None else _concat([held, batch])
+        pool = batch if held is None else concat([held, batch])
         order = np.argsort(pool.log, kind="stable")
         cut = max(0, len(order) - hold)
         if cut:
@@ -636,7 +391,7 @@ def _run_records(path: Path) -> Iterator[tuple[int, bytes]]:
             more = stream.read(MERGE_READ_BYTES)
             buf += more
             pos = 0
-            while pos + _MESSAGE_HEAD <= len(buf):
+            while pos + MESSAGE_HEAD <= len(buf):
                 (length,) = struct.unpack_from("<Q", buf, pos + 1)
                 nxt = pos + 9 + length
                 if nxt > len(buf):
@@ -651,4 +406,4 @@ def _run_records(path: Path) -> Iterator[tuple[int, bytes]]:
 def _records_batch(records: list[bytes]) -> Batch:
     data = b"".join(records)
     sizes = np.fromiter((len(r) for r in records), dtype=np.int64, count=len(records))
-    return _batch(data, (np.cumsum(sizes) - sizes).tolist())
+    return message_batch(data, (np.cumsum(sizes) - sizes).tolist())

@@ -1,6 +1,6 @@
 """Recorder node: every graph topic, raw, into a rosbag2 MCAP bag, as soon as it arrives.
 
-The recorder runs in a process of its own (:mod:`pisc_bag.record`), so nothing it
+The recorder runs in a process of its own (:mod:`pisc_bag.record_cli`), so nothing it
 does delays the control loop's callbacks; what it must do is keep up, because whatever
 it has not yet written when it is killed is lost. So it does not go through an
 executor: :meth:`RecorderNode.take` waits on one wait set for any of its subscriptions,
@@ -15,7 +15,7 @@ Subscriptions keep all history (``KEEP_ALL``) with the topic's reliability and
 durability, so the recorder never drops what it has taken. A reliable publisher keeps
 its last 100 messages (the topic's depth) until the recorder has acknowledged them: a
 recorder that falls further behind, or has not yet matched a publisher that already
-matched it, loses the older ones. :mod:`pisc_bag.record` reports when it has matched
+matched it, loses the older ones. :mod:`pisc_bag.record_cli` reports when it has matched
 every publisher (``--ready-file``); the runner starts the graph after that.
 
 A recorder that falls more than 100 messages behind loses the oldest, and a lockstep

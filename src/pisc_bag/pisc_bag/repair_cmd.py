@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pisc_bag.bag import repair_bag
+from pisc_bag.bag_repair import repair_bag
 
 __all__ = ["add_arguments", "run"]
 

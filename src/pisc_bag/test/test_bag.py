@@ -10,15 +10,9 @@ import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from pisc_bag.bag import (
-    CHUNK_SIZE,
-    BagError,
-    BagWriter,
-    index_problems,
-    read_bag,
-    read_bag_raw,
-    repair_bag,
-)
+from pisc_bag.bag import BagError, BagWriter, read_bag, read_bag_raw
+from pisc_bag.bag_index import CHUNK_SIZE
+from pisc_bag.bag_repair import index_problems, repair_bag
 from pisc_bag.bag_readers import READERS, read_every_way
 from pisc_msgs_py.convert import stamp_from_msg
 from pisc_msgs_py.topics import GRAPH_TOPICS, JOINT_STATES, MODE, STATE

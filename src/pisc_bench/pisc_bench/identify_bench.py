@@ -164,7 +164,7 @@ def record_driver(truth: dict[str, float], duration_s: float, overrides: dict[st
         rig = RigProcess(["--realtime", RT_RIG, "--params-file", str(params)], env=env)
         try:
             graph = subprocess.run(
-                [sys.executable, "-m", "pisc_bringup.graph", "--scene", SCENE,
+                [sys.executable, "-m", "pisc_bringup.graph_cli", "--scene", SCENE,
                  "--driver", rig.device, "--duration", str(duration_s), "--bag", str(target),
                  "--realtime", RT_GRAPH, *sets],
                 env=env, capture_output=True, text=True, timeout=120 + 3 * duration_s)

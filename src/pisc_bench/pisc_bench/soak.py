@@ -684,7 +684,7 @@ def run(options: SoakOptions, out: Path, domain_id: int,
                 env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             if observer.stdout.readline().strip() != "loaded":
                 raise RuntimeError("the outside observer did not start")
-        command = [*console_command("pisc_graph", "pisc_bringup.graph"), "--clock", "wall",
+        command = [*console_command("pisc_graph", "pisc_bringup.graph_cli"), "--clock", "wall",
                    "--duration", f"{options.duration_s:g}", "--bag", str(out / "bag"),
                    "--domain-id", str(domain_id)]
         if options.driver:

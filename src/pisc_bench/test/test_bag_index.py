@@ -13,8 +13,10 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from pisc_bag import bag_index
-from pisc_bag.bag import CHUNK_SIZE, BagWriter, index_problems, repair_bag
+from pisc_bag import bag_index, mcap_scan
+from pisc_bag.bag import BagWriter
+from pisc_bag.bag_index import CHUNK_SIZE
+from pisc_bag.bag_repair import index_problems, repair_bag
 from pisc_bench.bag_bench import recorded_messages
 from pisc_bag.bag_readers import read_every_way
 from pisc_msgs_py.topics import GRAPH_TOPICS
@@ -85,7 +87,7 @@ def test_a_finished_bag_is_what_sorting_in_memory_gave_byte_for_byte(tmp_path, m
     assert sum(b[2] < a[2] for a, b in zip(messages, messages[1:])) > 1000  # inversions
     if hold is not None:
         monkeypatch.setattr(bag_index, "HOLD_MESSAGES", hold)
-        monkeypatch.setattr(bag_index, "BLOCK_BYTES", block)
+        monkeypatch.setattr(mcap_scan, "BLOCK_BYTES", block)
     writer.close()
     assert writer.path.read_bytes() == indexed_in_memory(stream)
     assert index_problems(writer.path) == []
@@ -103,7 +105,7 @@ def test_a_message_older_than_the_window_is_merged_into_its_place(tmp_path, monk
     messages = [*messages[:-1], late, messages[-1]]
     writer = write_stream(tmp_path / "bag", messages)
     stream = writer.path.read_bytes()
-    monkeypatch.setattr(bag_index, "BLOCK_BYTES", 256 * 1024)  # several runs
+    monkeypatch.setattr(mcap_scan, "BLOCK_BYTES", 256 * 1024)  # several runs
     out = tmp_path / "out.mcap"
     with out.open("wb") as f:
         written = bag_index.write_sorted(writer.path, f, "pisc")
@@ -123,7 +125,7 @@ def test_repair_of_a_cut_stream_gives_what_sorting_in_memory_gave(tmp_path, monk
     writer = write_stream(tmp_path / "live", messages)
     stream = writer.path.read_bytes()
     monkeypatch.setattr(bag_index, "HOLD_MESSAGES", 20)
-    monkeypatch.setattr(bag_index, "BLOCK_BYTES", 32 * 1024)
+    monkeypatch.setattr(mcap_scan, "BLOCK_BYTES", 32 * 1024)
     for cut in (len(stream) // 3, len(stream) - 5):
         bag = tmp_path / f"cut{cut}"
         bag.mkdir()
@@ -141,7 +143,7 @@ def test_finishing_holds_a_block_not_the_bag(tmp_path, monkeypatch):
     takes no more than a 10 s one plus a little, under 4 MB (a 128 KiB block, 1000
     messages held, the 768 KiB chunk and the buffers it is joined from). Reading the
     whole stream took about 0.5 kB a message, 4 times the stream."""
-    monkeypatch.setattr(bag_index, "BLOCK_BYTES", 128 * 1024)
+    monkeypatch.setattr(mcap_scan, "BLOCK_BYTES", 128 * 1024)
     monkeypatch.setattr(bag_index, "HOLD_MESSAGES", 1000)
     write_stream(tmp_path / "first", recorded_order(10)[:100]).close()  # imports done
     peaks, sizes = {}, {}
@@ -161,7 +163,7 @@ def test_the_index_check_walks_in_blocks_and_counts_what_the_mcap_reader_counts(
     """index_problems (repair's check of a finished file) counts by the record framing,
     as the mcap reader reading the file through counts; where the walk is not sure (a
     file cut short) the reader decides, and names what it cannot read."""
-    from pisc_bag.bag import _index_counts_by_reader, index_problems
+    from pisc_bag.bag_repair import _index_counts_by_reader
 
     writer = write_stream(tmp_path / "bag", recorded_order())
     stream = writer.path.read_bytes()
@@ -169,7 +171,7 @@ def test_the_index_check_walks_in_blocks_and_counts_what_the_mcap_reader_counts(
     unindexed.write_bytes(stream)
     with unindexed.open("ab") as out:
         out.write(bytes.fromhex("0f0400000000000000") + b"\0\0\0\0")  # data end, no CRC
-        out.write(bytes.fromhex("021400000000000000") + bytes(20) + bag_index.MCAP_MAGIC)
+        out.write(bytes.fromhex("021400000000000000") + bytes(20) + mcap_scan.MCAP_MAGIC)
     writer.close()
     zstd = tmp_path / "zstd.mcap"  # chunks compressed, as other writers may write them
     zstd.write_bytes(indexed_in_memory(stream, compression=CompressionType.ZSTD))

@@ -57,7 +57,7 @@ def test_free_swing_identifies_the_pendulum_against_the_hidden_truth(tmp_path, e
     hidden = tmp_path / "hidden.yaml"
     bench.truth_file(truth, hidden)
     for scene in ("excitation", "free-swing"):
-        done = run("pisc_bringup.graph", "--scene", scene, "--plant-config", str(hidden),
+        done = run("pisc_bringup.graph_cli", "--scene", scene, "--plant-config", str(hidden),
                    "--bag", str(tmp_path / scene), env=env)
         assert done.returncode in (0, 1) and "completed without a fault" in done.stdout
     motor = tmp_path / "motor.yaml"

@@ -61,7 +61,7 @@ def run(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
 
 
 def graph(config: str, hidden: str, bag: str, env: dict[str, str]) -> str:
-    done = run("pisc_bringup.graph", "--config", config, "--plant-config", hidden,
+    done = run("pisc_bringup.graph_cli", "--config", config, "--plant-config", hidden,
                "--bag", bag, env=env)
     assert done.returncode in (0, 1), done.stderr
     return done.stdout
@@ -77,7 +77,7 @@ def test_identified_then_tuned_catches_the_true_plant_the_default_does_not(tmp_p
     assert "result                 NOT CAUGHT" in graph("default", str(hidden),
                                                         str(tmp_path / "default-run"), env)
     # the excitation on the true plant, identified
-    done = run("pisc_bringup.graph", "--scene", "excitation", "--plant-config", str(hidden),
+    done = run("pisc_bringup.graph_cli", "--scene", "excitation", "--plant-config", str(hidden),
                "--bag", str(tmp_path / "excitation"), env=env)
     assert "completed without a fault" in done.stdout
     identified = tmp_path / "identified.yaml"

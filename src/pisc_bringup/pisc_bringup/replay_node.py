@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import importlib
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,13 +24,13 @@ from rclpy.parameter import Parameter
 from pisc_bag.bag import bag_topics, read_bag
 from pisc_runs.summary import foreign_in_bag
 from pisc_sim.configuration import load_graph_config
-from pisc_bringup.graph import (
-    CONTROLLERS,
-    EXECUTORS,
-    GraphError,
+from pisc_bringup.launch_graph import (
+    GraphNode,
+    controllers,
     expected_subscribers,
     ros_parameters,
 )
+from pisc_bringup.run_start import EXECUTORS, GraphError
 from pisc_runs.replay import (
     COMPARED_TOPICS,
     Outputs,
@@ -150,7 +150,8 @@ def replay_nodes(bag: str | Path, config: str | None = None,
                                  MOTOR_CURRENT.name: ("pisc_replay",)})
         params = [*ros_parameters(flat), Parameter("use_sim_time", value=False),
                   Parameter("start.publishers", value=fed)]
-        for spec in CONTROLLERS:
+        specs = controllers()  # sim.launch.xml's, as pisc_graph starts them
+        for spec in specs:
             cls = getattr(importlib.import_module(spec.module), spec.cls)
             nodes.append(cls(context=context, parameter_overrides=params))
         feeder = ReplayFeeder(run, context=context)
@@ -159,7 +160,7 @@ def replay_nodes(bag: str | Path, config: str | None = None,
         executor = EXECUTORS[executor_name](context=context)
         for node in [*nodes, feeder]:
             executor.add_node(node)
-        _spin_until(executor, lambda: _connected(nodes) and feeder.subscribers_matched(),
+        _spin_until(executor, lambda: _connected(nodes, specs) and feeder.subscribers_matched(),
                     30.0, "the nodes to connect")
         feeder.publish_next()
         _spin_until(executor, lambda: feeder.done, timeout,
@@ -181,7 +182,7 @@ def replay_nodes(bag: str | Path, config: str | None = None,
     return report
 
 
-def _connected(nodes: list[Node]) -> bool:
+def _connected(nodes: list[Node], specs: Sequence[GraphNode]) -> bool:
     """Every controller output reaches its subscribers among the controllers and the feeder."""
     for node in nodes:
         for publisher in node.publishers:
@@ -189,8 +190,7 @@ def _connected(nodes: list[Node]) -> bool:
                           if t.name == publisher.topic_name), None)
             if topic is None:
                 continue
-            if publisher.get_subscription_count() < expected_subscribers(topic, True,
-                                                                         CONTROLLERS):
+            if publisher.get_subscription_count() < expected_subscribers(topic, True, specs):
                 return False
     return True
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -14,11 +15,13 @@ import time
 import pytest
 
 from conftest import spin_until
-from pisc_bringup import graph
+from pisc_bringup import children
+from pisc_bringup.graph import recorded_counts
+from pisc_bringup.run_start import EXECUTORS
 
 
 def _child(code: str, tmp_path):
-    return graph._spawn([sys.executable, "-c", code], dict(os.environ), graph.subprocess.PIPE)
+    return children.spawn([sys.executable, "-c", code], dict(os.environ), subprocess.PIPE)
 
 
 def test_a_child_writing_much_to_stderr_is_not_blocked_and_its_last_lines_are_kept(tmp_path):
@@ -34,16 +37,16 @@ def test_a_child_writing_much_to_stderr_is_not_blocked_and_its_last_lines_are_ke
         time.sleep(0.05)
     assert done.exists()
     child.wait(timeout=60)  # its own exit (a SIGTERM from _stop could come first: -15)
-    problem, _ = graph._stop(child)
+    problem, _ = children.stop(child)
     assert problem.startswith(f"{os.path.basename(sys.executable)} exited with status 3: ")
     lines = problem.split(": ", 1)[1].splitlines()
-    assert lines[-1] == "bye" and len(lines) == graph.STDERR_TAIL_LINES
+    assert lines[-1] == "bye" and len(lines) == children.STDERR_TAIL_LINES
     assert lines[0].startswith("line 3801 ")
 
 
 def test_a_stopping_child_is_waited_for_while_it_works_and_killed_when_idle(tmp_path,
                                                                             monkeypatch):
-    monkeypatch.setattr(graph, "STOP_PATIENCE_S", 1.0)
+    monkeypatch.setattr(children, "STOP_PATIENCE_S", 1.0)
     # on SIGTERM it computes for 3 s more (a recorder finishing a long bag), then ends
     busy = _child("import signal, time\n"
                   "asked = []\n"
@@ -53,13 +56,13 @@ def test_a_stopping_child_is_waited_for_while_it_works_and_killed_when_idle(tmp_
                   "while time.monotonic() < asked[0] + 3: pass\n", tmp_path)
     assert busy.stdout.readline() == b"ready\n"
     started = time.monotonic()
-    problem, _ = graph._stop(busy)
+    problem, _ = children.stop(busy)
     assert problem == "" and busy.returncode == 0 and time.monotonic() - started >= 2.0
     # ignores SIGTERM and sleeps: no CPU for the patience, so it is killed
     idle = _child("import signal, time\nsignal.signal(signal.SIGTERM, lambda *a: None)\n"
                   "print('waiting', flush=True)\ntime.sleep(60)", tmp_path)
     assert idle.stdout.readline() == b"waiting\n"
-    problem, _ = graph._stop(idle)
+    problem, _ = children.stop(idle)
     assert idle.returncode == -signal.SIGKILL
     assert problem.startswith(f"{os.path.basename(sys.executable)} exited with status -9")
 
@@ -78,14 +81,14 @@ def test_a_controller_that_spins_after_sigterm_is_killed_with_a_warning(tmp_path
     callback in flight); pisc_graph waited for it, busy, up to STOP_LIMIT_S. A controller
     is now killed STOP_PATIENCE_S after SIGTERM, busy or not, with a warning; the source
     (plant or driver) stopped first, and a hang of the source stays a failure."""
-    monkeypatch.setattr(graph, "STOP_PATIENCE_S", 1.0)
-    monkeypatch.setattr(graph, "STOP_LIMIT_S", 30.0)  # what a busy child was granted
+    monkeypatch.setattr(children, "STOP_PATIENCE_S", 1.0)
+    monkeypatch.setattr(children, "STOP_LIMIT_S", 30.0)  # what a busy child was granted
     controller = _child(SPINS_ON_SIGTERM, tmp_path)
     source = _child("print('ready', flush=True)\nimport time\ntime.sleep(60)", tmp_path)
     assert controller.stdout.readline() == b"ready\n" == source.stdout.readline()
     started = time.monotonic()
-    assert graph._stop_all([controller, source]) == ["", ""]
-    assert time.monotonic() - started < graph.STOP_LIMIT_S  # killed before the busy limit
+    assert children.stop_all([controller, source]) == ["", ""]
+    assert time.monotonic() - started < children.STOP_LIMIT_S  # killed before the busy limit
     assert controller.returncode == -signal.SIGKILL and source.returncode == -signal.SIGTERM
     err = capsys.readouterr().err
     assert f"pisc_graph: {os.path.basename(sys.executable)} had not exited " in err, err
@@ -94,8 +97,8 @@ def test_a_controller_that_spins_after_sigterm_is_killed_with_a_warning(tmp_path
     # the same hang in the source is a failure
     hung = _child(SPINS_ON_SIGTERM, tmp_path)
     assert hung.stdout.readline() == b"ready\n"
-    monkeypatch.setattr(graph, "STOP_LIMIT_S", 1.5)
-    problem = graph._stop_all([hung])
+    monkeypatch.setattr(children, "STOP_LIMIT_S", 1.5)
+    problem = children.stop_all([hung])
     assert hung.returncode == -signal.SIGKILL
     assert problem[0].startswith(f"{os.path.basename(sys.executable)} exited with status -9")
 
@@ -103,11 +106,11 @@ def test_a_controller_that_spins_after_sigterm_is_killed_with_a_warning(tmp_path
 @pytest.mark.skipif(sys.platform != "linux",
                     reason="CPU ticks are read from /proc, which only Linux has")
 def test_cpu_ticks_grow_with_work():
-    before = graph._cpu_ticks(os.getpid())
+    before = children.cpu_ticks(os.getpid())
     end = time.process_time() + 0.3
     while time.process_time() < end:
         pass
-    assert graph._cpu_ticks(os.getpid()) > before
+    assert children.cpu_ticks(os.getpid()) > before
 
 
 def test_the_recorders_counts_are_read_past_fast_dds_log_lines_on_its_stdout():
@@ -116,7 +119,7 @@ def test_the_recorders_counts_are_read_past_fast_dds_log_lines_on_its_stdout():
               "Error] \x1b[37mCould not extract any profile\x1b[34;1m -> Function "
               "\x1b[36mextractProfiles\x1b[m\n"
               "/clock 2001\n/pisc/motor/voltage_sent 0\n")
-    assert graph.recorded_counts(output) == {"/pisc/joint_states": 2001, "/clock": 2001,
+    assert recorded_counts(output) == {"/pisc/joint_states": 2001, "/clock": 2001,
                                              "/pisc/motor/voltage_sent": 0}
 
 
@@ -126,10 +129,9 @@ _POLICY = "import os; print(os.sched_getscheduler(0))"
 def test_the_recorder_runs_at_sched_batch_and_other_children_at_the_runners_policy():
     """The recorder (batch_scheduling) must not preempt the graph's threads on each
     message it is woken by (docs/soak.md); the nodes' processes keep the runner's."""
-    recorder = graph._spawn([sys.executable, "-c", _POLICY], dict(os.environ),
-                            graph.subprocess.PIPE, batch_scheduling=True)
-    node = graph._spawn([sys.executable, "-c", _POLICY], dict(os.environ),
-                        graph.subprocess.PIPE)
+    recorder = children.spawn([sys.executable, "-c", _POLICY], dict(os.environ),
+                              subprocess.PIPE, batch_scheduling=True)
+    node = children.spawn([sys.executable, "-c", _POLICY], dict(os.environ), subprocess.PIPE)
     assert int(recorder.communicate(timeout=60)[0]) == os.SCHED_BATCH
     assert int(node.communicate(timeout=60)[0]) == os.sched_getscheduler(0)
 
@@ -137,28 +139,28 @@ def test_the_recorder_runs_at_sched_batch_and_other_children_at_the_runners_poli
 def test_under_sched_fifo_the_recorder_still_runs_at_sched_batch():
     """pisc_graph --realtime: the runner at SCHED_FIFO, its nodes' processes inherit it,
     the recorder does not."""
-    code = ("import os, sys\n"
+    code = ("import os, subprocess, sys\n"
             "try:\n"
             "    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))\n"
             "except PermissionError:\n"
             "    print('no SCHED_FIFO here'); sys.exit(0)\n"
-            "from pisc_bringup import graph\n"
-            f"spawn = lambda **kw: graph._spawn([sys.executable, '-c', {_POLICY!r}], "
-            "dict(os.environ), graph.subprocess.PIPE, **kw)\n"
+            "from pisc_bringup import children\n"
+            f"spawn = lambda **kw: children.spawn([sys.executable, '-c', {_POLICY!r}], "
+            "dict(os.environ), subprocess.PIPE, **kw)\n"
             "print(int(spawn(batch_scheduling=True).communicate(timeout=60)[0]), "
             "int(spawn().communicate(timeout=60)[0]))\n")
-    done = graph.subprocess.run([sys.executable, "-c", code], capture_output=True,
-                                text=True, timeout=120)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
     assert done.returncode == 0, done.stderr
     if done.stdout.strip() == "no SCHED_FIFO here":
         pytest.skip("SCHED_FIFO is not allowed here (CAP_SYS_NICE)")
     assert done.stdout.split() == [str(os.SCHED_BATCH), str(os.SCHED_FIFO)]
 
 
-def _until_stdin_closes() -> graph.subprocess.Popen:
+def _until_stdin_closes() -> subprocess.Popen:
     """A child that runs until the test closes its standard input."""
-    return graph.subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"],
-                                  stdin=graph.subprocess.PIPE)
+    return subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"],
+                            stdin=subprocess.PIPE)
 
 
 @pytest.fixture
@@ -172,7 +174,7 @@ def spun_node(request):
     context = Context()
     rclpy.init(context=context)
     node = Node("alarm_probe", context=context)
-    executor = graph.EXECUTORS[getattr(request, "param", "events")](context=context)
+    executor = EXECUTORS[getattr(request, "param", "events")](context=context)
     executor.add_node(node)
     yield node, executor
     executor.shutdown()
@@ -191,19 +193,19 @@ def test_a_childs_exit_runs_the_check_in_the_executors_thread_and_nothing_wakes_
     from rclpy.task import Future
 
     node, executor = spun_node
-    early = graph.subprocess.Popen([sys.executable, "-c", "pass"])
+    early = subprocess.Popen([sys.executable, "-c", "pass"])
     early.wait()  # reaped: no pidfd for it any more
     child = _until_stdin_closes()
     seen: list[tuple[str, int | None, str]] = []
     done = Future(executor=executor)
 
-    def on_exit(name: str, proc: graph.subprocess.Popen) -> None:
+    def on_exit(name: str, proc: subprocess.Popen) -> None:
         seen.append((name, proc.poll(), threading.current_thread().name))
         if name == "late" and proc.poll() is not None:
             done.set_result(None)
 
-    alarms = [graph._ExitAlarm(node, [early], lambda: on_exit("early", early)),
-              graph._ExitAlarm(node, [child], lambda: on_exit("late", child))]
+    alarms = [children.ExitAlarm(node, [early], lambda: on_exit("early", early)),
+              children.ExitAlarm(node, [child], lambda: on_exit("late", child))]
     try:
         for alarm in alarms:
             alarm.start(executor)
@@ -236,7 +238,7 @@ def test_without_pidfds_the_alarm_looks_on_a_timer(monkeypatch, spun_node):
     def no_pidfd(pid: int) -> int:
         raise OSError(38, "Function not implemented")
 
-    monkeypatch.setattr(graph.os, "pidfd_open", no_pidfd)
+    monkeypatch.setattr(children.os, "pidfd_open", no_pidfd)
     node, executor = spun_node
     child = _until_stdin_closes()
     looks = [0]
@@ -247,7 +249,7 @@ def test_without_pidfds_the_alarm_looks_on_a_timer(monkeypatch, spun_node):
         if child.poll() is not None and not done.done():
             done.set_result(None)
 
-    alarm = graph._ExitAlarm(node, [child], on_exit)
+    alarm = children.ExitAlarm(node, [child], on_exit)
     try:
         alarm.start(executor)
         assert alarm._thread is None  # no thread: the timer looks

@@ -11,9 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from pisc_bringup import graph
-from pisc_bringup.graph import NODE_KINDS, RunOptions, read_graph
+from pisc_bringup import graph_cli, run_start
+from pisc_bringup.graph import RunOptions
+from pisc_bringup.launch_graph import NODE_KINDS, read_graph, recorded_topics
 from pisc_bringup.launch_file import LaunchError, declared_args, launch_path, read_launch
+from pisc_msgs_py.topics import MARKERS
 from pisc_sim.configuration import load_run_config
 
 SRC = Path(__file__).resolve().parents[3] / "src"
@@ -68,7 +70,7 @@ def test_every_exec_is_a_console_script_of_its_package_setup_py(name, args):
 
 def test_the_console_script_reader_reads_what_setup_py_says():
     scripts = _setup_console_scripts("pisc_bringup")
-    assert scripts["pisc_graph"] == "pisc_bringup.graph"
+    assert scripts["pisc_graph"] == "pisc_bringup.graph_cli"
     assert "plant_node" not in scripts and "plant_node" in _setup_console_scripts("pisc_plant")
 
 
@@ -109,7 +111,7 @@ def test_launch_files_declare_the_nodes_pisc_graph_starts():
 def _run_files(tmp_path, options):
     _, flat, plant = load_run_config(options.config, options.overrides, options.plant_config,
                                      options.plant_overrides)
-    return graph._write_params(tmp_path, flat, None if options.driver_port else plant)
+    return run_start.write_params(tmp_path, flat, None if options.driver_port else plant)
 
 
 @pytest.mark.parametrize("processes", [False, True])
@@ -121,8 +123,8 @@ def test_pisc_graph_gives_the_launch_file_what_it_gave_the_nodes_before(tmp_path
     options = RunOptions(overrides={"initial.x_m": 0.05}, duration_s=3.0, processes=processes,
                          plant_overrides={"motor.resistance_ohm": 18.2})
     files = _run_files(tmp_path, options)
-    first = read_graph("sim", graph._launch_args(options, files))
-    g = graph._read_again(first, options, files, graph._run_args(options, first))
+    first = read_graph("sim", run_start.launch_args(options, files))
+    g = run_start.read_again(first, options, files, run_start.run_args(options, first))
     assert [n.name for n in g.nodes] == ["estimator", "supervisor", "current_loop", "plant"]
     clocks = 5 if processes else 4
     # in one process pisc_graph has seen every match before the plant starts: no settling
@@ -154,9 +156,9 @@ def test_node_processes_wait_until_their_publishers_have_matched_their_readers(l
     A publisher's match with the recorder can come long after the recorder's with it
     (docs/recording.md, "Late matches")."""
     g = read_graph("sim", {"markers": "true"})
-    recorded = graph.recorded_topics(None) + (graph.MARKERS,)
+    recorded = recorded_topics(None) + (MARKERS,)
     counted = [*g.controllers, *([g.source] if lockstep else [])]
-    told = {n.name: graph.awaiting(n, counted, recorded).parameters[
+    told = {n.name: run_start.awaiting(n, counted, recorded).parameters[
         "start.await_subscribers"] for n in (*g.controllers, *g.observers)}
     # supervisor and recorder; current loop and recorder (twice), the recorder alone for
     # the pendulum estimate; the recorder alone; the recorder, the tap and the plant; the
@@ -168,7 +170,7 @@ def test_node_processes_wait_until_their_publishers_have_matched_their_readers(l
                         f"/pisc/motor/voltage={3 if lockstep else 2}",
         "markers": "/pisc/markers=1"}
     # on the command line, after the launch file's parameters
-    command = graph.awaiting(g.controllers[0], counted, recorded).command()
+    command = run_start.awaiting(g.controllers[0], counted, recorded).command()
     assert command[-4:] == ["-p", "use_sim_time:=true", "-p",
                             "start.await_subscribers:=/pisc/state=2"]
 
@@ -176,8 +178,8 @@ def test_node_processes_wait_until_their_publishers_have_matched_their_readers(l
 def test_the_driver_waits_for_the_graphs_readers_and_the_recorder(tmp_path):
     options = RunOptions(clock="wall", driver_port="/dev/ttyUSB0", markers=True)
     files = _run_files(tmp_path, options)
-    first = read_graph("rig", graph._launch_args(options, files), driver=True)
-    g = graph._read_again(first, options, files, graph._run_args(options, first))
+    first = read_graph("rig", run_start.launch_args(options, files), driver=True)
+    g = run_start.read_again(first, options, files, run_start.run_args(options, first))
     assert [n.name for n in g.nodes] == ["estimator", "supervisor", "current_loop", "markers",
                                          "driver"]
     assert g.source.parameters == {"driver.port": "/dev/ttyUSB0", "driver.min_subscribers": 2}
@@ -236,16 +238,16 @@ def test_pisc_graph_launch_refuses_a_file_without_the_nodes_or_arguments_it_need
     and what is wrong, no traceback, no bag."""
     bag = tmp_path / "bag"
     path = edited_launch(tmp_path, "sim", ESTIMATOR, "")
-    assert graph.main(["--launch", str(path), "--duration", "1", "--bag", str(bag)]) == 2
+    assert graph_cli.main(["--launch", str(path), "--duration", "1", "--bag", str(bag)]) == 2
     err = capsys.readouterr().err
     assert f"{path}: no node publishes /pisc/state, which node 'supervisor'" in err
     assert "Traceback" not in err and not bag.exists()
     # a file that does not declare an argument pisc_graph gives it
     path = edited_launch(tmp_path, "sim", '<arg name="duration"', '<arg name="length"')
-    assert graph.main(["--launch", str(path), "--duration", "1", "--bag", str(bag)]) == 2
+    assert graph_cli.main(["--launch", str(path), "--duration", "1", "--bag", str(bag)]) == 2
     err = capsys.readouterr().err
     assert f"{path}: argument 'duration' is not declared" in err and not bag.exists()
-    assert graph.main(["--launch", str(tmp_path / "none.launch.xml"), "--bag", str(bag)]) == 2
+    assert graph_cli.main(["--launch", str(tmp_path / "none.launch.xml"), "--bag", str(bag)]) == 2
     assert "none.launch.xml: no such launch file" in capsys.readouterr().err
     assert not bag.exists()
 

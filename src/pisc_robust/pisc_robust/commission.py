@@ -307,7 +307,7 @@ def run_graph(rig: Rig, args: list[str], env: Mapping[str, str], duration_s: flo
     when the graph could not run (exit 2, or no end)."""
     from pisc_plant.rig_process import RigProcess
 
-    command = [sys.executable, "-m", "pisc_bringup.graph", *args]
+    command = [sys.executable, "-m", "pisc_bringup.graph_cli", *args]
     if rig.realtime and rig.kind != "lockstep":
         command += ["--realtime", str(rig.realtime)]
     virtual = None

@@ -91,7 +91,7 @@ __all__ = ["DEFAULT_FIT", "UNKNOWNS", "FitError", "IdentifyError", "Recording", 
            "format_report", "identify", "load_base", "parse_fit", "plot_overlay",
            "read_recording", "recording_from_arrays", "result_flat", "write_result"]
 
-CONTROLLERS_PARAMS = "pisc_params.yaml"  # the bag's controllers' file (pisc_bringup.graph)
+CONTROLLERS_PARAMS = "pisc_params.yaml"  # the bag's controllers' file (pisc_bringup.run_start)
 MEASURED = (JOINT_STATES.name, MOTOR_CURRENT.name, VOLTAGE.name)
 QUANTISATION_RMS = 1.0 / math.sqrt(12.0)  # of a step, for a uniform error
 STATE_SCALE = np.array([0.002, 0.02, 0.002, 0.05, 0.005, 0.005])  # x, x', th, th', v_ir, v_cur

@@ -103,6 +103,32 @@ def test_compressed_chunks_give_the_same_columns(tmp_path):
     _same_columns_as_messages(bag, _messages(SWINGUP), block_bytes=4096)
 
 
+def test_a_chunk_whose_crc_is_wrong_is_refused_by_the_shared_walk(tmp_path):
+    """One byte changed in a chunk's records: the walk the column reader and the indexer
+    share (pisc_bag.mcap_scan) stops there, so the columns go to the message path and
+    repair's check of the file says it cannot be read through."""
+    import shutil
+
+    from mcap.reader import make_reader
+
+    from pisc_bag.bag_repair import index_problems
+
+    bag = tmp_path / "crc"
+    shutil.copytree(SWINGUP, bag)
+    path = next(bag.glob("*.mcap"))
+    with path.open("rb") as stream:
+        chunk = make_reader(stream).get_summary().chunk_indexes[1]
+    data = bytearray(path.read_bytes())
+    at = chunk.chunk_start_offset + chunk.chunk_length - 1000  # in a message of the chunk
+    data[at] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(FastPathRefused, match="a chunk that does not parse"):
+        read_columns(bag, list(TABLE_TOPICS))
+    problems = index_problems(path)
+    assert len(problems) == 1 and problems[0].startswith(
+        "it cannot be read through (CRCValidationError"), problems
+
+
 def _joint_message(data: bytes):
     return TYPESTORE.deserialize_cdr(data, "sensor_msgs/msg/JointState")
 
@@ -244,7 +270,7 @@ def test_decimation_keeps_every_peak_and_leaves_short_runs_alone():
 def test_pisc_bag_analyse_loads_neither_rclpy_nor_the_graph(tmp_path):
     code = ("import sys; from pisc_bringup.bag_cli import main; "
             f"rc = main(['analyse', {str(SWINGUP)!r}, '--out', {str(tmp_path)!r}]); "
-            "print(rc, 'rclpy' in sys.modules, 'pisc_bringup.graph' in sys.modules)")
+            "print(rc, 'rclpy' in sys.modules, 'pisc_bringup.run_start' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert out.stdout.strip().splitlines()[-1] == "0 False False", out.stderr

@@ -38,7 +38,7 @@ def free_port() -> int:
 
 
 def graph(bag: Path, env: dict[str, str], *extra: str) -> subprocess.Popen:
-    return subprocess.Popen([*console_command("pisc_graph", "pisc_bringup.graph"), "--bag",
+    return subprocess.Popen([*console_command("pisc_graph", "pisc_bringup.graph_cli"), "--bag",
                              str(bag), "--duration", "8", *extra], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 

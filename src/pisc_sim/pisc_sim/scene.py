@@ -66,7 +66,7 @@ class Scene:
     overrides: dict[str, Any]  # flat parameter overrides of the configuration
     config: GraphConfig
     flat: dict[str, Any]  # the configuration's flat parameters with the overrides
-    # topics pisc_graph records besides the run's own (pisc_bringup.graph.RUN_TOPICS);
+    # topics pisc_graph records besides the run's own (pisc_bringup.launch_graph.RUN_TOPICS);
     # None: every topic
     record: tuple[str, ...] | None = None
     # model error: flat overrides of the plant only (the plant: block), applied after
