@@ -6,7 +6,7 @@ included), then pisc_identify.
 R, J_m, the cart's Coulomb and viscous friction within 5 % (friction: 10 % or 0.005,
 whichever is larger); L reported not identifiable (at 5 ms sampling it acts only as a
 delay would, and each command's delay is not known to that precision); the 95 %
-intervals cover the truth (the benchmark, ``python -m pisc_bench.identify_bench``,
+intervals cover the truth (the benchmark, ``python -m pisc_bench.identify_bench_cli``,
 counts that over 20 draws); the identification's wall time for each recording is
 printed. Each run is the ``excitation`` scene (60 s, each bit's magnitude between 1.02 and
 1.7 N: J_m / r^2 is 0.2-0.8 % of the moving mass, and 30 s at 1.5 N left J_m's interval
