@@ -154,7 +154,7 @@ def test_the_tuned_file_and_the_report_name_every_input(commissioned):
     for name in ("numpy", "optuna", "numba", "scipy"):
         assert f"# version {name}: {metadata.version(name)}" in text
     assert "# version pisc: " in text and "# run: " in text
-    from pisc_robust.tune import space_for
+    from pisc_robust.tune_space import space_for
     from pisc_sim.configuration import load_graph_config
 
     chosen = space_for(load_graph_config("default")[1])  # the default's, by its settings

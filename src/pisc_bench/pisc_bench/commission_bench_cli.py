@@ -98,7 +98,9 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--{name.replace('_', '-')} {getattr(args, name)}: at least 1")
     if args.seed < 0:
         parser.error(f"--seed {args.seed}: 0 or more")
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from pisc_robust.robustness_args import quiet_threads
+
+    quiet_threads()
     from pisc_robust import commission as cm
 
     claim = None

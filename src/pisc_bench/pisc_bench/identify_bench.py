@@ -42,7 +42,9 @@ from typing import Any
 
 import numpy as np
 
-from pisc_robust import identify as idf
+from pisc_robust.identify import Result, identify
+from pisc_robust.identify_data import Recording, UNKNOWNS, parse_fit, recording_from_arrays
+from pisc_robust.identify_report import load_base
 from pisc_sim.configuration import config_path, load_run_config, params_file_text
 from pisc_msgs_py.config import load_params_file
 
@@ -69,7 +71,7 @@ COVERAGE = ("R", "L", "J_m", "cart_coulomb", "cart_viscous", "pivot_viscous")
 class Outcome:
     draw: int
     truth: dict[str, float]
-    result: idf.Result | None
+    result: Result | None
     error: str = ""
     wall_s: float = 0.0
     checks: dict[str, tuple[float, float, float, float, bool, bool]] = field(
@@ -95,7 +97,7 @@ def draw_truths(draws: int, seed: int, distribution: str = "thesis-rig",
 def expected(truth: dict[str, float], base: Any) -> dict[str, float]:
     """The values the estimates should find (cart viscous with b_m's share)."""
     r2 = base.motor.wheel_radius_m ** 2
-    out = {u.key: truth[u.name] for u in idf.UNKNOWNS if u.name in truth}
+    out = {u.key: truth[u.name] for u in UNKNOWNS if u.name in truth}
     if "cart_viscous" in out:
         out["cart_viscous"] += (truth.get("motor.viscous_friction_nms",
                                           base.motor.viscous_friction_nms)
@@ -127,7 +129,7 @@ def scene_experiment() -> tuple[dict[str, Any], float]:
 
 
 def record_lockstep(truth: dict[str, float], duration_s: float, overrides: dict[str, Any],
-                    seed: int) -> idf.Recording:
+                    seed: int) -> Recording:
     from pisc_sim.closed_loop import simulate
 
     plant = {"models.friction": "coulomb", "noise.seed": seed, **truth}
@@ -135,8 +137,8 @@ def record_lockstep(truth: dict[str, float], duration_s: float, overrides: dict[
     config, _, _ = load_run_config("default", {**experiment, **overrides},
                                    plant_overrides=plant)
     log = simulate(config, duration_s)
-    return idf.recording_from_arrays("lockstep", config.loop.period_s, log["x"], log["theta"],
-                                     log["i"], log["u"], experiment="excitation")
+    return recording_from_arrays("lockstep", config.loop.period_s, log["x"], log["theta"],
+                                 log["i"], log["u"], experiment="excitation")
 
 
 def truth_file(truth: dict[str, float], path: Path) -> None:
@@ -175,10 +177,10 @@ def record_driver(truth: dict[str, float], duration_s: float, overrides: dict[st
     raise RuntimeError(f"the excitation run through the driver failed {attempts} times:\n{last}")
 
 
-def identify_one(recording: idf.Recording, fit: str = FIT) -> tuple[idf.Result, float]:
-    base, _, _ = idf.load_base("default", [recording])
+def identify_one(recording: Recording, fit: str = FIT) -> tuple[Result, float]:
+    base, _, _ = load_base("default", [recording])
     started = time.perf_counter()
-    result = idf.identify([recording], idf.parse_fit(fit), base)
+    result = identify([recording], parse_fit(fit), base)
     return result, time.perf_counter() - started
 
 
@@ -200,7 +202,7 @@ def format_outcome(o: Outcome) -> str:
     return "\n".join(lines)
 
 
-def _timing(result: idf.Result) -> str:
+def _timing(result: Result) -> str:
     """How well the recording kept time: its sample-to-voltage latency as the bag has it
     (a run on a loaded machine answers late, and the fit's timing suffers)."""
     latency = np.concatenate([r.latency_s for r in result.recordings]) * 1e3

@@ -25,7 +25,7 @@ from pisc_bench.identify_bench import (
     scene_experiment,
     summary,
 )
-from pisc_robust import identify as idf
+from pisc_robust.identify_data import IdentifyError, read_recording
 from pisc_sim.configuration import load_run_config
 from pisc_msgs_py.config import ConfigError, parse_overrides
 
@@ -33,9 +33,12 @@ __all__ = ["main"]
 
 
 def main(argv: list[str] | None = None) -> int:
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    parser = argparse.ArgumentParser(prog="identify_bench", description="Benchmark of pisc_identify: rigs drawn from a "
-                                     "distribution, each identified from an excitation, against the truth")
+    from pisc_robust.robustness_args import quiet_threads
+
+    quiet_threads()
+    parser = argparse.ArgumentParser(
+        prog="identify_bench", description="Benchmark of pisc_identify: rigs drawn from a "
+        "distribution, each identified from an excitation, against the truth")
     parser.add_argument("--via", choices=("driver", "lockstep"), default="driver")
     parser.add_argument("--draws", type=int, default=20)
     parser.add_argument("--seed", type=int, default=1)
@@ -89,10 +92,10 @@ def main(argv: list[str] | None = None) -> int:
                                   if (p / "metadata.yaml").exists()) if args.keep else []
                     bag = kept[-1] if kept else record_driver(truth, duration, overrides,
                                                               bag)
-                    recording = idf.read_recording(bag)
+                    recording = read_recording(bag)
                 outcome.result, outcome.wall_s = identify_one(recording, args.fit)
                 judge(outcome, base.plant)
-            except (idf.IdentifyError, RuntimeError) as exc:
+            except (IdentifyError, RuntimeError) as exc:
                 outcome.error = str(exc)
             outcomes.append(outcome)
             print(format_outcome(outcome), flush=True)

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import shlex
 import sys
 import time
@@ -142,7 +141,9 @@ def main(argv: list[str] | None = None) -> int:
                      "(0 .. N-1)")
     if args.csv is not None and not args.csv.parent.is_dir():
         parser.error(f"--csv {args.csv}: directory {args.csv.parent} does not exist")
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from pisc_robust.robustness_args import quiet_threads
+
+    quiet_threads()
 
     import numpy as np
 
