@@ -42,8 +42,7 @@ def hidden_rigs(n: int, seed: int, say=print) -> list[tuple[int, dict[str, float
     import numpy as np
 
     from pisc_analysis.feasibility import exact_plant, find_witness, make_rig
-    from pisc_robust.feasibility_cli import witness_limits
-    from pisc_robust.robustness import load_benchmark
+    from pisc_robust.robustness import load_benchmark, witness_limits
     from pisc_runs.verdict import Criteria
 
     candidates = 20 * n
