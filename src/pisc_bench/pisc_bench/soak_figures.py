@@ -123,19 +123,19 @@ def usage_over(samples: Sequence[Sample], start_s: float, end_s: float) -> dict[
 
 
 
-#: Sample-to-voltage p99 [ms] a run must keep in one process: a fifth of the 5 ms period,
-#: so that a late cycle is rare enough for the loop's design (a period's delay) to hold
+#: Sample-to-voltage p99 [ms] in one process: 99 % of the cycles answer their sample within
+#: a fifth of the 5 ms period
 P99_MS = 1.0
-#: ... and through the serial driver, whose process, pseudo-terminal and the rig's read
-#: add their own wake-ups to every cycle
+#: ... through the serial driver, whose own process, pseudo-terminal and the rig's read
+#: lie on every cycle's way
 P99_DRIVER_MS = 2.0
-#: Cycles whose latency exceeds the period (each a voltage the rig got a period late)
+#: Cycles whose latency exceeds the period: each such voltage reached the rig a period late
 OVER_PERIOD = 0
-#: CPU of the four nodes (the graph's process, plus the driver's) [% of one core]: what a
-#: rig computer must spare for the loop beside the recorder and whatever else it runs
+#: CPU of the four nodes (the graph's process, and the driver's) [% of one core]: what the
+#: loop may take of the rig computer, beside the recorder and everything else it runs
 NODES_CPU_PERCENT = 15.0
-#: Resident memory growth of any process of the run over the window [MB]: a run of
-#: minutes must not leak toward an hour's
+#: Resident memory growth of each process of the run over the window [MB]: what a run of
+#: minutes may gain without leaking
 GROWTH_MB = 2.0
 
 
