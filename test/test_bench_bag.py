@@ -2,7 +2,7 @@
 
 They print figures (docs/recording.md quotes them) and assert only what holds on any
 load: that each measured run did its work, except the recorder-kill benchmark, which
-asserts its target (issue 15): at most one period of messages lost in every run.
+asserts its target: at most one period of messages lost in every run.
 
     ./pisc test -m bench -s test/test_bench_bag.py -k kill     # SIGKILL of pisc_record
     ./pisc test -m bench -s test/test_bench_bag.py -k finish   # indexing 10 s and 60 s bags
@@ -312,14 +312,14 @@ def test_bench_finish_a_recorded_bag(tmp_path, seconds):
 
 
 def test_bench_bag_tools_on_a_long_bag(tmp_path):
-    """``python -m pisc_bench.bag_bench``: finish, repair, analyse and replay of a bag
+    """``python -m pisc_bench.bag_bench_cli``: finish, repair, analyse and replay of a bag
     made from the reference bag, each in its own process (wall time, messages a second,
     peak resident memory). ``PISC_BENCH_BAG_SECONDS`` sets its length (default 60; 600
-    for the issue's 10-minute figures)."""
-    from pisc_bench import bag_bench
+    for the 10-minute figures)."""
+    from pisc_bench import bag_bench_cli
 
     seconds = os.environ.get("PISC_BENCH_BAG_SECONDS", "60")
-    assert bag_bench.main(["--seconds", seconds, "--dir", str(tmp_path)]) == 0
+    assert bag_bench_cli.main(["--seconds", seconds, "--dir", str(tmp_path)]) == 0
 
 
 if __name__ == "__main__" and sys.argv[1:2] == ["listen"]:

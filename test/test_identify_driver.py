@@ -6,7 +6,7 @@ included), then pisc_identify.
 R, J_m, the cart's Coulomb and viscous friction within 5 % (friction: 10 % or 0.005,
 whichever is larger); L reported not identifiable (at 5 ms sampling it acts only as a
 delay would, and each command's delay is not known to that precision); the 95 %
-intervals cover the truth (the benchmark, ``python -m pisc_bench.identify_bench``,
+intervals cover the truth (the benchmark, ``python -m pisc_bench.identify_bench_cli``,
 counts that over 20 draws); the identification's wall time for each recording is
 printed. Each run is the ``excitation`` scene (60 s, each bit's magnitude between 1.02 and
 1.7 N: J_m / r^2 is 0.2-0.8 % of the moving mass, and 30 s at 1.5 N left J_m's interval
@@ -20,7 +20,10 @@ import math
 import numpy as np
 import pytest
 
-from pisc_robust import identify as idf
+from pisc_robust.identify_data import parse_fit, read_recording, recording_from_arrays
+from pisc_robust.identify_model import Problem, config_value, model_plant
+from pisc_robust.identify_report import format_report
+from pisc_robust.identify_segments import make_segments
 from pisc_bench import identify_bench as bench
 from pisc_sim.configuration import load_run_config
 from pisc_msgs_py.topics import GRAPH_TOPICS, JOINT_STATES, MOTOR_CURRENT, VOLTAGE
@@ -43,7 +46,7 @@ def recorded_and_identified(tmp_path, env, k: int, truth: dict) -> bench.Outcome
     for attempt in range(2):
         bag = bench.record_driver(truth, duration, {}, tmp_path / f"draw-{k}-{attempt}",
                                   env=env)
-        recording = idf.read_recording(bag)
+        recording = read_recording(bag)
         outcome = bench.Outcome(k, truth, None)
         outcome.result, outcome.wall_s = bench.identify_one(recording)
         left = sum(b - a for _, a, b, reason in outcome.result.segments.left_out
@@ -62,7 +65,7 @@ def test_identified_from_driver_runs_within_the_issues_tolerances(tmp_path, env_
         outcome = recorded_and_identified(tmp_path, env_for_domain, k, truth)
         bench.judge(outcome, base)
         print(bench.format_outcome(outcome))
-        print(idf.format_report(outcome.result))
+        print(format_report(outcome.result))
         outcomes.append(outcome)
     print(bench.summary(outcomes))
     for o in outcomes:
@@ -111,16 +114,16 @@ def test_a_voltage_after_the_next_tick_acts_from_its_arrival_in_the_next_period(
     u = np.array([command_voltage(int(c)) for c in codes])
     latency = rng.uniform(0.3e-3, 4.0e-3, n)
     latency[[10, 30, 31, 60, 90]] = [6.1e-3, 5.4e-3, 7.9e-3, 9.2e-3, 5.02e-3]
-    rec = idf.recording_from_arrays("late", period, np.zeros(n), np.full(n, math.pi),
-                                    np.zeros(n), u, latency, wall_clock=True)
-    segments = idf.make_segments([rec], config.sensors, period, segment_s=10.0,
-                                 min_segment_s=0.1)
+    rec = recording_from_arrays("late", period, np.zeros(n), np.full(n, math.pi),
+                                np.zeros(n), u, latency, wall_clock=True)
+    segments = make_segments([rec], config.sensors, period, segment_s=10.0,
+                             min_segment_s=0.1)
     assert segments.count == 1 and segments.first[0] == 1 and not segments.left_out
-    fit = idf.parse_fit("R")
-    problem = idf.Problem(segments, config, fit, {
-        **{x.key: idf._value(idf.model_plant(config), x.name) for x in fit},
+    fit = parse_fit("R")
+    problem = Problem(segments, config, fit, {
+        **{x.key: config_value(model_plant(config), x.name) for x in fit},
         "delay": 0.0, "current_offset": 0.0})
-    plant = Plant(idf.model_plant(config))
+    plant = Plant(model_plant(config))
     # the firmware from rest, sample 0 answered on time with u[0] (the segment's start)
     fw = Firmware(plant, plant.initial_state(0.0, 0.0, math.pi, 0.0))
     fw.receive(int(codes[0]), latency[0])

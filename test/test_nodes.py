@@ -545,7 +545,7 @@ def test_a_stopping_node_gives_up_sched_fifo_before_it_destroys_its_node(env_for
     """run_node (and pisc_graph) leave SCHED_FIFO in the thread that destroys the node:
     Fast DDS's wait there takes no turns and starved the threads it waits for
     (base_node.leave_realtime). Other threads keep the policy."""
-    from pisc_bench.soak import check_realtime
+    from pisc_bench.soak_options import check_realtime
 
     refused = check_realtime(10)  # this container allows it; a machine without
     if refused is not None:  # CAP_SYS_NICE has no SCHED_FIFO to leave

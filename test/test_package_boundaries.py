@@ -206,3 +206,82 @@ def test_no_library_file_over_600_lines():
             for path in _modules(package).values()
             if (n := len(path.read_text().splitlines())) > 600}
     assert not long, long
+
+
+# -- the command-line convention ---------------------------------------------------------
+
+#: Modules that may define a top-level ``main`` without being a command module (``*_cli``,
+#: ``*_node``) or ``__main__.py``, each with its reason. Empty: every entry point is one.
+MAIN_ALLOWED: dict[str, str] = {}
+
+
+def _console_scripts(package: str) -> dict[str, str]:
+    """The console scripts of a package's setup.py: name -> ``module:function``."""
+    scripts: dict[str, str] = {}
+    tree = ast.parse((SRC / package / "setup.py").read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Dict):
+            for key, value in zip(node.keys, node.values, strict=True):
+                if (isinstance(key, ast.Constant) and key.value == "console_scripts"
+                        and isinstance(value, (ast.List, ast.Tuple))):
+                    for item in value.elts:
+                        name, _, target = str(item.value).partition("=")
+                        scripts[name.strip()] = target.strip()
+    return scripts
+
+
+def _defines_main(path: Path) -> bool:
+    return any(isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name == "main"
+               for node in ast.parse(path.read_text(), str(path)).body)
+
+
+def _kind(module: str) -> str:
+    """``cli``, ``node``, ``cmd``, ``main`` (a ``__main__``) or ``library``."""
+    leaf = module.rsplit(".", 1)[-1]
+    for suffix in ("cli", "node", "cmd"):
+        if leaf.endswith(f"_{suffix}"):
+            return suffix
+    return "main" if leaf == "__main__" else "library"
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_every_console_script_is_the_main_of_a_cli_or_node_module(package):
+    """A command is ``<pkg>.<name>_cli:main``, a node executable ``<pkg>.<name>_node:main``:
+    a reader finds every entry point by its module's name."""
+    modules = _modules(package)
+    wrong = {}
+    for name, target in _console_scripts(package).items():
+        module, _, function = target.partition(":")
+        if _kind(module) not in ("cli", "node") or function != "main":
+            wrong[name] = f"{target}: not the main of a *_cli or *_node module"
+        elif module not in modules:
+            wrong[name] = f"{target}: no such module in {package}"
+        elif not _defines_main(modules[module]):
+            wrong[name] = f"{target}: the module defines no main"
+    assert not wrong, wrong
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_only_command_modules_define_main(package):
+    """A library module defines no ``main``: what runs as a command is a ``*_cli``,
+    ``*_node`` or ``__main__`` module (:data:`MAIN_ALLOWED` lists any other, with why)."""
+    stray = sorted(module for module, path in _modules(package).items()
+                   if _kind(module) == "library" and _defines_main(path)
+                   and module not in MAIN_ALLOWED)
+    assert not stray, f"move each main into a *_cli module (or name why in MAIN_ALLOWED): {stray}"
+
+
+def test_no_module_imports_a_command_module():
+    """Nothing imports a ``*_cli`` module, and only a ``*_cli`` module (the dispatcher of
+    its package's subcommands) imports a ``*_cmd`` module: a command's code is reached
+    through the command, and what two commands share lives in a library module."""
+    wrong = {}
+    for package in PACKAGES:
+        for module, path in _modules(package).items():
+            for name in _imports(path):
+                target = name if _kind(name) in ("cli", "cmd") else name.rsplit(".", 1)[0]
+                kind = _kind(target)
+                if kind == "cli" or (kind == "cmd" and (
+                        _kind(module) != "cli" or not target.startswith(f"{package}."))):
+                    wrong.setdefault(module, set()).add(target)
+    assert not wrong, {m: sorted(t) for m, t in wrong.items()}

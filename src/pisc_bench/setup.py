@@ -19,11 +19,11 @@ setup(
     entry_points={
         'console_scripts': [
             'pisc_integrators = pisc_bench.integrators_cli:main',
-            'pisc_batch_bench = pisc_bench.batch_bench:main',
-            'pisc_commission_bench = pisc_bench.commission_bench:main',
-            'pisc_soak = pisc_bench.soak:main',
-            'pisc_bench = pisc_bench.bench:main',
-            'pisc_parser_bench = pisc_bench.parser_bench:main',
+            'pisc_batch_bench = pisc_bench.batch_bench_cli:main',
+            'pisc_commission_bench = pisc_bench.commission_bench_cli:main',
+            'pisc_soak = pisc_bench.soak_cli:main',
+            'pisc_bench = pisc_bench.bench_cli:main',
+            'pisc_parser_bench = pisc_bench.parser_bench_cli:main',
         ],
     },
 )

@@ -1,9 +1,9 @@
 """Benchmark of pisc_identify: rigs drawn from a distribution, an excitation recorded on
 each, identified, and the estimates and their 95 % intervals compared with the truth.
 
-    python -m pisc_bench.identify_bench [--via driver|lockstep] [--draws 20] [--seed 1]
-                                          [--duration S] [--set NAME=VALUE ...]
-                                          [--truth NAME=VALUE ...] [--keep DIR]
+    python -m pisc_bench.identify_bench_cli [--via driver|lockstep] [--draws 20] [--seed 1]
+                                              [--duration S] [--set NAME=VALUE ...]
+                                              [--truth NAME=VALUE ...] [--keep DIR]
 
 ``--via driver`` (default) records each run as on the rig: ``pisc_virtual_rig`` on a
 pseudo-terminal with the drawn plant as its parameter file, ``pisc_graph --scene
@@ -23,20 +23,18 @@ compared with is b_c + (b_m - b_m,base) / r^2.
 
 Prints, per draw, each parameter's truth, estimate, error and whether the 95 % interval
 covers the truth, then the coverage per parameter, how many estimates are within the
-issue's tolerances (R, J_m 5 %; friction 10 % or 0.005 whichever is larger; L 20 % or
-reported not identifiable), and the identification's wall time for the recording. Each
+tolerances (:data:`TOLERANCE`: R, J_m 5 %; friction 10 % or 0.005 whichever is larger;
+L 20 % or reported not identifiable), and the identification's wall time for the recording. Each
 draw's line gives its recording's sample-to-voltage latency (median, p99) as the bag has
 it: a run that the machine did not keep in time identifies worse.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,9 +42,11 @@ from typing import Any
 
 import numpy as np
 
-from pisc_robust import identify as idf
+from pisc_robust.identify import Result, identify
+from pisc_robust.identify_data import Recording, UNKNOWNS, parse_fit, recording_from_arrays
+from pisc_robust.identify_report import load_base
 from pisc_sim.configuration import config_path, load_run_config, params_file_text
-from pisc_msgs_py.config import ConfigError, load_params_file, parse_overrides
+from pisc_msgs_py.config import load_params_file
 
 #: The parameters each draw hides (from the distribution), and the rest kept nominal.
 DRAWN = ("motor.resistance_ohm", "motor.inductance_h", "motor.rotor_inertia_kgm2",
@@ -57,7 +57,8 @@ NOISE = ("noise.x_std_m", "noise.theta_std_rad", "noise.current_std_a")
 #: Drawn for lockstep runs only: through the driver the latency is the machine's own
 LOCKSTEP_ALSO = ("actuator.command_delay_s",)
 FIT = "R,L,J_m,cart_coulomb,cart_viscous,pivot_viscous,delay,current_offset"
-#: Tolerances of issue 14: relative, and an absolute floor (the larger wins).
+#: What an estimate must come within of its truth to count as identified: relative, and
+#: an absolute floor (the larger wins)
 TOLERANCE = {"R": (0.05, 0.0), "J_m": (0.05, 0.0), "cart_coulomb": (0.10, 0.005),
              "cart_viscous": (0.10, 0.005), "L": (0.20, 0.0)}
 RT_RIG, RT_GRAPH = "50", "40"
@@ -70,7 +71,7 @@ COVERAGE = ("R", "L", "J_m", "cart_coulomb", "cart_viscous", "pivot_viscous")
 class Outcome:
     draw: int
     truth: dict[str, float]
-    result: idf.Result | None
+    result: Result | None
     error: str = ""
     wall_s: float = 0.0
     checks: dict[str, tuple[float, float, float, float, bool, bool]] = field(
@@ -96,7 +97,7 @@ def draw_truths(draws: int, seed: int, distribution: str = "thesis-rig",
 def expected(truth: dict[str, float], base: Any) -> dict[str, float]:
     """The values the estimates should find (cart viscous with b_m's share)."""
     r2 = base.motor.wheel_radius_m ** 2
-    out = {u.key: truth[u.name] for u in idf.UNKNOWNS if u.name in truth}
+    out = {u.key: truth[u.name] for u in UNKNOWNS if u.name in truth}
     if "cart_viscous" in out:
         out["cart_viscous"] += (truth.get("motor.viscous_friction_nms",
                                           base.motor.viscous_friction_nms)
@@ -128,7 +129,7 @@ def scene_experiment() -> tuple[dict[str, Any], float]:
 
 
 def record_lockstep(truth: dict[str, float], duration_s: float, overrides: dict[str, Any],
-                    seed: int) -> idf.Recording:
+                    seed: int) -> Recording:
     from pisc_sim.closed_loop import simulate
 
     plant = {"models.friction": "coulomb", "noise.seed": seed, **truth}
@@ -136,8 +137,8 @@ def record_lockstep(truth: dict[str, float], duration_s: float, overrides: dict[
     config, _, _ = load_run_config("default", {**experiment, **overrides},
                                    plant_overrides=plant)
     log = simulate(config, duration_s)
-    return idf.recording_from_arrays("lockstep", config.loop.period_s, log["x"], log["theta"],
-                                     log["i"], log["u"], experiment="excitation")
+    return recording_from_arrays("lockstep", config.loop.period_s, log["x"], log["theta"],
+                                 log["i"], log["u"], experiment="excitation")
 
 
 def truth_file(truth: dict[str, float], path: Path) -> None:
@@ -176,10 +177,10 @@ def record_driver(truth: dict[str, float], duration_s: float, overrides: dict[st
     raise RuntimeError(f"the excitation run through the driver failed {attempts} times:\n{last}")
 
 
-def identify_one(recording: idf.Recording, fit: str = FIT) -> tuple[idf.Result, float]:
-    base, _, _ = idf.load_base("default", [recording])
+def identify_one(recording: Recording, fit: str = FIT) -> tuple[Result, float]:
+    base, _, _ = load_base("default", [recording])
     started = time.perf_counter()
-    result = idf.identify([recording], idf.parse_fit(fit), base)
+    result = identify([recording], parse_fit(fit), base)
     return result, time.perf_counter() - started
 
 
@@ -201,7 +202,7 @@ def format_outcome(o: Outcome) -> str:
     return "\n".join(lines)
 
 
-def _timing(result: idf.Result) -> str:
+def _timing(result: Result) -> str:
     """How well the recording kept time: its sample-to-voltage latency as the bag has it
     (a run on a loaded machine answers late, and the fit's timing suffers)."""
     latency = np.concatenate([r.latency_s for r in result.recordings]) * 1e3
@@ -244,76 +245,3 @@ def summary(outcomes: list[Outcome]) -> str:
                      f"{max(walls):.1f} s (per recording of the run's length; "
                      f"{os.cpu_count()} cores)")
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    parser = argparse.ArgumentParser(prog="identify_bench", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--via", choices=("driver", "lockstep"), default="driver")
-    parser.add_argument("--draws", type=int, default=20)
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--duration", type=float, default=None,
-                        help="length of each run, s (default: the excitation scene's)")
-    parser.add_argument("--distribution", default="thesis-rig")
-    parser.add_argument("--fit", default=FIT)
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                        help="override the experiment's parameters (e.g. experiment.signal=prbs)")
-    parser.add_argument("--truth", action="append", default=[], metavar="NAME=VALUE",
-                        help="set a parameter of every draw's hidden plant (e.g. "
-                        "noise.current_std_a=0: lockstep without the current's noise)")
-    parser.add_argument("--keep", type=Path, metavar="DIR", help="keep the bags here; a bag "
-                        "already there (draw-NNN of the same seed) is identified again "
-                        "instead of recorded")
-    args = parser.parse_args(argv)
-    try:
-        overrides = parse_overrides(args.set)
-        try:
-            fixed = parse_overrides(args.truth)
-        except ConfigError as exc:  # (its text names --set)
-            raise ConfigError(str(exc).replace("--set", "--truth", 1)) from None
-        truths = [{**t, **fixed} for t in draw_truths(args.draws, args.seed, args.distribution,
-                                                      args.via == "lockstep", noise=True)]
-    except ConfigError as exc:
-        print(f"identify_bench: {exc}", file=sys.stderr)
-        return 2
-    base, _, _ = load_run_config("default")
-    duration = args.duration if args.duration is not None else scene_experiment()[1]
-    claim = None
-    if args.via == "driver" and "ROS_DOMAIN_ID" not in os.environ:
-        # a ROS domain of its own: another graph on this machine (a test, a soak) must not
-        # hear these runs, nor they it
-        from pisc_msgs_py.processes import DomainClaim
-
-        claim = DomainClaim()
-        os.environ["ROS_DOMAIN_ID"] = str(claim.domain_id)
-    outcomes = []
-    with tempfile.TemporaryDirectory(prefix="identify-bench-") as tmp:
-        where = args.keep or Path(tmp)
-        where.mkdir(parents=True, exist_ok=True)
-        for k, truth in enumerate(truths):
-            outcome = Outcome(k, truth, None)
-            try:
-                if args.via == "lockstep":
-                    recording = record_lockstep(truth, duration, overrides, args.seed + k)
-                else:
-                    bag = where / f"draw-{k:03d}"
-                    # a draw recorded again (the machine did not keep time) is draw-NNN-A
-                    kept = sorted(p for p in where.glob(f"draw-{k:03d}*")
-                                  if (p / "metadata.yaml").exists()) if args.keep else []
-                    bag = kept[-1] if kept else record_driver(truth, duration, overrides,
-                                                              bag)
-                    recording = idf.read_recording(bag)
-                outcome.result, outcome.wall_s = identify_one(recording, args.fit)
-                judge(outcome, base.plant)
-            except (idf.IdentifyError, RuntimeError) as exc:
-                outcome.error = str(exc)
-            outcomes.append(outcome)
-            print(format_outcome(outcome), flush=True)
-    print(summary(outcomes))
-    if claim is not None:
-        claim.release()
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,6 +1,6 @@
 """The machine's own timer latency: the anchor of a soak's cycles over the period.
 
-    python -m pisc_bench.machine_probe --cpu N [--priority P] [--period 0.005] --out FILE
+    python -m pisc_bench.machine_probe_cli --cpu N [--priority P] [--period 0.005] --out FILE
 
 A bare loop that sleeps to absolute deadlines one period apart and keeps how late it
 woke at each (like cyclictest(8) of rt-tests, in Python: ``time.sleep`` is
@@ -20,7 +20,6 @@ docs/soak.md has what cyclictest itself measured beside it.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import signal
@@ -33,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ProbeRun", "Probes", "load", "main", "near_share", "probe_figures", "run_loop"]
+__all__ = ["ProbeRun", "Probes", "load", "near_share", "probe_figures", "run_loop"]
 
 
 def run_loop(period_ns: int, count: int, stop: list) -> tuple[int, np.ndarray]:
@@ -142,7 +141,7 @@ class Probes:
             for cpu in sorted(os.sched_getaffinity(0)):
                 path = out_dir / f"probe-cpu{cpu}.npz"
                 process = subprocess.Popen(
-                    [sys.executable, "-m", "pisc_bench.machine_probe", "--cpu", str(cpu),
+                    [sys.executable, "-m", "pisc_bench.machine_probe_cli", "--cpu", str(cpu),
                      "--priority", str(priority), "--period", repr(period_s),
                      "--max-duration", repr(max_duration_s), "--out", str(path)],
                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -174,45 +173,3 @@ class Probes:
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="machine_probe", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cpu", type=int, required=True, help="the CPU to pin the loop to")
-    parser.add_argument("--priority", type=int, default=0,
-                        help="SCHED_FIFO priority, 0 = normal scheduling (default 0)")
-    parser.add_argument("--period", type=float, default=0.005, help="[s] (default 0.005)")
-    parser.add_argument("--max-duration", type=float, default=3600.0,
-                        help="stop after this long [s] (default 3600)")
-    parser.add_argument("--out", type=Path, required=True, help="the .npz file to write")
-    args = parser.parse_args(argv)
-    if not (math.isfinite(args.period) and 1e-4 <= args.period <= 1.0):
-        parser.error(f"--period {args.period}: must be from 0.0001 to 1 s")
-    if not (math.isfinite(args.max_duration) and args.max_duration > 0):
-        parser.error(f"--max-duration {args.max_duration}: must be > 0 s")
-    if not args.out.parent.is_dir():  # refused now, not after the whole run
-        parser.error(f"--out {args.out}: {args.out.parent} is not a directory")
-    try:
-        os.sched_setaffinity(0, {args.cpu})
-        if args.priority:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.priority))
-    except (OSError, ValueError) as exc:
-        print(f"machine_probe: CPU {args.cpu}, priority {args.priority}: {exc}",
-              file=sys.stderr)
-        return 2
-    stop: list = []
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, lambda *_: stop.append(1))
-    period_ns = round(args.period * 1e9)
-    print("ready", flush=True)
-    start_unix_ns, lateness = run_loop(period_ns, math.ceil(args.max_duration * 1e9 / period_ns),
-                                       stop)
-    tmp = args.out.with_name(args.out.name + ".tmp.npz")
-    np.savez(tmp, lateness_ns=lateness, start_unix_ns=start_unix_ns, period_ns=period_ns,
-             cpu=args.cpu, priority=args.priority)
-    tmp.replace(args.out)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,4 +1,5 @@
-"""pisc_bench: issue 16's figures in one table, each against its target and its anchor."""
+"""pisc_bench: the project's speed and real-time figures in one table, each against its
+target and its anchor."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import sys
 
 import pytest
 
-from pisc_bench.bench import Row, format_rows, rows
+from pisc_bench.bench_cli import Row, format_rows, rows
 
 HOP = 40e-6
 KERNEL = 5e-6
@@ -45,7 +46,7 @@ def _row(table: list[Row], start: str) -> Row:
     return next(r for r in table if r.figure.startswith(start))
 
 
-def test_each_figure_is_judged_against_issue_16s_target_and_set_beside_its_anchor():
+def test_each_figure_is_judged_against_its_target_and_set_beside_its_anchor():
     table = rows(_results())
     assert _row(table, "first ./pisc run").met is False  # 121.5 s > 120 s
     one = _row(table, "lockstep loop, one process, 10 s")
@@ -85,16 +86,16 @@ def test_steps_not_run_leave_no_rows_and_no_anchor_leaves_no_ratio():
 
 
 def test_bad_options_are_refused_with_their_names():
-    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--soak-seconds", "5"],
+    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench_cli", "--soak-seconds", "5"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--soak-seconds >= 15" in bad.stderr
-    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--only", "lunch"],
+    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench_cli", "--only", "lunch"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "invalid choice: 'lunch'" in bad.stderr
-    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--only", "batch",
+    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench_cli", "--only", "batch",
                           "--skip", "batch"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "leave no step to run" in bad.stderr
-    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--out", __file__],
+    bad = subprocess.run([sys.executable, "-m", "pisc_bench.bench_cli", "--out", __file__],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "exists and is not a directory" in bad.stderr
 
@@ -102,7 +103,7 @@ def test_bad_options_are_refused_with_their_names():
 @pytest.mark.bench
 @pytest.mark.integration
 def test_a_short_run_measures_its_anchors_and_the_batch(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "pisc_bench.bench", "--only", "anchors",
+    done = subprocess.run([sys.executable, "-m", "pisc_bench.bench_cli", "--only", "anchors",
                            "batch", "--rigs", "200", "--out", str(tmp_path)],
                           capture_output=True, text=True, timeout=600)
     print(done.stdout)

@@ -154,7 +154,7 @@ def test_the_tuned_file_and_the_report_name_every_input(commissioned):
     for name in ("numpy", "optuna", "numba", "scipy"):
         assert f"# version {name}: {metadata.version(name)}" in text
     assert "# version pisc: " in text and "# run: " in text
-    from pisc_robust.tune import space_for
+    from pisc_robust.tune_space import space_for
     from pisc_sim.configuration import load_graph_config
 
     chosen = space_for(load_graph_config("default")[1])  # the default's, by its settings
@@ -291,8 +291,8 @@ def test_the_distribution_widens_each_interval_by_the_factor_about_its_estimate(
 
 
 def test_the_benchmarks_hidden_rig_is_a_plant_file_of_its_draw(tmp_path, capsys):
-    from pisc_bench.commission_bench import main as bench_main
-    from pisc_bench.commission_bench import plant_file
+    from pisc_bench.commission_bench_cli import main as bench_main
+    from pisc_bench.commission_bench_cli import plant_file
     from pisc_sim.configuration import PLANT_READS, load_run_config
 
     values = {"motor.resistance_ohm": 16.5, "friction.pivot_viscous_nms": 7e-5,

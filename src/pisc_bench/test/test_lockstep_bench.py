@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from pisc_bench.lockstep_bench import main
+from pisc_bench.lockstep_bench_cli import main
 
 pytestmark = [pytest.mark.bench, pytest.mark.integration]
 

@@ -1,4 +1,4 @@
-"""pisc_soak (issue 15 item 6, issue 16 item 3): its pure parts in the default suite,
+"""pisc_soak: its pure parts in the default suite,
 the command itself behind ``bench`` (``pytest src/pisc_bench/test/test_soak.py -m bench -s``)."""
 
 from __future__ import annotations
@@ -16,27 +16,20 @@ import numpy as np
 import pytest
 
 from pisc_bench.machine_probe import ProbeRun, Probes, load, probe_figures
-from pisc_bench.soak import (
-    DROP_RATE,
-    SILENCE_S,
+from pisc_bench.soak_cli import main
+from pisc_bench.soak_faults import DROP_RATE, SILENCE_S, fault_schedule, recoveries
+from pisc_bench.soak_figures import (
     Sample,
     Targets,
-    children_of,
     expected_cycles,
-    fault_schedule,
-    format_report,
     latency_figures,
-    main,
     missed_targets,
     observer_check,
-    read_proc,
-    read_steal,
-    recoveries,
-    start_load,
-    steal_figures,
-    stop_load,
     usage_over,
 )
+from pisc_bench.soak_options import start_load, stop_load
+from pisc_bench.soak_proc import children_of, read_proc, read_steal, steal_figures
+from pisc_bench.soak_report import format_report
 from pisc_plant.rig_faults import check_request
 
 # -- statistics --------------------------------------------------------------------------
@@ -80,7 +73,7 @@ def test_grid_stamps_count_the_span_in_periods_whatever_periods_were_skipped():
 
 
 def test_a_first_sample_that_arrived_late_does_not_shorten_the_span():
-    # 4001 frames, every one received; the first read came 8 ms late (issue 15: a 20 s
+    # 4001 frames, every one received; the first read came 8 ms late (as in a 20 s
     # driver run counted 4003 cycles against 4002 expected)
     stamps = arrivals(4001)
     stamps[0] += 8_000_000
@@ -328,7 +321,7 @@ def test_a_machine_probe_that_died_is_named_when_the_probes_stop(tmp_path):
 
 
 def test_a_machine_probe_on_a_cpu_that_does_not_exist_says_so(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "pisc_bench.machine_probe", "--cpu",
+    done = subprocess.run([sys.executable, "-m", "pisc_bench.machine_probe_cli", "--cpu",
                            "4096", "--out", str(tmp_path / "p.npz")],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and done.stdout == ""
@@ -339,7 +332,7 @@ def test_a_machine_probe_on_a_cpu_that_does_not_exist_says_so(tmp_path):
 
 
 def test_a_machine_probe_refuses_an_output_it_could_not_write_before_it_runs(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "pisc_bench.machine_probe", "--cpu", "0",
+    done = subprocess.run([sys.executable, "-m", "pisc_bench.machine_probe_cli", "--cpu", "0",
                            "--out", str(tmp_path / "nowhere" / "p.npz")],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and done.stdout == ""  # never said ready
@@ -349,7 +342,7 @@ def test_a_machine_probe_refuses_an_output_it_could_not_write_before_it_runs(tmp
 
 def test_a_soak_whose_machine_probe_cannot_start_says_so_without_a_traceback(
         tmp_path, capsys, monkeypatch):
-    import pisc_bench.soak as soak_module
+    import pisc_bench.soak_run as soak_module
 
     def refuse(*args, **kwargs):
         raise RuntimeError("the machine probe on CPU 0 did not start: refused")
@@ -537,7 +530,7 @@ def test_a_value_that_is_not_a_number_is_argparses_usage_error(capsys):
 
 def soak(tmp_path, *args: str) -> tuple[int, str, dict]:
     beside = Path(sys.executable).parent / "pisc_soak"
-    command = [str(beside)] if beside.exists() else [sys.executable, "-m", "pisc_bench.soak"]
+    command = [str(beside)] if beside.exists() else [sys.executable, "-m", "pisc_bench.soak_cli"]
     out = tmp_path / "soak"
     started = time.monotonic()
     done = subprocess.run([*command, *args, "--out", str(out)], capture_output=True,

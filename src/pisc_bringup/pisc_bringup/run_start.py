@@ -23,6 +23,7 @@ from rclpy.node import Node
 import yaml
 
 from pisc_bag.bag_repair import RepairReport
+from pisc_bag.run_files import PARAMS_FILE, PLANT_PARAMS_FILE
 from pisc_bringup.children import spawn, stderr_of, stop
 from pisc_bringup.dds import dds_environment
 from pisc_bringup.launch_graph import (
@@ -52,18 +53,13 @@ from pisc_msgs_py.topics import (
 from pisc_runs.summary import RunSummary
 from pisc_sim.configuration import load_run_config, write_params_file
 
-__all__ = ["CONTROLLERS_PARAMS", "EXECUTORS", "MAX_DOMAIN_ID", "PLANT_PARAMS",
-           "RECORDER_GATHER_S", "RECORDER_LAG_SAMPLES", "SAMPLE_TOPICS", "GraphError",
+__all__ = ["EXECUTORS", "MAX_DOMAIN_ID", "RECORDER_GATHER_S", "RECORDER_LAG_SAMPLES", "SAMPLE_TOPICS", "GraphError",
            "RecorderDied", "RunOptions", "RunPlan", "awaiting", "check_recorder",
            "checked_config", "clock_subscribers", "controllers_matched", "default_bag_dir",
            "expected_messages", "launch_args", "plan_run", "plant_description", "read_again",
            "recorder_args", "recorder_matched", "recorder_ready", "run_args",
            "start_processes", "wait_for", "write_params"]
 
-
-# The bag's parameter files: the controllers' (replay and analysis read it) and the plant's.
-CONTROLLERS_PARAMS = "pisc_params.yaml"
-PLANT_PARAMS = "plant_params.yaml"
 
 LAUNCH_FILES = {False: "sim", True: "rig"}
 
@@ -284,11 +280,11 @@ def recorder_args(options: RunOptions, plan: RunPlan, bag_dir: Path, ready: Path
 def write_params(directory: Path, flat: dict[str, Any],
                  plant_flat: dict[str, Any] | None) -> dict[str, Path]:
     """The run's parameter files in ``directory``: the controllers' and, for the simulated
-    plant, the plant's (:data:`CONTROLLERS_PARAMS`, :data:`PLANT_PARAMS`)."""
-    files = {"params": directory / CONTROLLERS_PARAMS}
+    plant, the plant's (:data:`PARAMS_FILE`, :data:`PLANT_PARAMS_FILE`)."""
+    files = {"params": directory / PARAMS_FILE}
     write_params_file(files["params"], flat)
     if plant_flat is not None:
-        files["plant_params"] = directory / PLANT_PARAMS
+        files["plant_params"] = directory / PLANT_PARAMS_FILE
         write_params_file(files["plant_params"], plant_flat)
     return files
 

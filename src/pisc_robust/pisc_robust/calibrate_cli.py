@@ -89,7 +89,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    from pisc_robust.robustness_cli import quiet_threads
+    from pisc_robust.robustness_args import quiet_threads
 
     quiet_threads()
     from pisc_robust.calibrate import (

@@ -16,7 +16,7 @@ The stages, in order (:data:`STAGES`), each in ``DIR/N-stage``:
 4. ``distribution``: the distribution of this rig (:mod:`pisc_robust.rig_distribution`);
 5. ``tune``: :func:`pisc_robust.tune.tune` of ``rig.yaml`` on it (Optuna; its study is
    kept in the stage's directory and resumed), in the search space that follows the
-   configuration (:func:`pisc_robust.tune.space_for`) unless one is named;
+   configuration (:func:`pisc_robust.tune_space.space_for`) unless one is named;
 6. ``verify`` and 7. ``report``: fresh draws of the distribution, the report and the tuned
    file with its provenance (:mod:`pisc_robust.commission_report`).
 
@@ -404,7 +404,9 @@ def _free_swing(ctx: Context, where: Path) -> dict[str, Any]:
 
 
 def _identify(ctx: Context, where: Path) -> dict[str, Any]:
-    from pisc_robust import identify as idf
+    from pisc_robust.identify import identify
+    from pisc_robust.identify_data import DEFAULT_FIT, IdentifyError, parse_fit, read_recording
+    from pisc_robust.identify_report import format_report, load_base, plot_overlay, write_result
     from pisc_robust import rig_distribution as rd
     from pisc_sim.configuration import load_graph_config, params_file_text
 
@@ -418,23 +420,23 @@ def _identify(ctx: Context, where: Path) -> dict[str, Any]:
     for stage, start in (("excitation", base), ("free-swing", where / "excitation.yaml")):
         bag = ctx.dir(stage) / "bag"
         try:
-            recording = idf.read_recording(bag)
-            model, base_flat, _ = idf.load_base(str(start), [recording])
-            keys = list(idf.DEFAULT_FIT.get(recording.experiment, idf.DEFAULT_FIT["none"]))
+            recording = read_recording(bag)
+            model, base_flat, _ = load_base(str(start), [recording])
+            keys = list(DEFAULT_FIT.get(recording.experiment, DEFAULT_FIT["none"]))
             if stage == "excitation":
                 keys.append("delay")  # the latency's unrecorded part, on any clock
             ctx.say(f"    {stage}: fitting {', '.join(keys)}")
-            result = idf.identify([recording], idf.parse_fit(keys), model,
-                                  progress=lambda text: ctx.say(f"      {text}"))
-        except idf.IdentifyError as exc:  # (FitError included)
+            result = identify([recording], parse_fit(keys), model,
+                              progress=lambda text: ctx.say(f"      {text}"))
+        except IdentifyError as exc:  # (FitError included)
             raise CommissionError(f"identification of the {stage} run failed: {exc}") from None
         if not result.estimates:
             raise CommissionError(f"the {stage} run identified nothing:\n"
-                                  + idf.format_report(result))
-        ctx.say("\n".join(f"      {line}" for line in idf.format_report(result).splitlines()))
-        idf.write_result(result, base_flat, str(start), where / f"{stage}.yaml",
-                         f"pisc_commission ({stage} of {plan.directory})")
-        idf.plot_overlay(result, where / f"{stage}.png")
+                                  + format_report(result))
+        ctx.say("\n".join(f"      {line}" for line in format_report(result).splitlines()))
+        write_result(result, base_flat, str(start), where / f"{stage}.yaml",
+                     f"pisc_commission ({stage} of {plan.directory})")
+        plot_overlay(result, where / f"{stage}.png")
         results[stage] = result
     from pisc_robust.commission_report import plot_residuals
 
@@ -465,7 +467,7 @@ def _distribution(ctx: Context, where: Path) -> dict[str, Any]:
     path = where / "rig-distribution.yaml"
     path.write_text(text)
     distribution = load_distribution(str(path), config)  # it reads as any distribution
-    from pisc_robust.robustness_cli import describe_distribution
+    from pisc_robust.robustness_report import describe_distribution
 
     ctx.say("\n".join(f"    {line}" for line in describe_distribution(distribution)
                       .splitlines()))
@@ -479,14 +481,8 @@ def _tune(ctx: Context, where: Path) -> dict[str, Any]:
     from pisc_robust.cluster import chunk_runner, default_workers
     from pisc_robust.robustness import CHUNK_DRAWS
     from pisc_runs.verdict import Criteria
-    from pisc_robust.tune import (
-        Tuning,
-        load_space,
-        space_for,
-        trials_kept,
-        tune,
-        tuned_file_text,
-    )
+    from pisc_robust.tune import Tuning, trials_kept, tune, tuned_file_text
+    from pisc_robust.tune_space import load_space, space_for
     from pisc_robust.uncertainty import load_distribution
     from pisc_sim.configuration import load_graph_config
 

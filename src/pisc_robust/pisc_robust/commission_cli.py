@@ -117,7 +117,9 @@ def main(argv: list[str] | None = None) -> int:
             check_scheduler(args.scheduler)
         except ValueError as exc:
             parser.error(f"--scheduler {exc}")
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from pisc_robust.robustness_args import quiet_threads
+
+    quiet_threads()
     command = shlex.join([PROG, *(sys.argv[1:] if argv is None else argv)])
     try:
         kind = ("driver" if args.driver else "virtual" if args.virtual_rig else "lockstep")
@@ -178,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
 def _check_inputs(plan) -> None:
     """What can be refused before any run: the configuration with the --set values, the
     search space against it, the prior."""
-    from pisc_robust.tune import load_space
+    from pisc_robust.tune_space import load_space
     from pisc_robust.uncertainty import load_distribution
     from pisc_control.supervisor import Supervisor
     from pisc_sim.configuration import load_graph_config, load_run_config

@@ -44,7 +44,7 @@ def plot_residuals(results: Mapping[str, Any], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pisc_robust.identify import CHANNELS, QUANTISATION_RMS
+    from pisc_robust.identify_data import CHANNELS, QUANTISATION_RMS
 
     fig, axes = plt.subplots(len(results), 3, figsize=(11, 2.6 * len(results)),
                              squeeze=False)
@@ -107,7 +107,7 @@ def verify(ctx: Any, where: Path) -> dict[str, Any]:
     from pisc_robust.cluster import chunk_runner, default_workers
     from pisc_robust.robustness import CHUNK_DRAWS, binomial_interval, evaluate, prepare
     from pisc_runs.verdict import FAILURES, TIERS, Criteria
-    from pisc_robust.robustness_cli import plot_success
+    from pisc_robust.robustness_report import plot_success
     from pisc_robust.uncertainty import load_distribution
     from pisc_sim.configuration import load_graph_config
 

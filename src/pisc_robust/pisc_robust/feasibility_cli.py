@@ -23,12 +23,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import shlex
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 PROG = "pisc_feasibility"
 PIVOT = "friction.pivot_viscous_nms"
@@ -142,7 +140,9 @@ def main(argv: list[str] | None = None) -> int:
                      "(0 .. N-1)")
     if args.csv is not None and not args.csv.parent.is_dir():
         parser.error(f"--csv {args.csv}: directory {args.csv.parent} does not exist")
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from pisc_robust.robustness_args import quiet_threads
+
+    quiet_threads()
 
     import numpy as np
 
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     from pisc_analysis.feasibility_search import find_witness
     from pisc_analysis.feasibility_shooting import Transcription
     from pisc_analysis.witnesses import write_witness_csv
-    from pisc_robust.robustness import load_benchmark
+    from pisc_robust.robustness import load_benchmark, witness_limits
     from pisc_msgs_py.config import ConfigError
 
     try:
@@ -233,28 +233,6 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(summary(rows, lo, hi, clopper_pearson)))
     print(f"wall time {wall:.0f} s")
     return 0
-
-
-def witness_limits(config: Any, base: Any, current_limit: float | None = None,
-                   catch_by_s: float = 3.0, hold_from_s: float = 6.0,
-                   run_s: float = 10.0) -> Any:
-    """A witness's limits: the actuator's and the track's, the catch region (4.1) of the
-    configuration, the hold box of the benchmark (:class:`~pisc_runs.verdict.Criteria`)
-    and the rules given. ``current_limit`` None: the configuration's; inf: none (the
-    voltage alone). :class:`ValueError` for rules that make no sense."""
-    from pisc_analysis.feasibility import Limits
-    from pisc_runs.verdict import Criteria
-
-    criteria = Criteria()
-    sup = config.supervisor
-    return Limits(
-        voltage_v=min(config.current_loop.voltage_limit_v, base.actuator.full_scale_v),
-        current_a=(config.current_loop.current_limit_a if current_limit is None
-                   else None if math.isinf(current_limit) else current_limit),
-        x_min_m=sup.safety.x_min_m, x_max_m=sup.safety.x_max_m,
-        catch_by_s=catch_by_s, duration_s=run_s, hold_start_s=hold_from_s,
-        hold_theta_rad=criteria.theta_rad, hold_x_m=criteria.x_m, k_va=sup.switching.k_va,
-        delta_s=sup.switching.delta_s)
 
 
 def summary(rows: list[dict], lo: float, hi: float, interval) -> list[str]:

@@ -31,8 +31,9 @@ PROG = "pisc_identify"
 
 
 def main(argv: list[str] | None = None) -> int:
-    # the kernel's threads wait passively (pisc_robustness_cli.quiet_threads)
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from pisc_robust.robustness_args import quiet_threads
+
+    quiet_threads()
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("bags", nargs="+", metavar="BAG", help="bag directories of runs")
     parser.add_argument("--fit", metavar="NAMES",
@@ -57,7 +58,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_evaluations < 1:
         parser.error(f"--max-evaluations {args.max_evaluations}: at least 1")
 
-    from pisc_robust import identify as idf
+    from pisc_robust.identify import TIMING_ROUNDS, identify
+    from pisc_robust.identify_data import (
+        DEFAULT_FIT,
+        FitError,
+        IdentifyError,
+        parse_fit,
+        read_recording,
+    )
+    from pisc_robust.identify_report import format_report, load_base, plot_overlay, write_result
 
     def fail(status: int, text: str) -> int:
         print(f"{PROG}: {text}", file=sys.stderr)
@@ -65,25 +74,25 @@ def main(argv: list[str] | None = None) -> int:
         return status
 
     try:
-        fit = idf.parse_fit(args.fit) if args.fit is not None else None
-        recordings = [idf.read_recording(bag) for bag in args.bags]
-        base, flat, base_name = idf.load_base(args.config, recordings)
+        fit = parse_fit(args.fit) if args.fit is not None else None
+        recordings = [read_recording(bag) for bag in args.bags]
+        base, flat, base_name = load_base(args.config, recordings)
         if fit is None:
             keys: list[str] = []
             for r in recordings:
-                keys += [k for k in idf.DEFAULT_FIT.get(r.experiment, idf.DEFAULT_FIT["none"])
+                keys += [k for k in DEFAULT_FIT.get(r.experiment, DEFAULT_FIT["none"])
                          if k not in keys]
             if any(r.wall_clock for r in recordings) and "delay" not in keys:
                 keys.append("delay")
-            fit = idf.parse_fit(keys)
-    except idf.IdentifyError as exc:
+            fit = parse_fit(keys)
+    except IdentifyError as exc:
         return fail(2, str(exc))
     plot = args.plot or args.out.with_suffix(".png")
     print(f"{PROG}: {len(recordings)} recording(s), base {base_name}; fitting "
           f"{', '.join(u.key for u in fit)}", flush=True)
     from pisc_msgs_py.progress import progress_bar
 
-    passes = 2 + (idf.TIMING_ROUNDS if any(r.wall_clock for r in recordings) else 0)
+    passes = 2 + (TIMING_ROUNDS if any(r.wall_clock for r in recordings) else 0)
     try:
         # a bar over the fit's passes, labelled with the pass's evaluations (stderr, only
         # on a terminal); the passes' lines go to stdout as before
@@ -93,15 +102,15 @@ def main(argv: list[str] | None = None) -> int:
                 bar.to(done)
                 bar.describe(f"pass {done + 1}/{total}: {evaluations} evaluations")
 
-            result = idf.identify(recordings, fit, base, segment_s=args.segment,
-                                  max_evaluations=args.max_evaluations,
-                                  progress=lambda text: print(f"  {text}", flush=True),
-                                  on_evaluation=evaluated)
-    except idf.FitError as exc:
+            result = identify(recordings, fit, base, segment_s=args.segment,
+                              max_evaluations=args.max_evaluations,
+                              progress=lambda text: print(f"  {text}", flush=True),
+                              on_evaluation=evaluated)
+    except FitError as exc:
         return fail(1, str(exc))
-    except idf.IdentifyError as exc:
+    except IdentifyError as exc:
         return fail(2, str(exc))
-    print(idf.format_report(result))
+    print(format_report(result))
     if not result.estimates:
         return fail(1, "no parameter could be identified from these data")
     # both files or neither: write beside the targets, then move them in place
@@ -111,9 +120,9 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory(dir=args.out.parent, prefix=".pisc_identify-") as tmp:
             params = Path(tmp) / "params.yaml"
             image = Path(tmp) / "plot.png"
-            idf.write_result(result, flat, base_name, params, " ".join(
+            write_result(result, flat, base_name, params, " ".join(
                 [PROG, *(argv if argv is not None else sys.argv[1:])]))
-            idf.plot_overlay(result, image)
+            plot_overlay(result, image)
             os.replace(params, args.out)
             os.replace(image, plot)
     except OSError as exc:

@@ -68,7 +68,7 @@ def _estimate(e: Any, source: str) -> dict[str, Any]:
 def merge(results: Mapping[str, Any], flat: Mapping[str, Any]) -> dict[str, Any]:
     """The record of both identifications (``results`` by stage: 'excitation',
     'free-swing'); ``flat``: the free swing's file (the excitation's values beneath)."""
-    from pisc_robust.identify import NOT_PLANT
+    from pisc_robust.identify_data import NOT_PLANT
 
     estimates, unidentified = [], []
     for stage, result in results.items():

@@ -14,6 +14,7 @@ local Dask cluster or on a remote one (:mod:`pisc_robust.cluster`).
 
 from __future__ import annotations
 
+import math
 import shlex
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
@@ -30,7 +31,8 @@ from pisc_model.params import InitialParams
 from pisc_plant.plant_config import PlantConfig, plant_set
 
 __all__ = ["CHUNK_DRAWS", "base_plant", "load_benchmark", "binomial_interval", "evaluate",
-           "evaluate_chunk", "prepare", "rerun_command", "success_by_value"]
+           "evaluate_chunk", "prepare", "rerun_command", "success_by_value",
+           "witness_limits"]
 
 CHUNK_DRAWS = 1000
 INITIAL = ("initial.x_m", "initial.x_dot_mps", "initial.theta_rad", "initial.theta_dot_radps")
@@ -170,3 +172,24 @@ def _yaml_value(value: Any) -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ",".join(_yaml_value(v) for v in value) + "]"
     return str(value)
+
+
+def witness_limits(config: Any, base: Any, current_limit: float | None = None,
+                   catch_by_s: float = 3.0, hold_from_s: float = 6.0,
+                   run_s: float = 10.0) -> Any:
+    """A witness's limits: the actuator's and the track's, the catch region (4.1) of the
+    configuration, the hold box of the benchmark (:class:`~pisc_runs.verdict.Criteria`)
+    and the rules given. ``current_limit`` None: the configuration's; inf: none (the
+    voltage alone). :class:`ValueError` for rules that make no sense."""
+    from pisc_analysis.feasibility import Limits
+
+    criteria = Criteria()
+    sup = config.supervisor
+    return Limits(
+        voltage_v=min(config.current_loop.voltage_limit_v, base.actuator.full_scale_v),
+        current_a=(config.current_loop.current_limit_a if current_limit is None
+                   else None if math.isinf(current_limit) else current_limit),
+        x_min_m=sup.safety.x_min_m, x_max_m=sup.safety.x_max_m,
+        catch_by_s=catch_by_s, duration_s=run_s, hold_start_s=hold_from_s,
+        hold_theta_rad=criteria.theta_rad, hold_x_m=criteria.x_m, k_va=sup.switching.k_va,
+        delta_s=sup.switching.delta_s)

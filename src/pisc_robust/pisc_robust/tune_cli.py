@@ -9,7 +9,7 @@ Every trial scores a candidate on the same draws (the seed's). The study is kept
 and a storage that holds another tuning (distribution, draws, seed, space) is refused.
 Interrupted (Ctrl-C), it says how many trials the study keeps and exits 130; the same
 command resumes from there. ``--space`` defaults to the shipped space for the
-configuration's settings (:func:`pisc_robust.tune.space_for`).
+configuration's settings (:func:`pisc_robust.tune_space.space_for`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ PROG = "pisc_tune"
 
 
 def main(argv: list[str] | None = None) -> int:
-    from pisc_robust.robustness_cli import (
+    from pisc_robust.robustness_args import (
         add_run_arguments,
         check_run_arguments,
         quiet_threads,
@@ -64,16 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     from pisc_robust.cluster import chunk_runner, default_workers, describe_runner
     from pisc_sim.configuration import load_graph_config
     from pisc_robust.robustness import CHUNK_DRAWS
-    from pisc_robust.robustness_cli import describe_distribution
-    from pisc_robust.tune import (
-        Tuning,
-        load_space,
-        provenance,
-        space_for,
-        trials_kept,
-        tune,
-        tuned_file_text,
-    )
+    from pisc_robust.robustness_report import describe_distribution
+    from pisc_robust.tune import Tuning, provenance, trials_kept, tune, tuned_file_text
+    from pisc_robust.tune_space import load_space, space_for
     from pisc_robust.uncertainty import load_distribution
     from pisc_control.supervisor import Supervisor
     from pisc_msgs_py.config import ConfigError, parse_overrides

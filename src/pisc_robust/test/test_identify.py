@@ -1,4 +1,4 @@
-"""Identification (issue 14): the experiments' cores, the fit on simulated recordings,
+"""Identification: the experiments' cores, the fit on simulated recordings,
 and pisc_identify on bags: what it writes, and how it refuses bad input."""
 
 from __future__ import annotations
@@ -11,7 +11,20 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from pisc_robust import identify as idf
+from pisc_robust.identify import identify
+from pisc_robust.identify_data import (
+    IdentifyError,
+    QUANTISATION_RMS,
+    Recording,
+    parse_fit,
+    read_recording,
+    recording_from_arrays,
+    rig_ticks,
+)
+from pisc_robust.identify_model import HELD_SAMPLES, Problem
+from pisc_robust.identify_report import format_report
+from pisc_robust.identify_segments import make_segments
+from pisc_robust.identify_stats import quantisation_meat, stalled, within_standard_error
 from pisc_bag.bag import BagWriter
 from pisc_sim.closed_loop import simulate
 from pisc_sim.configuration import load_graph_config, load_run_config
@@ -130,16 +143,16 @@ def excitation_log():
     return config, simulate(config, 20.0)
 
 
-def recording_of(log, **kwargs) -> idf.Recording:
-    return idf.recording_from_arrays("sim", 0.005, log["x"], log["theta"], log["i"], log["u"],
-                                     experiment="excitation", **kwargs)
+def recording_of(log, **kwargs) -> Recording:
+    return recording_from_arrays("sim", 0.005, log["x"], log["theta"], log["i"], log["u"],
+                                 experiment="excitation", **kwargs)
 
 
 def test_identify_recovers_the_plant_of_a_simulated_excitation(excitation_log):
     config, log = excitation_log
-    fit = idf.parse_fit("R,J_m,cart_coulomb,cart_viscous,pivot_viscous")
-    result = idf.identify([recording_of(log)], fit, config.plant)  # the nominal model's start
-    print(idf.format_report(result))
+    fit = parse_fit("R,J_m,cart_coulomb,cart_viscous,pivot_viscous")
+    result = identify([recording_of(log)], fit, config.plant)  # the nominal model's start
+    print(format_report(result))
     got = {e.unknown.name: e for e in result.estimates}
     assert set(got) == {u.name for u in fit}
     for name, tolerance in (("motor.resistance_ohm", 0.01), ("motor.rotor_inertia_kgm2", 0.05),
@@ -156,10 +169,10 @@ def test_identify_recovers_the_plant_of_a_simulated_excitation(excitation_log):
 
 def test_l_with_an_unknown_delay_is_reported_not_identifiable(excitation_log):
     config, log = excitation_log
-    result = idf.identify([recording_of(log)], idf.parse_fit("R,L,delay"), config.plant)
+    result = identify([recording_of(log)], parse_fit("R,L,delay"), config.plant)
     assert "L" in [e.unknown.key for e in result.not_identifiable]
     assert "L" not in [e.unknown.key for e in result.estimates]
-    assert "acts only as a delay" in idf.format_report(result)
+    assert "acts only as a delay" in format_report(result)
 
 
 def test_segments_at_an_end_stop_or_after_a_gap_are_left_out_and_said_so(excitation_log):
@@ -171,16 +184,16 @@ def test_segments_at_an_end_stop_or_after_a_gap_are_left_out_and_said_so(excitat
     # the IR code saturated at the sensor's end for 50 ms: the cart at the stop
     x[1000:1010] = sensors.ir_position(s, sensors.adc_voltage(s, s.adc_levels - 1))
     stamps_ok = recording_of({**{k: log[k] for k in ("theta", "i", "u")}, "x": x})
-    segments = idf.make_segments([stamps_ok], s, 0.005)
+    segments = make_segments([stamps_ok], s, 0.005)
     reasons = {reason for *_, reason in segments.left_out}
     assert reasons == {"the cart at an end stop (IR reading saturated)"}
     # a missing sample breaks the run: no segment spans it
     rec = recording_of(log)
     keep = np.ones(len(rec.stamps_ns), dtype=bool)
     keep[2000] = False
-    gap = idf.Recording(rec.name, rec.stamps_ns[keep], rec.x[keep], rec.theta[keep],
-                        rec.current[keep], rec.voltage[keep], rec.latency_s[keep], False)
-    segments = idf.make_segments([gap], s, 0.005)
+    gap = Recording(rec.name, rec.stamps_ns[keep], rec.x[keep], rec.theta[keep],
+                    rec.current[keep], rec.voltage[keep], rec.latency_s[keep], False)
+    segments = make_segments([gap], s, 0.005)
     assert any(r == "a sample missing or out of time" for *_, r in segments.left_out)
     assert all(not (f < 2000 < f + n) for f, n in zip(segments.first, segments.size,
                                                       strict=True))
@@ -190,10 +203,10 @@ def test_a_fit_without_voltage_or_with_an_unknown_name_is_refused(excitation_log
     config, log = excitation_log
     zero = recording_of({"x": log["x"], "theta": log["theta"], "i": log["i"],
                          "u": np.zeros_like(log["u"])})
-    with pytest.raises(idf.IdentifyError, match="the recorded voltage is zero throughout"):
-        idf.identify([zero], idf.parse_fit("R"), config.plant)
-    with pytest.raises(idf.IdentifyError, match="--fit Rm: no such parameter"):
-        idf.parse_fit("R,Rm")
+    with pytest.raises(IdentifyError, match="the recorded voltage is zero throughout"):
+        identify([zero], parse_fit("R"), config.plant)
+    with pytest.raises(IdentifyError, match="--fit Rm: no such parameter"):
+        parse_fit("R,Rm")
 
 
 # -- pisc_identify on bags -------------------------------------------------------------
@@ -304,7 +317,7 @@ def test_the_quantisation_floor_adds_the_held_rows_of_one_code_coherently():
         row_codes=lambda: (np.array([512, 512, 512, 7, 8, 300, 300]),
                            np.array([2, 2, 2, 1, 1, 0, 0]),
                            np.array([True] * 6 + [False])))
-    meat = idf.quantisation_meat(problem, jac)
+    meat = quantisation_meat(problem, jac)
     held = 0.5 * np.array([3.0, 0.0])  # the current's weight times its three rows' sum
     counts = [np.array([0.0, 2.0]), np.array([0.0, -2.0])]  # two counts: apart
     ir = 2.0 * np.array([3.0, 1.0])
@@ -326,7 +339,7 @@ def test_the_fit_stops_within_a_hundredth_of_a_standard_error_of_the_optimum():
     wide = (np.full(3, -1e9), np.full(3, 1e9))
 
     def within(z, fraction=None):
-        return idf._within_standard_error(jac, jac @ z - y, z, *wide, fraction)
+        return within_standard_error(jac, jac @ z - y, z, *wide, fraction)
 
     assert within(best)
     for k in range(3):  # 0.005 of a standard error off in any one unknown: close enough
@@ -340,21 +353,21 @@ def test_the_fit_stops_within_a_hundredth_of_a_standard_error_of_the_optimum():
     z = at_bound.copy()
     # (the other unknowns at their optimum given the bound: one linear solve)
     z[:2], *_ = np.linalg.lstsq(jac[:, :2], y - jac[:, 2] * z[2], rcond=None)
-    assert idf._within_standard_error(jac, jac @ z - y, z, low, np.full(3, 1e9))
+    assert within_standard_error(jac, jac @ z - y, z, low, np.full(3, 1e9))
 
 
 def test_a_fit_whose_steps_gain_less_than_a_quarter_standard_error_has_stalled():
     # cost = sum of squares; s^2 = cost / dof = 1 here: a move of f standard errors
     # changes the cost by f^2, so five iterations gaining under 1/16 in all have stalled
     dof = 1000
-    assert not idf._stalled([1100.0, 1000.0], dof)  # too few iterations to tell
+    assert not stalled([1100.0, 1000.0], dof)  # too few iterations to tell
     crawl = [1000.0 + 0.012 * k for k in range(6)][::-1]  # 0.06 over the last five
-    assert idf._stalled(crawl, dof)
-    assert not idf._stalled([1000.0 + 0.014 * k for k in range(6)][::-1], dof)  # 0.07
+    assert stalled(crawl, dof)
+    assert not stalled([1000.0 + 0.014 * k for k in range(6)][::-1], dof)  # 0.07
     # only the last five count: an early drop does not keep a crawl going
-    assert idf._stalled([5000.0] + crawl, dof)
+    assert stalled([5000.0] + crawl, dof)
     # the threshold scales with the residuals' mean square: 0.07 with s^2 = 2 has stalled
-    assert idf._stalled([1000.0 + 0.014 * k for k in range(6)][::-1], dof // 2)
+    assert stalled([1000.0 + 0.014 * k for k in range(6)][::-1], dof // 2)
 
 
 def test_a_fit_stops_by_the_rule_after_its_first_accepted_step(excitation_log, monkeypatch):
@@ -367,10 +380,12 @@ def test_a_fit_stops_by_the_rule_after_its_first_accepted_step(excitation_log, m
         seen.append((jac.shape, r.shape, z.shape))
         return True
 
-    monkeypatch.setattr(idf, "_within_standard_error", always)
+    import pisc_robust.identify as identify_module
+
+    monkeypatch.setattr(identify_module, "within_standard_error", always)
     lines: list[str] = []
-    result = idf.identify([recording_of(log)], idf.parse_fit("R,cart_viscous"), config.plant,
-                          progress=lines.append)
+    result = identify([recording_of(log)], parse_fit("R,cart_viscous"), config.plant,
+                      progress=lines.append)
     said = [line for line in lines if "evaluations" in line]
     assert len(said) == 2 and all("the next step under 0.01 of a standard error" in line
                                   for line in said), lines
@@ -381,39 +396,39 @@ def test_a_fit_stops_by_the_rule_after_its_first_accepted_step(excitation_log, m
 
 def test_held_rows_are_runs_of_one_code(excitation_log):
     config, log = excitation_log
-    segments = idf.make_segments([recording_of(log)], config.plant.sensors, 0.005)
-    fit = idf.parse_fit("R")
-    problem = idf.Problem(segments, config.plant, fit, {"R": 14.0, "delay": 0.0,
-                                                        "current_offset": 0.0})
+    segments = make_segments([recording_of(log)], config.plant.sensors, 0.005)
+    fit = parse_fit("R")
+    problem = Problem(segments, config.plant, fit, {"R": 14.0, "delay": 0.0,
+                                                    "current_offset": 0.0})
     codes, channel, held = problem.row_codes()
     assert len(codes) == len(problem.rows) and held.any() and not held.all()
     # runs of one code at least HELD_SAMPLES long, rebuilt by hand along the first segment
     for c in (0, 1, 2):
         first = codes[channel == c][:segments.size[0]]
         runs = np.split(first, np.flatnonzero(np.diff(first)) + 1)
-        want = np.concatenate([np.full(len(r), len(r) >= idf.HELD_SAMPLES) for r in runs])
+        want = np.concatenate([np.full(len(r), len(r) >= HELD_SAMPLES) for r in runs])
         assert np.array_equal(held[channel == c][:segments.size[0]], want)
 
 
 def test_the_intervals_include_the_quantisation_floor(excitation_log):
     # noise-free quantised sensors: every estimate's variance is at least the floor's
     config, log = excitation_log
-    fit = idf.parse_fit("R,J_m,cart_coulomb,cart_viscous")
+    fit = parse_fit("R,J_m,cart_coulomb,cart_viscous")
     calls = []
-    result = idf.identify([recording_of(log)], fit, config.plant,
-                          on_evaluation=lambda *a: calls.append(a))
+    result = identify([recording_of(log)], fit, config.plant,
+                      on_evaluation=lambda *a: calls.append(a))
     # the hook: every evaluation of both passes (lockstep: no timing passes), in order
     assert calls[0] == (0, 2, 1) and {c[0] for c in calls} == {0, 1}
     assert all(c[1] == 2 for c in calls) and len(calls) >= result.iterations
     segments = result.segments
-    problem = idf.Problem(segments, config.plant, fit,
-                          {**{e.unknown.key: e.value for e in result.fitted},
+    problem = Problem(segments, config.plant, fit,
+                      {**{e.unknown.key: e.value for e in result.fitted},
                            "delay": 0.0, "current_offset": 0.0})
     z = np.array([e.value / e.unknown.scale for e in result.fitted])
-    problem.weights = 1.0 / np.maximum(result.residual_rms, idf.QUANTISATION_RMS)
+    problem.weights = 1.0 / np.maximum(result.residual_rms, QUANTISATION_RMS)
     jac = problem.jacobian(z)
     inverse = np.linalg.pinv(jac.T @ jac)
-    floor = np.diag(inverse @ idf.quantisation_meat(problem, jac) @ inverse)
+    floor = np.diag(inverse @ quantisation_meat(problem, jac) @ inverse)
     std = np.array([e.std / e.unknown.scale for e in result.fitted])
     assert np.all(std ** 2 >= 0.99 * floor), (std ** 2, floor)
     assert np.all(floor > 0.0)
@@ -455,7 +470,7 @@ def test_through_the_driver_the_bytes_as_written_time_each_voltage(tmp_path):
                                                      effort=[0.993]),
                              stamp + 200_000, stamp + 100_000)
         writer.close()
-        return idf.read_recording(path)
+        return read_recording(path)
 
     plain, written = bag(False), bag(True)
     assert plain.wall_clock and written.wall_clock
@@ -467,7 +482,7 @@ def test_through_the_driver_the_bytes_as_written_time_each_voltage(tmp_path):
     np.testing.assert_array_equal(written.voltage[answered], 0.993)
     assert np.isnan(written.voltage[[100, 200]]).all()
     config = load_run_config("default")[0].plant
-    segments = idf.make_segments([written], config.sensors, 0.005)
+    segments = make_segments([written], config.sensors, 0.005)
     gaps = [(a, b) for _, a, b, why in segments.left_out
             if why == "no answer written to the rig, or 0 V of the driver's own"]
     assert gaps == [(pytest.approx(0.5), pytest.approx(0.505)),
@@ -495,9 +510,9 @@ def test_the_rigs_ticks_and_the_reads_delays_come_from_the_stamps():
     # (300 ppm: 9 ms, almost two periods, in 30 s; it tilts each second's least stamp
     # by up to 0.3 ms, which biases the line by some 10 us)
     for drift, atol in ((20e-6, 2e-6), (-300e-6, 2e-5)):
-        found, read = idf.rig_ticks(stamps(keep, drift), period)
+        found, read = rig_ticks(stamps(keep, drift), period)
         np.testing.assert_array_equal(found, keep)
         np.testing.assert_allclose(read, delay[keep] - delay[keep].min(), atol=atol)
     delay[1000:1300] += 0.004  # every read of 1.5 s late by 4 ms
-    assert idf.rig_ticks(stamps(keep), period) is None
-    assert idf.rig_ticks(stamps(keep)[:300], period) is None  # shorter than two windows
+    assert rig_ticks(stamps(keep), period) is None
+    assert rig_ticks(stamps(keep)[:300], period) is None  # shorter than two windows

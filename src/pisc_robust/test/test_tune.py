@@ -12,15 +12,8 @@ import yaml
 
 from pisc_sim.configuration import load_graph_config
 from pisc_runs.verdict import Criteria
-from pisc_robust.tune import (
-    StudyMismatch,
-    Tuning,
-    load_space,
-    open_study,
-    space_for,
-    tune,
-    tuned_file_text,
-)
+from pisc_robust.tune import StudyMismatch, Tuning, open_study, tune, tuned_file_text
+from pisc_robust.tune_space import load_space, space_for
 from pisc_robust.tune_cli import main as tune_main
 from pisc_robust.uncertainty import load_distribution
 from pisc_msgs_py.config import ConfigError

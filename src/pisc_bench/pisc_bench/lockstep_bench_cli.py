@@ -1,8 +1,8 @@
 """How fast the lockstep graph runs, beside a bare rclpy ping-pong measured in the same run.
 
-    python -m pisc_bench.lockstep_bench [--duration S] [--repeat N] [--hops N]
-                                          [--no-processes] [--no-anchors]
-                                          [--no-graph] [--json FILE]
+    python -m pisc_bench.lockstep_bench_cli [--duration S] [--repeat N] [--hops N]
+                                              [--no-processes] [--no-anchors]
+                                              [--no-graph] [--json FILE]
 
 **Anchors.** Two nodes in one process on an ``EventsExecutor`` pass a ``JointState``
 back and forth on two topics (publish, spin until the other's callback ran): the cost of
@@ -86,8 +86,8 @@ def ping_pong(hops: int, as_bytes: bool, reader: bool, domain_id: int) -> tuple[
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
     if reader:
         ready = Path(scratch.name) / "ready"
-        child = subprocess.Popen([sys.executable, "-m", "pisc_bench.lockstep_bench", "--reader", str(ready)],
-                                 env=env)
+        child = subprocess.Popen([sys.executable, "-m", "pisc_bench.lockstep_bench_cli",
+                                  "--reader", str(ready)], env=env)
         while not ready.exists():
             if child.poll() is not None:
                 raise RuntimeError("the reader process exited")

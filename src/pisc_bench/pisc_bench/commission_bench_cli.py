@@ -43,8 +43,7 @@ def hidden_rigs(n: int, seed: int, say=print) -> list[tuple[int, dict[str, float
 
     from pisc_analysis.feasibility import exact_plant, make_rig
     from pisc_analysis.feasibility_search import find_witness
-    from pisc_robust.feasibility_cli import witness_limits
-    from pisc_robust.robustness import load_benchmark
+    from pisc_robust.robustness import load_benchmark, witness_limits
     from pisc_runs.verdict import Criteria
 
     candidates = 20 * n
@@ -99,7 +98,9 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--{name.replace('_', '-')} {getattr(args, name)}: at least 1")
     if args.seed < 0:
         parser.error(f"--seed {args.seed}: 0 or more")
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from pisc_robust.robustness_args import quiet_threads
+
+    quiet_threads()
     from pisc_robust import commission as cm
 
     claim = None
