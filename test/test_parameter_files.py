@@ -16,7 +16,7 @@ from pisc_robust.uncertainty import distribution_names, load_distribution
 from pisc_model.params import unused_by_models
 from pisc_msgs_py.config import ConfigError
 from pisc_plant.virtual_rig import load_plant
-from pisc_plant.virtual_rig import main as rig_main
+from pisc_plant.virtual_rig_cli import main as rig_main
 from pisc_sim.configuration import CONFIG_DIR, load_graph_config, load_run_config
 from pisc_sim.scene import load_scene, scene_names
 

@@ -22,7 +22,7 @@ setup(
     entry_points={
         'console_scripts': [
             'plant_node = pisc_plant.plant_node:main',
-            'pisc_virtual_rig = pisc_plant.virtual_rig:main',
+            'pisc_virtual_rig = pisc_plant.virtual_rig_cli:main',
         ],
     },
 )

@@ -30,7 +30,7 @@ class RigProcess:
     def __init__(self, args: list[str] = (), env: dict[str, str] | None = None,
                  timeout_s: float = 30.0) -> None:
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "pisc_plant.virtual_rig", *args], stdin=subprocess.PIPE,
+            [sys.executable, "-m", "pisc_plant.virtual_rig_cli", *args], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, bufsize=1)
         RigProcess.running.add(self)
         self._final: dict[str, Any] | None = None

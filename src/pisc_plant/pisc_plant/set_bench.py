@@ -7,7 +7,7 @@ parameters of each rig's own (R, L, J_m, b_m, M, m, l, I drawn about the thesis 
 one command latency a rig (each period advanced by the latency with the old voltage,
 then by the rest with the new one); both. A fifth case draws the latencies anew every
 period, so that the operator tables are computed at every call instead of being kept.
-Run it with ``.venv/bin/python -c "from pisc_plant.set_bench import main; main()"``.
+Run it with ``.venv/bin/python -c "from pisc_plant.set_bench import measure; measure()"``.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pisc_msgs_py.progress import progress_bar
 from pisc_plant.plant import Plant
 from pisc_plant.plant_config import PlantConfig, plant_set
 
-__all__ = ["main"]
+__all__ = ["measure"]
 
 
 def _draws(rigs: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -48,7 +48,7 @@ def _seconds(step: Callable[[np.ndarray, int], np.ndarray], y0: np.ndarray,
     return np.array([time.perf_counter(), time.process_time()]) - start
 
 
-def main(rigs: int = 10_000, periods: int = 400, repeats: int = 3) -> None:
+def measure(rigs: int = 10_000, periods: int = 400, repeats: int = 3) -> None:
     """Time the four ways (and the fifth) and print ns per rig and period: of the wall
     clock, and of processor time summed over numba's threads (which a machine's other
     work does not lengthen, as long as it leaves the caches alone)."""

@@ -1,6 +1,6 @@
 """Compile the plant's numba kernel into its cache, as much as a command needs, saying so.
 
-    python -m pisc_plant.warm [run|all]
+    python -m pisc_plant.warm_cli [run|all]
 
 ``run`` (what ``./pisc run`` needs): the entry points of the layout the default scene
 uses (full armature, sampled PI loop, quantised sensors with their RC filters, exprk4)
@@ -21,7 +21,6 @@ its time, so set-up never sits silent.
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Callable, Iterator
 
@@ -104,20 +103,3 @@ def warm_up(scope: str = "all", say: Callable[[str], None] | None = None) -> flo
         if say is not None:
             say(f" {time.perf_counter() - began:.1f} s\n")
     return time.perf_counter() - start
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    scope = args[0] if args else "all"
-    if scope not in SCOPES or len(args) > 1:
-        print(f"usage: python -m pisc_plant.warm [{'|'.join(SCOPES)}]", file=sys.stderr)
-        return 2
-    print(f"pisc_plant.warm: compiling the plant kernel for '{scope}' (minutes the first "
-          "time, then loaded from numba's cache)", flush=True)
-    total = warm_up(scope, lambda text: print(text, end="", flush=True))
-    print(f"pisc_plant.warm: done in {total:.1f} s", flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -179,7 +179,7 @@ def test_pisc_integrators_bar_on_a_terminal_only_and_the_same_figures(tmp_path):
 
 
 def test_set_up_names_each_kernel_step_before_it_compiles_then_its_seconds():
-    """./pisc set-up runs ``python -m pisc_plant.warm run``: the step's name and number
+    """./pisc set-up runs ``python -m pisc_plant.warm_cli run``: the step's name and number
     come first, so a first compile's minutes are not spent silent; then its seconds."""
     from pisc_plant.warm import warm_up
 

@@ -18,7 +18,8 @@ from pisc_plant.sampled import SampledPlant
 from pisc_plant.firmware import Firmware
 from pisc_plant.rig_faults import RequestError, RigFaults, check_request
 from pisc_plant.rig_process import RigProcess
-from pisc_plant.virtual_rig import load_plant, main
+from pisc_plant.virtual_rig import load_plant
+from pisc_plant.virtual_rig_cli import main
 
 
 @pytest.fixture
