@@ -246,7 +246,7 @@ def kill_run(tmp_path: Path, env: dict[str, str], clock: str, duration_s: float,
                          [("lockstep", 120.0, 15.0), ("wall", 60.0, 15.0)])
 def test_bench_sigkill_of_the_recorder_at_a_random_moment(tmp_path, domain_id, clock,
                                                           duration_s, window_s):
-    """Issue 15: at most one period of messages lost, in 10 of 10 runs.
+    """Found by a hostile test: at most one period of messages lost, in 10 of 10 runs.
 
     Lost: a message the outside subscriber received before the kill that is not in the
     bag pisc_graph finished. What the graph published after the kill cannot be recorded

@@ -1,4 +1,4 @@
-"""The real driver node against the virtual rig on a pseudo-terminal (issue 3 acceptance).
+"""The real driver node against the virtual rig on a pseudo-terminal.
 
 The rig (``pisc_virtual_rig``) runs the plant in real time, paced by its own clock like
 the PIC, under SCHED_FIFO so that a loaded machine delays its frames no more than the
@@ -325,9 +325,9 @@ def start_driver(env, port: str) -> subprocess.Popen:
 @pytest.mark.realtime
 def test_sigkill_of_the_driver_while_driving_leaves_zero_volts_by_the_rig_watchdog(
         tmp_path, env_for_domain, ros_context):
-    """Issue 15: SIGKILL of the process holding the driver left the last byte's voltage
-    applied for ever (the thesis's firmware); the rig's watchdog now zeroes it 50-55 ms
-    after the last byte."""
+    """Found by a hostile test: SIGKILL of the process holding the driver left the last
+    byte's voltage applied for ever (the thesis's firmware); the rig's watchdog now zeroes
+    it 50-55 ms after the last byte."""
     rig = start_rig(tmp_path)
     driver = start_driver(env_for_domain, rig.device)
     answerer = Answerer(ros_context, 3.0)
@@ -571,7 +571,7 @@ def _written(master: int) -> bytes:
 def test_the_reader_looks_for_another_command_publisher_at_every_frame(ros_context):
     """Who publishes commands is looked at on every command, at every frame by the reader
     and every 0.1 s besides; a timer each period cost the driver's process 200 wake-ups a
-    second of two threads (issue 16). Here the driver's executor never spins: a visitor
+    second of two threads. Here the driver's executor never spins: a visitor
     that joins while no command comes is found by the frames alone, and 0 V is written
     at once."""
     import struct
@@ -631,7 +631,7 @@ def test_the_reader_looks_for_another_command_publisher_at_every_frame(ros_conte
 def test_a_command_the_driver_cannot_read_is_refused_with_its_reason_and_writes_nothing(
         ros_context):
     """A voltage command goes from its bytes to a value on the subscription's fast path
-    (issue 16) and is checked there as the controllers' inputs are: a command with a NaN
+    and is checked there as the controllers' inputs are: a command with a NaN
     voltage or without the motor joint is refused on /diagnostics, at WARN, naming what
     is wrong, and no byte is written for it; the next good command is written at once."""
     import struct
@@ -712,7 +712,7 @@ def test_the_driver_runs_on_the_wall_clock_only(tmp_path):
         completed.stderr)
 
 
-# -- issue 15 at the driver: only the graph drives the motor; the crash matrix ------------
+# -- at the driver: only the graph drives the motor; the crash matrix -----------------------
 
 VISITOR_V = 11.47
 
@@ -747,9 +747,10 @@ class DriverWatch:
 @pytest.mark.realtime
 def test_a_visitor_answering_every_sample_drives_nothing_through_the_driver(
         tmp_path, env_for_domain, ros_context):
-    """Issue 15: the driver took commands from anyone on /pisc/motor/voltage. Now none of
-    a visitor's commands reaches the rig: 0 V from its arrival, a fault naming it, and
-    the current loop's commands apply again once it has gone."""
+    """Found by a hostile test: the driver took commands from anyone on
+    /pisc/motor/voltage. Now none of a visitor's commands reaches the rig: 0 V from its
+    arrival, a fault naming it, and the current loop's commands apply again once it has
+    gone."""
     rig = start_rig(tmp_path)
     driver = start_driver(env_for_domain, rig.device)
     loop = Answerer(ros_context, 3.0)
@@ -846,7 +847,7 @@ def _start_balancing(tmp_path, env, ros_context, processes: bool):
 @pytest.mark.parametrize("stage", ["estimator", "supervisor", "current_loop"])
 def test_sigkill_of_a_controller_through_the_driver_zeroes_the_rig_and_names_it(
         tmp_path, env_for_domain, ros_context, stage):
-    """Issue 15's crash matrix through the driver and the virtual rig (``--driver
+    """The hostile tests' crash matrix through the driver and the virtual rig (``--driver
     --processes``): the driver sends 0 V at the latest 3 frames after the last answered
     one (its age rule sooner), and /diagnostics names the stage that died."""
     from test_faults import _child_pid
@@ -895,9 +896,9 @@ def test_sigkill_of_a_controller_through_the_driver_zeroes_the_rig_and_names_it(
 @pytest.mark.realtime
 def test_sigkill_of_the_controllers_process_leaves_the_driver_to_zero_the_rig(
         tmp_path, env_for_domain, ros_context):
-    """Issue 15: SIGKILL of ``pisc_graph --driver`` left the last byte's voltage applied.
-    The driver runs in a process of its own: the rig gets 0 V from it, before its own
-    firmware watchdog would trip (50 ms after the last byte)."""
+    """Found by a hostile test: SIGKILL of ``pisc_graph --driver`` left the last byte's
+    voltage applied. The driver runs in a process of its own: the rig gets 0 V from it,
+    before its own firmware watchdog would trip (50 ms after the last byte)."""
     from test_faults import _child_pid
 
     rig, graph, probe, watch, executor, caught = _start_balancing(
@@ -935,7 +936,7 @@ def test_sigkill_of_the_controllers_process_leaves_the_driver_to_zero_the_rig(
 
 def test_the_driver_publishes_no_sample_before_the_graphs_subscribers_are_there(
         tmp_path, env_for_domain, ros_context):
-    """Issue 15 (found by pisc_soak's outside observer): in its own process the driver
+    """Found by a hostile test: in its own process the driver
     published the rig's first samples before the run's recorder had matched it, so the
     bag lacked them. With driver.min_subscribers = N it publishes nothing until both
     sample topics have N subscribers."""

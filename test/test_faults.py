@@ -1,4 +1,4 @@
-"""Issue 15: bad input to a run, crashed nodes and visitors on the command topic.
+"""Bad input to a run, crashed nodes and visitors on the command topic.
 
 Each case was found by a hostile test on the landed code; each test here failed there.
 """
@@ -192,7 +192,7 @@ def test_in_lockstep_a_silent_stage_holds_no_voltage_and_is_named(ros_context, s
 @pytest.mark.parametrize("stage", ["estimator", "supervisor", "current_loop"])
 def test_on_the_wall_clock_a_silent_stage_gets_zero_volts_at_once_and_its_name_later(
         ros_context, stage):
-    """Wall clock (issue 15): 0 V from the third sample left unanswered, said at once;
+    """Wall clock: 0 V from the third sample left unanswered, said at once;
     the stage is named when it has fallen 8 samples behind the one before it
     (StopWitness), which only a stage that stopped does."""
     bench = _Bench(ros_context, "wall")
@@ -325,7 +325,7 @@ def test_sigkill_of_a_controller_while_balancing_zeroes_the_motor_and_fails_the_
 
 # plant_node, with SIGTERM arriving inside _publish_sample 40 samples after the probe has
 # matched its joint and true states (after its joint_states, before its true state) and the rest of
-# the cycle published 50 ms later, when the signal has been handled: issue 15's race, made
+# the cycle published 50 ms later, when the signal has been handled: the hostile tests' race, made
 # certain. (On the wall clock the plant does not wait for subscribers: counted from its
 # start, the 40 samples were over before discovery under the parallel suite's load.)
 _SIGTERM_INSIDE_A_CYCLE = """
@@ -353,9 +353,10 @@ sys.exit(plant_node.main())
 
 
 def test_sigterm_inside_a_cycle_finishes_the_cycle_and_stops_cleanly(ros_context, domain_id):
-    """Issue 15: SIGTERM inside _publish_sample made the rest of the cycle fail ("Failed to
-    publish: publisher's context is invalid", a FATAL log, exit 0): the bag lacked the
-    last sample's true state. Now the plant finishes the cycle and stops before the next."""
+    """Found by a hostile test: SIGTERM inside _publish_sample made the rest of the cycle
+    fail ("Failed to publish: publisher's context is invalid", a FATAL log, exit 0): the
+    bag lacked the last sample's true state. Now the plant finishes the cycle and stops
+    before the next."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
     probe = rclpy.node.Node("stop_probe", context=ros_context)
     seen: dict[str, list[int]] = {JOINT_STATES.name: [], SIM_STATE.name: []}
@@ -388,9 +389,9 @@ def test_sigterm_inside_a_cycle_finishes_the_cycle_and_stops_cleanly(ros_context
 
 
 def test_a_run_in_separate_processes_ends_at_its_duration_exactly(tmp_path, domain_id):
-    """Issue 15: `--processes` runs went on 1-4 cycles past --duration (the plant ran on
-    until its SIGTERM). The plant now stops at the duration itself: 1 s at 5 ms is the
-    201 samples 0 .. 1 s, each answered, and no sample after them."""
+    """Found by a hostile test: `--processes` runs went on 1-4 cycles past --duration (the
+    plant ran on until its SIGTERM). The plant now stops at the duration itself: 1 s at 5
+    ms is the 201 samples 0 .. 1 s, each answered, and no sample after them."""
     from pisc_bag.bag import read_bag
     from pisc_bringup.graph import RunOptions, run_graph
 
@@ -408,9 +409,9 @@ def test_a_run_in_separate_processes_ends_at_its_duration_exactly(tmp_path, doma
 
 
 def test_another_subscriber_on_the_domain_does_not_pass_for_the_recorder(tmp_path, domain_id):
-    """Issue 15: any subscriber of the graph's topics on the same ROS domain (a `ros2
-    topic echo`) fooled the recorder readiness check, and the run then failed with a
-    FileNotFoundError traceback on the bag's pisc_params.yaml. The run now waits for its
+    """Found by a hostile test: any subscriber of the graph's topics on the same ROS domain
+    (a `ros2 topic echo`) fooled the recorder readiness check, and the run then failed with
+    a FileNotFoundError traceback on the bag's pisc_params.yaml. The run now waits for its
     own recorder, by node name."""
     from pisc_bringup.graph import RunOptions, run_graph
     from pisc_msgs_py.topics import GRAPH_TOPICS

@@ -1,4 +1,4 @@
-"""The whole graph over ROS 2 topics: acceptance of issue 2, exactness, clocks, processes."""
+"""The whole graph over ROS 2 topics: acceptance, exactness, clocks, processes."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ STARTS = (-0.10, -0.05, 0.0, 0.05, 0.10)
 
 
 def assert_acceptance(summary):
-    """Issue 2: caught within 3.0 s of sim time, held from 6 s, cart inside the safe range
+    """Caught within 3.0 s of sim time, held from 6 s, cart inside the safe range
     (which lies inside the IR sensor's)."""
     assert summary.caught_at_s is not None and summary.caught_at_s <= 3.0, summary.format()
     assert summary.held and summary.hold_theta_rad < 0.05 and summary.hold_x_m < 0.02

@@ -1,4 +1,4 @@
-"""Identification from runs recorded as on the rig (issue 14 acceptance): the excitation
+"""Identification from runs recorded as on the rig: the excitation
 scene through the driver and ``pisc_virtual_rig`` on its pseudo-terminal, the rig's
 plant hidden (drawn from the robustness benchmark's ranges, seeded, the sensors' noise
 included), then pisc_identify.

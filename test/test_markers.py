@@ -1,4 +1,4 @@
-"""The rig as markers (issue 17, item 4): the geometry against the state, the throttle on
+"""The rig as markers: the geometry against the state, the throttle on
 the samples' stamps, the node over ROS topics, and a lockstep graph run's bag."""
 
 from __future__ import annotations

@@ -348,7 +348,7 @@ def _diagnostics_probe(ros_context, node, name: str):
 
 def test_bytes_that_are_no_joint_state_are_refused_on_diagnostics_and_the_node_answers_on(
         ros_context):
-    """The nodes read their cycle's topics raw (issue 16): a sample whose bytes are no
+    """The nodes read their cycle's topics raw: a sample whose bytes are no
     JointState is refused on /diagnostics, naming the topic and what is wrong, and the
     next good sample is answered (rclpy's own deserialisation raised in the executor)."""
     estimator = EstimatorNode(context=ros_context)
@@ -399,7 +399,7 @@ def test_the_current_loop_takes_the_mode_as_a_value_and_refuses_an_unknown_one(r
             n.destroy_node()
 
 
-# -- issue 15: names no node reads, command lines rcl cannot read, array values -----------
+# -- names no node reads, command lines rcl cannot read, array values -----------
 
 def _node_from_command_line(cls, domain_id, ros_args):
     """Construct ``cls`` as its entry point would with ``--ros-args *ros_args``."""

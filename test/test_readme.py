@@ -13,7 +13,7 @@ PARAMETERS = ROOT / "docs" / "parameters.md"
 
 
 def test_readme_is_a_front_door():
-    assert len(README.encode()) <= 12 * 1024  # issue 17: at most about 12 KB
+    assert len(README.encode()) <= 12 * 1024  # at most about 12 KB
     assert "../shared" not in README  # nothing outside the repository
 
 

@@ -72,8 +72,9 @@ def test_sixty_seconds_at_200_hz_every_published_message_is_in_the_bag(tmp_path,
 
 
 def assert_every_reader_reads_it_all(bag, count: int) -> None:
-    """Issue 15: a bag the project writes is indexed and in log-time order, and rosbags'
-    AnyReader, mcap in log-time order and the indexed reader read all its messages."""
+    """Found by a hostile test: a bag the project writes is indexed and in log-time order,
+    and rosbags' AnyReader, mcap in log-time order and the indexed reader read all its
+    messages."""
     read = read_every_way(bag)
     assert len(read["mcap"]) == count
     for reader in READERS:
@@ -313,11 +314,12 @@ def kill_the_recorder(graph: subprocess.Popen, bag: Path, watch: VoltageWatch,
 @pytest.mark.parametrize("clock", ["lockstep", pytest.param("wall", marks=pytest.mark.realtime)])
 def test_a_killed_recorder_is_noticed_within_a_period_and_the_run_stops(
         tmp_path, ros_context, env_for_domain, clock):
-    """Issue 15: SIGKILL of pisc_record 5 s into a 20 s run went unnoticed until the end,
-    which then said only "pisc_record exited with status -9" (exit 2, no summary, no
-    word of repair). Now the run stops at the next cycle, the bag is finished with what
-    was recorded (as `pisc_bag repair` does), the summary of that part is printed, and
-    the exit status (2) comes with the command that finishes such a bag named."""
+    """Found by a hostile test: SIGKILL of pisc_record 5 s into a 20 s run went unnoticed
+    until the end, which then said only "pisc_record exited with status -9" (exit 2, no
+    summary, no word of repair). Now the run stops at the next cycle, the bag is finished
+    with what was recorded (as `pisc_bag repair` does), the summary of that part is
+    printed, and the exit status (2) comes with the command that finishes such a bag
+    named."""
     bag = tmp_path / "killed"
     # long enough that the kill comes mid-run: lockstep ran 40 s in about 2 s at 16:45 on
     # 2026-12-05, and the run ended before this process's watch had received 600

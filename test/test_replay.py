@@ -54,10 +54,11 @@ def test_the_reference_bags_are_there():
 
 @pytest.mark.parametrize("bag", REFERENCE_BAGS, ids=lambda p: p.name)
 def test_every_reader_reads_every_message_of_every_reference_bag(bag):
-    """Issue 15: rosbags' AnyReader refused every committed bag ("Unindexed MCAP messages
-    are not in timestamp order") and an indexed reader found none of their messages.
-    Now each is indexed and in log-time order, and rosbags, mcap in log-time order and
-    the indexed reader read every message that metadata.yaml counts, the same ones."""
+    """Found by a hostile test: rosbags' AnyReader refused every committed bag ("Unindexed
+    MCAP messages are not in timestamp order") and an indexed reader found none of their
+    messages. Now each is indexed and in log-time order, and rosbags, mcap in log-time
+    order and the indexed reader read every message that metadata.yaml counts, the same
+    ones."""
     read = read_every_way(bag)
     import yaml
 
@@ -201,7 +202,7 @@ def test_replay_command_exit_status_and_report():
 
 
 def test_replay_runs_the_cores_without_the_plant_kernel():
-    """Replay's memory (issue 16, item 4: <= 200 MB for a 10-minute bag) leaves no room
+    """Replay's memory (<= 200 MB for a 10-minute bag) leaves no room
     for numba (75 MB imported): the configuration and the cores come without the plant's
     kernel (pisc_plant.layout), and the batch controllers are imported only by a batch.
     (python-control and scipy are: the catch gain is designed again, and the recorded K
@@ -258,9 +259,9 @@ def test_compare_reports_missing_outputs_and_respects_the_tolerance():
 
 def test_a_repaired_bag_whose_recording_ended_inside_a_cycle_replays_without_that_cycle(
         tmp_path):
-    """Issue 15: replay of a repaired bag failed ("/pisc/joint_states at stamp ... has no
-    /pisc/motor/current of the same stamp"): the recorder died inside the last cycle.
-    The incomplete last cycle is dropped, and the report says so."""
+    """Found by a hostile test: replay of a repaired bag failed ("/pisc/joint_states at
+    stamp ... has no /pisc/motor/current of the same stamp"): the recorder died inside the
+    last cycle. The incomplete last cycle is dropped, and the report says so."""
     cut = 1_000_000_000  # the recorder dies after this cycle's joint_states
     live = BagWriter(tmp_path / "live", GRAPH_TOPICS)
     for m in read_bag_raw(SWINGUP):

@@ -1,4 +1,4 @@
-"""Issue 13 through the ROS graph: the default configuration catches starts and plants it
+"""Model error through the ROS graph: the default configuration catches starts and plants it
 was not tuned on, and balances without chatter.
 
 Each case is one lockstep run of ``pisc_graph`` (what ``./pisc run`` runs), with the
@@ -75,7 +75,7 @@ def test_the_plant_ran_its_own_parameters(runs):
 
 def test_the_hold_does_not_chatter_through_the_graph(runs):
     """From 6 s to 10 s of the nominal start at rest the current set-point's RMS is at most
-    0.05 A (issue 13; 0.21 A with the lyapunov-tuned configuration)."""
+    0.05 A (0.21 A with the lyapunov-tuned configuration)."""
     bag = runs["theta0 3.3 rad at rest"].bag_dir
     samples = [motor_sample_from_msg(m.message) for m in read_bag(bag, [CURRENT_SETPOINT.name])]
     t0 = min(s.stamp_ns for s in samples)

@@ -113,8 +113,9 @@ def wait_status(rig: RigProcess, predicate, timeout_s: float = 5.0) -> dict:
 
 @pytest.mark.realtime
 def test_the_watchdog_zeroes_the_motor_when_the_bytes_stop_and_the_next_byte_resumes(tmp_path):
-    """Issue 15: the host that stops sending (crashed) leaves 0 V, not its last byte.
-    Judged on the rig's own clock (its log, one line per period), not the wall clock."""
+    """Found by a hostile test: the host that stops sending (crashed) leaves 0 V, not its
+    last byte. Judged on the rig's own clock (its log, one line per period), not the wall
+    clock."""
     rig = RigProcess(["--x0", "0.05", "--log", str(tmp_path / "rig.csv")])
     link = SerialLink(rig.device, read_timeout_s=0.01)
     link.open()

@@ -325,7 +325,7 @@ def sampled_pi_check(
 ) -> SampledPiCheck:
     """Is the PI current loop stable as it runs, sampled at ``period_s``?
 
-    This is the test that matters on the rig (issue 6, SPEC section 3): Routh's test of
+    This is the test that matters on the rig (SPEC section 3): Routh's test of
     the continuous loop (3.51) passes for every positive gain; the sampled loop does
     not. ``model``:
 

@@ -85,7 +85,7 @@ def test_refusals_name_what_is_wrong(default_config):
 
 @pytest.mark.bench
 def test_bench_region_of_attraction_100_by_100(default_config):
-    """Prints the time of the default configuration's 100 x 100 map (issue 6: < 60 s)."""
+    """Prints the time of the default configuration's 100 x 100 map (< 60 s)."""
     started_cpu = time.process_time()
     before = os.times()
     m = region_of_attraction(default_config, np.linspace(-1.0, 1.0, 100),

@@ -13,7 +13,7 @@ def test_sampled_pi_loop_at_6_ohm_is_unstable_though_routh_says_stable(resistanc
     """Hard case (SPEC section 3): the thesis's PI gains (k_pi 2.9, k_ii 1800) on an
     armature of R = 6 ohm. Routh's test of the continuous loop (3.51) finds no root in
     the right half-plane; the sampled loop's poles (pisc_analysis) leave the unit circle;
-    and the simulated rig, without the 72 Hz filter that the analysis of issue 6 shows
+    and the simulated rig, without the 72 Hz filter that the seeds' analysis shows
     moves the boundary to 5.74 ohm, falls into a limit cycle at 6 ohm (the voltage flips
     sign every period, from the +11.47 V rail to about -7.8 V; measured) and settles at
     14 ohm."""

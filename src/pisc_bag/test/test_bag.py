@@ -174,7 +174,7 @@ def out_of_order_messages(n: int) -> list[tuple[str, int, bytes]]:
 
 
 def test_a_finished_bag_is_indexed_in_log_time_order_and_every_reader_reads_it(tmp_path):
-    """Issue 15: AnyReader refused PISC bags ("Unindexed MCAP messages are not in
+    """Found by a hostile test: AnyReader refused PISC bags ("Unindexed MCAP messages are not in
     timestamp order"), and an indexed reader found no message in them (no chunks)."""
     bag = tmp_path / "bag"
     writer = BagWriter(bag, GRAPH_TOPICS)
@@ -239,8 +239,8 @@ MALFORMED = r"metadata.yaml: malformed rosbag2 metadata \(.*\); `pisc_bag repair
      "other.mcap: listed in metadata.yaml but missing"),
 ], ids=["empty", "broken-yaml", "binary", "string", "no-keys", "wrong-file"])
 def test_repair_rebuilds_a_broken_metadata_yaml_from_the_mcap_file(tmp_path, garbage, refusal):
-    """Issue 15: `pisc_bag repair` said "already finished; nothing to repair" and the bag
-    stayed unreadable although its MCAP file was whole."""
+    """Found by a hostile test: `pisc_bag repair` said "already finished; nothing to
+    repair" and the bag stayed unreadable although its MCAP file was whole."""
     bag = finished_bag(tmp_path)
     good = (bag / "metadata.yaml").read_text()
     mcap_bytes = (bag / "done_0.mcap").read_bytes()
@@ -291,8 +291,9 @@ def test_repair_finishes_a_stream_whose_finish_was_interrupted(tmp_path):
 
 
 def test_repair_indexes_a_finished_bag_written_unindexed(tmp_path):
-    """Bags finished before issue 15 (unchunked, out of log-time order): repair writes
-    them indexed and in order, keeping the file as found; the metadata is the same."""
+    """Bags finished before the recorder indexed them (unchunked, out of log-time order):
+    repair writes them indexed and in order, keeping the file as found; the metadata is
+    the same."""
     from mcap.writer import CompressionType, Writer
 
     bag = finished_bag(tmp_path)

@@ -1,7 +1,7 @@
 """The nodes' CDR bytes (pisc_msgs_py.cdr) against what DDS recorded in the reference bags.
 
 The nodes publish the bytes :mod:`pisc_msgs_py.cdr` writes instead of rclpy message
-objects (issue 16). Every message of every reference bag, read into its typed value and
+objects. Every message of every reference bag, read into its typed value and
 written again, gives the recorded bytes exactly: the bags a run records now are the bags
 it recorded before, byte for byte, and replay reads them as it read those.
 """

@@ -1,4 +1,4 @@
-"""Finishing and repairing a bag in bounded memory (issue 16 item 4): the stream is read in
+"""Finishing and repairing a bag in bounded memory: the stream is read in
 blocks and written indexed in log-time order through a reorder window, or by an external
 merge when a message comes too late for the window; the file is the one the mcap
 library's writer gave when the whole stream was read into memory, byte for byte."""
@@ -167,7 +167,7 @@ def test_the_index_check_walks_in_blocks_and_counts_what_the_mcap_reader_counts(
 
     writer = write_stream(tmp_path / "bag", recorded_order())
     stream = writer.path.read_bytes()
-    unindexed = tmp_path / "unindexed.mcap"  # as bags were finished before issue 15
+    unindexed = tmp_path / "unindexed.mcap"  # as bags were finished before the recorder wrote indexed, ordered bags
     unindexed.write_bytes(stream)
     with unindexed.open("ab") as out:
         out.write(bytes.fromhex("0f0400000000000000") + b"\0\0\0\0")  # data end, no CRC

@@ -1,4 +1,4 @@
-"""The free swing end to end (issue 14): a hidden plant whose pendulum (l, I, the pivot's
+"""The free swing end to end: a hidden plant whose pendulum (l, I, the pivot's
 friction) is not the nominal one, the excitation and the free-swing scenes recorded through
 the graph (lockstep), ``pisc_identify`` on the excitation (the motor and the friction), then
 on the swing with that file as the base; the estimates checked against the hidden truth.

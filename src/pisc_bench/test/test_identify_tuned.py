@@ -1,4 +1,4 @@
-"""Identified, then tuned, catches the true plant through the graph (issue 14 acceptance).
+"""Identified, then tuned, catches the true plant through the graph.
 
 A hidden plant drawn from the robustness benchmark's distribution (``thesis-rig``, seed 3,
 draw 11: its motor and friction; the masses and lengths the thesis's), on which the default

@@ -1,6 +1,6 @@
 """pisc_graph's child processes: their standard error is read as it comes, and a child
-that is stopping is waited for while it works (issue 15: a faulted 10-minute soak froze
-when the driver's unread stderr pipe filled; issue 16: a recorder finishing a 10-minute
+that is stopping is waited for while it works (a faulted 10-minute soak froze
+when the driver's unread stderr pipe filled; a recorder finishing a 10-minute
 bag on a loaded machine was killed after 20 s)."""
 
 from __future__ import annotations
@@ -185,7 +185,7 @@ def spun_node(request):
 @pytest.mark.parametrize("spun_node", ["events", "single"], indirect=True)
 def test_a_childs_exit_runs_the_check_in_the_executors_thread_and_nothing_wakes_before(
         spun_node):
-    """The runner sees a child's exit as it happens (issue 16: timers looking every 20 and
+    """The runner sees a child's exit as it happens (timers looking every 20 and
     50 ms woke its main thread 70 times a second): the check runs once the child is gone,
     in the thread spinning the executor; until then the alarm's thread sleeps (its
     context switches counted from /proc), and a child gone before the watch started is

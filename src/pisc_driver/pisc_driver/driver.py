@@ -162,7 +162,7 @@ class DriverCore:
         each is stamped a period before the one after it (the newest ``now_ns``). Then an
         answer to a frame that waited in the port is as old as that frame is, and the age
         rule (``command``) refuses it: a stall of the reader no longer sends the rig
-        voltages computed from states up to the stall's length old (issue 15, a soak
+        voltages computed from states up to the stall's length old (a soak
         under load: after a 178 ms stall the rig got -6.7 .. -4.5 V towards the end stop
         for 8 ms, answers to frames 170-145 ms old), nor makes the newest frame's answer
         look no fresher than theirs. A stamp keys a control cycle, so it is unique
@@ -248,7 +248,7 @@ class DriverCore:
         (a trip waiting to be reported: at once); None when it never does. Right after
         ``tick(now)`` it is None or later than ``now``. The reader waits for bytes until
         then: with frames every period and commands answering them it wakes once a frame,
-        not also every ``read_timeout_s`` (issue 16)."""
+        not also every ``read_timeout_s``."""
         if self._trip is not None:
             return 0
         due = None

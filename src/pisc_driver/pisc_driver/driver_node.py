@@ -53,7 +53,7 @@ from pisc_model.params import ActuatorParams, LoopParams, SensorParams
 # The command publisher is looked at on every command, by the reader at every frame, and
 # every PIN_LOOK_S besides (while no frame comes). A timer each period woke the executor's
 # and rclpy's timer threads 200 times a second for it: about 2.5 % of a core in a 15 s
-# per-thread sample (issue 16, docs/soak.md).
+# per-thread sample (docs/soak.md).
 PIN_LOOK_S = 0.1
 
 SECTIONS = {"driver": DriverParams, "sensors": SensorParams, "actuator": ActuatorParams,

@@ -90,7 +90,7 @@ class SerialLink:
 
         One ``poll`` and one ``read`` of the non-blocking descriptor pyserial opened, as
         :meth:`write` does: pyserial's ``read(1)``, ``in_waiting`` and ``read(n)`` took
-        two ``select`` calls, two reads and an ioctl per burst (issue 16: the reader then
+        two ``select`` calls, two reads and an ioctl per burst (the reader then
         woke 400-600 times a second; now about once a frame, 200).
         """
         wait = self.read_timeout_s if wait_s is None else wait_s

@@ -16,7 +16,7 @@ sensors can physically report, stays locked while every frame passes the checks,
 delivers each frame when its 7th byte arrives, and hunts again when a check fails.
 
 The bytes alone are ambiguous: a stream read from a shifted start can itself be a stream
-of plausible frames (a count resting at 0x00AA with ADC low bytes 0xAA, issue 15). What
+of plausible frames (a count resting at 0x00AA with ADC low bytes 0xAA). What
 settles it is time: the device sends a frame's seven bytes in 0.61 ms every 5 ms, so a
 frame whose bytes arrived more than ``frame_gap_s`` apart is two frames' pieces. The
 driver passes each read's arrival time; see docs/driver-protocol.md.
@@ -186,7 +186,7 @@ class FrameToSi:
     same operations :func:`pisc_model.sensors.encoder_angle` does. The results equal
     :func:`frame_to_si`'s bit for bit (test_protocol, every code). The driver converts
     a frame every period: numpy's per-call cost on four scalars was the larger part of
-    its own work per frame (issue 16, docs/soak.md). A code beyond the ADC's levels
+    its own work per frame (docs/soak.md). A code beyond the ADC's levels
     (``sensors.adc_bits`` below 10) goes to :func:`frame_to_si`.
     """
 
@@ -241,7 +241,7 @@ class FrameParser:
     byte after its header.
     With arrival times, hunting or locked, a frame whose first and last bytes arrived more
     than ``frame_gap_s`` apart is refused, whatever its bytes: it is the end of one burst
-    and the start of the next (issue 15: locked, a frame whose last byte came 5 ms later
+    and the start of the next (locked, a frame whose last byte came 5 ms later
     was accepted unless that byte was 0xAA). A reader that stalls for more than
     ``frame_gap_s`` in the middle of a frame costs that frame, never a false one.
 

@@ -153,8 +153,8 @@ def test_no_byte_of_its_own_before_the_run_starts():
 
 
 def test_every_frame_is_answered_while_the_controllers_are_silent():
-    """Issue 15: the driver sent one zero byte and then nothing, so a firmware watchdog
-    would trip (and tell a live host from a dead one no more)."""
+    """Found by a hostile test: the driver sent one zero byte and then nothing, so a
+    firmware watchdog would trip (and tell a live host from a dead one no more)."""
     c = core()
     sent = run_frames(c, 200, answer=lambda k: 3.0 if k < 4 else None)
     assert sent[:4] == [(1, 0x21), (6, 0x21), (11, 0x21), (16, 0x21)]  # the controllers'
@@ -190,8 +190,9 @@ def test_no_byte_of_its_own_once_the_run_ends():
 
 
 def test_the_shared_watchdog_trips_at_the_third_unanswered_frame_and_resumes():
-    """Issue 15's crash matrix at the driver: the plant's CommandWatchdog counts the frames;
-    with the age rule out of the way (command_max_age_periods 10) it alone zeroes."""
+    """The hostile tests' crash matrix at the driver: the plant's CommandWatchdog counts
+    the frames; with the age rule out of the way (command_max_age_periods 10) it alone
+    zeroes."""
     c = core(command_max_age_periods=10.0)
     sent = run_frames(c, 60, answer=lambda k: 3.0 if k < 4 else None)
     assert c.watchdog.answered >= 0
@@ -249,7 +250,7 @@ def test_while_another_publisher_is_there_every_command_is_zero_volts():
 def run_on_deadlines(c: DriverCore, frames_ms: list[int], answer=lambda k: None,
                      longest_ms: int = 50) -> tuple[list[tuple[int, int]], int]:
     """Frames at ``frames_ms`` and the controllers' answers 1 ms after frame k
-    (``answer(k)``, None: none), read the way driver_node's reader reads (issue 16): it
+    (``answer(k)``, None: none), read the way driver_node's reader reads: it
     ticks only when it wakes, at a frame, at the core's deadline as it stood after its
     last tick, ``longest_ms`` after that tick, or when a command sets a deadline sooner
     than its wake (the node's wake()). Returns the (time in ns, byte) the driver sent and
@@ -299,7 +300,7 @@ def run_on_deadlines(c: DriverCore, frames_ms: list[int], answer=lambda k: None,
 def test_a_reader_woken_only_at_frames_and_deadlines_sends_what_a_fine_poll_sends(
         answer, frames_ms):
     """The reader no longer wakes every read_timeout_s to apply the age and silence rules
-    (issue 16: three wake-ups a period, two of them for nothing); it waits until the
+    (three wake-ups a period, two of them for nothing); it waits until the
     core's deadline. It sends the bytes a reader ticking every 0.1 ms would send, each at
     the rule's deadline itself (to the nanosecond), so never later. (A 1 ms tick sends
     fewer: answering every other frame, it ticks only after the next answer came and

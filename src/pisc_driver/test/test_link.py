@@ -88,7 +88,7 @@ def test_a_device_that_goes_away_is_a_link_error_not_a_crash(pty):
 
 def test_wake_ends_a_reads_wait_from_another_thread_and_is_used_once(pty):
     """The driver's reader waits until the core's next deadline (up to read_timeout_s);
-    a command that sets a sooner one wakes it (issue 16)."""
+    a command that sets a sooner one wakes it."""
     master, path, _ = pty
     link = SerialLink(path, read_timeout_s=0.05)
     link.open()

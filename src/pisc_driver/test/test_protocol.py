@@ -288,7 +288,7 @@ def test_a_candidate_spanning_two_bursts_is_not_a_frame():
 
 
 def _issue_15_bursts() -> tuple[list[tuple[int, int, int]], list[bytes]]:
-    """Issue 15's false frame: IR and current low bytes 0xAA, counts near 0xAB5A; the 7th
+    """The hostile tests' false frame: IR and current low bytes 0xAA, counts near 0xAB5A; the 7th
     byte of frame 2 (CNT_lo) and the header of frame 3 are lost, so frame 2's first six
     bytes and frame 3's IR_hi (0x02) look like a frame of count 0xAB02, never sent (88
     counts, 7.9 degrees, from the count before), followed by frame 3's IR_lo 0xAA."""

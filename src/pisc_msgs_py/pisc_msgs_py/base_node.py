@@ -296,7 +296,7 @@ class PiscNode(Node):
                      level: int = ERROR, guarded: bool = True) -> Any:
         """Subscribe ``callback`` to ``topic``. A type :mod:`pisc_msgs_py.cdr` reads is
         taken raw and handed over as a view with the message's fields (no rclpy message
-        object is built, issue 16); bytes it cannot read are refused on /diagnostics
+        object is built); bytes it cannot read are refused on /diagnostics
         (``rejected TOPIC: ...``) and the callback is not called.
 
         With ``read`` (a ``*_from_msg`` of :mod:`pisc_msgs_py.convert`) the callback
@@ -497,8 +497,8 @@ def freeze_startup_objects() -> None:
     """Exempt what exists now (the imports: rclpy, numpy, numba, scipy; the nodes) from
     the garbage collector's later passes, before a node spins. The messages of every
     cycle trigger collections, and a full one walks the whole heap: one took 641 ms in
-    the middle of a 10 s lockstep run in one process (2,001 cycles of 1.8-2.7 ms,
-    issue 16). Cycles made later are still collected."""
+    the middle of a 10 s lockstep run in one process (2,001 cycles of 1.8-2.7 ms).
+    Cycles made later are still collected."""
     gc.freeze()
 
 

@@ -3,7 +3,7 @@
 rclpy publishes a message object by converting it to C and serialising it, and hands a
 subscription's callback a new object built from the C message: a ``JointState`` is five
 Python objects and three sequences each way. In the lockstep graph that was most of a
-cycle (issue 16): a probe publishing one JointState to a subscription in its process and
+cycle: a probe publishing one JointState to a subscription in its process and
 to a KEEP_ALL reader in another cost 104 us of CPU per message with objects and 37 us with
 bytes written here and read raw (``/tmp`` probe, 2026-12-02, load 7-9; docs/figures.md).
 

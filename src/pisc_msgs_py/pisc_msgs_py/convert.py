@@ -2,7 +2,7 @@
 
 ``*_to_msg`` build rclpy message objects; ``*_to_cdr`` write the same message as CDR
 bytes (:mod:`pisc_msgs_py.cdr`), which a publisher sends without building an object (the
-nodes' cycle, issue 16). Both take their fields from one function per message, so they
+nodes' cycle). Both take their fields from one function per message, so they
 cannot differ. ``*_from_msg`` read by attribute only, so they accept rclpy messages, the
 objects rosbags decodes from a bag and the views :mod:`pisc_msgs_py.cdr` reads from raw
 bytes. A message that does not have the agreed layout raises :class:`MessageError`

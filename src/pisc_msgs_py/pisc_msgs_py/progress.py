@@ -1,6 +1,6 @@
 """Progress of long commands: one tqdm bar on stderr, silent when stderr is not a terminal.
 
-Every command that can take more than a few seconds (issue 17 item 5) shows its progress
+Every command that can take more than a few seconds shows its progress
 with :class:`progress_bar`; its figures go to stdout as before, so a pipe or a file receives
 the same text with or without a terminal, and a log captured from stderr holds no bar.
 

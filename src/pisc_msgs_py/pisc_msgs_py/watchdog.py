@@ -373,7 +373,7 @@ class StopWitness:
     that died stops where it was while the stages before it go on, so it falls one sample
     further behind the stage before it (the samples themselves, for the estimator) every
     period; a live stage slowed by the machine falls behind by its lag and catches up.
-    Judged at one instant the two look alike (issue 15: a killed current loop two
+    Judged at one instant the two look alike (a killed current loop two
     samples behind was taken for a supervisor one sample late), so the stage is named
     when it is ``margin`` samples behind the one before it, the furthest behind of those,
     the first of equals. If none is, ``deadline`` samples after the trip (the chain

@@ -146,7 +146,7 @@ def test_the_pin_admits_nothing_a_departed_intruder_left_queued():
 
 
 def test_a_visitor_the_graph_forgets_before_the_count_drops_is_named_when_it_leaves():
-    """Seen under load (issue 15): while a visitor left, the graph stopped listing it
+    """Seen under load: while a visitor left, the graph stopped listing it
     before the subscription's matched count dropped; the driver then said "a publisher
     the ROS graph does not list yet" had left, never that /lab/visitor had."""
     pin = PublisherPin("current_loop")
@@ -188,7 +188,7 @@ def _tripped(margin: int = 8, deadline: int = 30) -> StopWitness:
 
 
 def test_a_killed_current_loop_two_samples_behind_is_named_once_it_falls_behind():
-    """The CI run's case (issue 15): the current loop killed having answered 596, the
+    """The CI run's case: the current loop killed having answered 596, the
     live supervisor one sample late and the estimator keeping up; judged at the trip
     (599) each stage is one sample behind the one before it. Eight samples later only
     the dead one is."""

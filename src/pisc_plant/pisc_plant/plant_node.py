@@ -42,7 +42,7 @@ and asks the ROS graph who they are when that changes.
 the cycle in progress is finished (its joint_states, motor current and true state all
 published) and the node shuts down at its next callback, before publishing another
 sample. rclpy's own handler shut the context down at once, so a signal inside
-``_publish_sample`` made the rest of the cycle fail (issue 15). With
+``_publish_sample`` made the rest of the cycle fail. With
 ``simulation.duration_s`` the plant publishes no sample after the one that ends the run.
 """
 
@@ -152,7 +152,7 @@ SECTIONS = {**PLANT_SECTIONS, "initial": InitialParams, "simulation": Simulation
 def _warm_up(plant: Plant, state: Any) -> None:
     """One sample, command and step on a throwaway copy, before the run: numba loads the
     kernel's entry points from its cache on first call (about 1 s, measured in the first
-    lockstep cycle, issue 16) and the plant keeps its operator tables; the run's own
+    lockstep cycle) and the plant keeps its operator tables; the run's own
     SampledPlant starts from ``state`` untouched, with its own noise generator."""
     scratch = SampledPlant(plant, state.copy())
     scratch.sample()

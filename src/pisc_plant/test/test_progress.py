@@ -1,4 +1,4 @@
-"""Progress bars of long commands (issue 17 item 5): pisc_msgs_py.progress draws a tqdm bar
+"""Progress bars of long commands: pisc_msgs_py.progress draws a tqdm bar
 on stderr when stderr is a terminal, writes nothing otherwise, and leaves stdout's figures
 as they are."""
 

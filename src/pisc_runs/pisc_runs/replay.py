@@ -20,7 +20,7 @@ gives, per topic, how many outputs were compared, how many differ by more than t
 tolerance, the largest difference and the first divergence. The same comparison runs
 on the outputs of the real nodes over topics (:mod:`pisc_bringup.replay_node`).
 
-Memory (issue 16, item 4): :func:`replay_bag` reads the bag as columns
+Memory: :func:`replay_bag` reads the bag as columns
 (:mod:`pisc_bag.bag_columns`) and keeps the samples and the recorded and recomputed
 outputs as numpy columns (:class:`StampTable`, :class:`Samples`: about 100 bytes a
 cycle), not as decoded messages and dictionaries (about 2 kB a cycle); a bag the

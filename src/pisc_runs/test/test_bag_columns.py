@@ -1,4 +1,4 @@
-"""The columnar bag reader (issue 16 item 4): the same numbers as the message path, read in
+"""The columnar bag reader: the same numbers as the message path, read in
 blocks; anything it would have to guess at goes back to the message path, whose errors name
 the message."""
 
