@@ -167,7 +167,8 @@ def test_the_index_check_walks_in_blocks_and_counts_what_the_mcap_reader_counts(
 
     writer = write_stream(tmp_path / "bag", recorded_order())
     stream = writer.path.read_bytes()
-    unindexed = tmp_path / "unindexed.mcap"  # as bags were finished before the recorder wrote indexed, ordered bags
+    # as bags were finished before the recorder wrote them indexed and in order
+    unindexed = tmp_path / "unindexed.mcap"
     unindexed.write_bytes(stream)
     with unindexed.open("ab") as out:
         out.write(bytes.fromhex("0f0400000000000000") + b"\0\0\0\0")  # data end, no CRC
