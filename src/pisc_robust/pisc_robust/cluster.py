@@ -49,7 +49,7 @@ from contextlib import contextmanager
 from typing import Any
 
 __all__ = ["CLUSTER_FROM_CHUNKS", "check_scheduler", "chunk_runner", "core_count",
-           "default_workers", "describe_runner", "worker_warnings"]
+           "default_workers", "describe_runner", "worker_warnings", "workers_for"]
 
 #: Chunks from which a command's default is a local cluster (one worker per core).
 CLUSTER_FROM_CHUNKS = 5
@@ -79,6 +79,12 @@ def default_workers(chunks: int) -> int:
     of one worker per core (at most one per chunk)."""
     cores = core_count()
     return 0 if chunks < CLUSTER_FROM_CHUNKS or cores < 2 else min(cores, chunks)
+
+
+def workers_for(chunks: int, workers: int | None, scheduler: str | None) -> int | None:
+    """The workers a command runs ``chunks`` chunks on: ``workers`` as given (``--workers``),
+    else, without ``--scheduler``, :func:`default_workers`."""
+    return default_workers(chunks) if workers is None and not scheduler else workers
 
 
 def describe_runner(workers: int | None, scheduler: str | None) -> str:

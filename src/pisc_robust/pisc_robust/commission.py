@@ -478,7 +478,7 @@ def _distribution(ctx: Context, where: Path) -> dict[str, Any]:
 
 
 def _tune(ctx: Context, where: Path) -> dict[str, Any]:
-    from pisc_robust.cluster import chunk_runner, default_workers
+    from pisc_robust.cluster import chunk_runner, workers_for
     from pisc_robust.robustness import CHUNK_DRAWS
     from pisc_runs.verdict import Criteria
     from pisc_robust.tune import Tuning, trials_kept, tune, tuned_file_text
@@ -502,8 +502,7 @@ def _tune(ctx: Context, where: Path) -> dict[str, Any]:
             f"trials x {plan.draws} draws, seed {plan.seed}, aim {plan.aim}"
             + (f"; resuming the study's {kept} trials" if kept else ""))
     chunks = -(-plan.draws // CHUNK_DRAWS)
-    workers = (default_workers(chunks) if plan.workers is None and not plan.scheduler
-               else plan.workers)
+    workers = workers_for(chunks, plan.workers, plan.scheduler)
 
     def progress(done: int, best: dict[str, float]) -> None:
         ctx.say(f"      trial {done}/{plan.trials}: best " + ", ".join(

@@ -104,7 +104,7 @@ def plot_catch_times(path: Path, outcomes: Mapping[str, Any], criteria: Any,
 
 def verify(ctx: Any, where: Path) -> dict[str, Any]:
     """The commissioning's stage ``verify`` (module docstring)."""
-    from pisc_robust.cluster import chunk_runner, default_workers
+    from pisc_robust.cluster import chunk_runner, workers_for
     from pisc_robust.robustness import CHUNK_DRAWS, binomial_interval, evaluate, prepare
     from pisc_runs.verdict import FAILURES, TIERS, Criteria
     from pisc_robust.robustness_report import plot_success
@@ -119,8 +119,7 @@ def verify(ctx: Any, where: Path) -> dict[str, Any]:
     distribution = load_distribution(str(path), load_graph_config(str(files["start"]))[0])
     draws = distribution.draw(plan.verify_draws, seed)
     chunks = -(-plan.verify_draws // CHUNK_DRAWS)
-    workers = (default_workers(chunks) if plan.workers is None and not plan.scheduler
-               else plan.workers)
+    workers = workers_for(chunks, plan.workers, plan.scheduler)
     outcomes, tiers = {}, {}
     with chunk_runner(workers, plan.scheduler) as map_chunks:
         for label, file in files.items():

@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.worst < 0:
         parser.error(f"--worst {args.worst}: 0 or more")
 
-    from pisc_robust.cluster import chunk_runner, default_workers, describe_runner
+    from pisc_robust.cluster import chunk_runner, describe_runner, workers_for
     from pisc_sim.configuration import config_path
     from pisc_robust.robustness import CHUNK_DRAWS, evaluate, load_benchmark
     from pisc_control.supervisor import Supervisor
@@ -66,8 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
     chunks = -(-args.draws // CHUNK_DRAWS)
-    workers = (default_workers(chunks) if args.workers is None and not args.scheduler
-               else args.workers)
+    workers = workers_for(chunks, args.workers, args.scheduler)
     print(f"configuration {args.config} ({config_path(args.config)})"
           + "".join(f"\n  --set {item}" for item in args.set))
     print(describe_distribution(distribution))

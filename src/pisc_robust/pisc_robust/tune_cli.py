@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--trials {args.trials}: at least 1")
     command = shlex.join([PROG, *(sys.argv[1:] if argv is None else argv)])
 
-    from pisc_robust.cluster import chunk_runner, default_workers, describe_runner
+    from pisc_robust.cluster import chunk_runner, describe_runner, workers_for
     from pisc_sim.configuration import load_graph_config
     from pisc_robust.robustness import CHUNK_DRAWS
     from pisc_robust.robustness_report import describe_distribution
@@ -86,8 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
     chunks = -(-args.draws // CHUNK_DRAWS)
-    workers = (default_workers(chunks) if args.workers is None and not args.scheduler
-               else args.workers)
+    workers = workers_for(chunks, args.workers, args.scheduler)
     print(f"configuration {args.config}; " + describe_distribution(distribution))
     print(f"space {space.name} (digest {space.digest})"
           + "".join(f"\n  {d.describe()}" for d in space.dimensions))
