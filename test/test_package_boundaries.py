@@ -285,3 +285,20 @@ def test_no_module_imports_a_command_module():
                 if kind == "cli" or (kind == "cmd" and _kind(module) != "cli"):
                     wrong.setdefault(module, set()).add(target)
     assert not wrong, {m: sorted(t) for m, t in wrong.items()}
+
+
+#: Modules other than nodes (``*_node``) and commands (``*_cli``) that may import rclpy,
+#: with why; every algorithm is a pure core without it.
+RCLPY_ALLOWED = {
+    "pisc_bringup": "the graph runner spins a watcher node and the nodes of its own process",
+    "pisc_runs.play": "publishes a bag's messages on their topics",
+}
+
+
+def test_rclpy_is_imported_only_by_nodes_commands_and_the_graph_runner():
+    users = sorted(module for package in PACKAGES for module, path in _modules(package).items()
+                   if any(name.split(".")[0] == "rclpy" for name in _imports(path)))
+    assert "pisc_control.supervisor_node" in users  # the reading sees the nodes' imports
+    stray = [module for module in users if _kind(module) not in ("node", "cli")
+             and module not in RCLPY_ALLOWED and module.split(".")[0] not in RCLPY_ALLOWED]
+    assert not stray, f"import rclpy only in a *_node or *_cli module: {stray}"
