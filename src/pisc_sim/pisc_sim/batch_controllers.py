@@ -3,8 +3,8 @@ the measurement before them and the bookkeeping after them.
 
 :func:`pisc_sim.closed_loop.simulate_batch` runs the estimator, the supervisor and the
 current loop of every rig each cycle. Here one compiled loop over the rigs, split
-between the cores (``prange``), runs for each rig the laws the nodes run, compiled from their Python source as they are
-(:func:`pisc_control.estimator.estimator_step`,
+between the cores (``prange``), runs for each rig the laws the nodes run, compiled from
+their Python source as they are (:func:`pisc_control.estimator.estimator_step`,
 :func:`pisc_control.adaptation.adaptation_step`,
 :func:`pisc_control.supervisor.supervisor_step` with the swing-up's and the catch's laws
 it calls, :func:`pisc_control.current_loop.current_loop_step`). The compiled form gives
@@ -122,8 +122,8 @@ def _actuator(full_scale, levels, step, v):
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
-def _pass(s, w, k, rows, ac, adapt, c, est_a, est_b, first, est_first, span, oldest, write, x_hist, theta_hist,
-          v_x, v_theta, mode, fault, caught, startup_target, reference, integral, measure, y,
+def _pass(s, w, k, rows, ac, adapt, c, est_a, est_b, first, est_first, span, oldest,
+          write, x_hist, theta_hist, v_x, v_theta, mode, fault, caught, startup_target, reference, integral, measure, y,
           ir_index, cur_index, draws, m, ir_table, x, theta, current, book, t, hold,
           track_range, force_per_amp, faulted, previous_mode, caught_at, first_catch,
           hold_theta, hold_x, hold_i2, x_min, x_max, unheld_at, box_theta, box_x, force_out,
@@ -330,8 +330,8 @@ class BatchControllers:
         span, oldest, write = self._window()
         m, table = self._constants
         k = self._book
-        bad = _pass(self._s, self._w, self._k, self._rows, self._ac, self._adapt, self._c, self._est_a, self._est_b, self._cycles == 0,
-                    self._seen == 0, span, oldest, write, self._x_hist, self._theta_hist,
+        bad = _pass(self._s, self._w, self._k, self._rows, self._ac, self._adapt, self._c,
+                    self._est_a, self._est_b, self._cycles == 0, self._seen == 0, span, oldest, write, self._x_hist, self._theta_hist,
                     self._v_x, self._v_theta, self._mode, self._fault, self._caught,
                     self._startup_target, self._reference, self._integral, measure, y,
                     self._ir_index, self._cur_index, draws, m, table, *measured, book, t,
