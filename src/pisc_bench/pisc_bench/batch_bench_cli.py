@@ -4,8 +4,8 @@ Runs a scene's closed loop (default: the thesis rig at full fidelity, its own
 integrator) for many rigs at once through :func:`pisc_sim.closed_loop.simulate_batch`
 (the controllers compiled, :mod:`pisc_sim.batch_controllers`, and the plant's compiled
 kernel, each over the rigs in parallel) and prints the rate, with the plant's share
-measured apart and the same run with the controllers' numpy cores over arrays (what the
-batch ran before they were compiled; the same bits) for comparison.
+measured apart and the same run with the laws applied rig by rig in Python over the
+arrays (the array path; the same bits) for comparison.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ ways give the same numbers bit for bit.
 
 - ``workers=0``: one chunk after another in this process, no Dask at all. The plant's
   compiled kernel spreads each chunk's rigs over the cores (numba threads); the
-  controllers' numpy cores run on one.
+  controllers' compiled pass runs on them too.
 - ``workers=N`` (N >= 1): a Dask ``LocalCluster`` of N worker processes with one thread
   each, started with the command and closed with it. Each worker's numba runs on one
   thread (``NUMBA_NUM_THREADS=1``), so N workers keep N cores busy without
