@@ -53,7 +53,7 @@ from pisc_msgs_py.topics import GRAPH_TOPICS, graph_topics_named
 __all__ = ["main"]
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pisc_record", description=__doc__.split("\n\n")[0])
     parser.add_argument("--bag", type=Path, required=True, help="new bag directory")
     parser.add_argument("--topic", action="append", default=[],
@@ -83,7 +83,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="after writing what it took, let messages gather for S seconds "
                              "before taking more (fewer wake-ups; a kill also loses what "
                              "arrived in them); default 0")
-    args, ros_args = parser.parse_known_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, ros_args = _parser().parse_known_args(argv)
     try:
         if not 0.0 <= args.gather < 1.0:  # also refuses nan
             raise ValueError(f"--gather {args.gather}: must be a number of seconds >= 0 "
