@@ -1,8 +1,8 @@
 """A PISC bag's numbers as columns, read in blocks: the fast path of summary and analysis.
 
 ``read_bag`` decodes every message into a rosbags object, one at a time in Python: about
-20 us a message, and a 10-minute run holds 740,000 of them (`pisc_bag analyse`
-of such a bag took 52 s and 1.66 GB when every object was kept). The summary and the
+20 us a message, and a 10-minute run holds 740,000 of them (`pisc_bag analyse` of such a
+bag took 52 s and 1.66 GB when every object was kept). The summary and the
 analysis need only a few numbers per message: the header stamp, the publish time and the
 joint values of each ``sensor_msgs/JointState``, and the rare mode reports. This module
 reads those as numpy columns:

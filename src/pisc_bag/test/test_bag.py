@@ -291,7 +291,7 @@ def test_repair_finishes_a_stream_whose_finish_was_interrupted(tmp_path):
 
 
 def test_repair_indexes_a_finished_bag_written_unindexed(tmp_path):
-    """Bags finished before the recorder indexed them (unchunked, out of log-time order):
+    """Bags finished before the finish indexed them (unchunked, out of log-time order):
     repair writes them indexed and in order, keeping the file as found; the metadata is
     the same."""
     from mcap.writer import CompressionType, Writer
