@@ -20,7 +20,7 @@ from pisc_bench.soak_faults import DROP_RATE, fault_schedule
 from pisc_bench.soak_figures import PERIOD_S, Sample
 from pisc_bench.soak_options import SoakOptions, start_load, stop_load
 from pisc_bench.soak_proc import Monitor, read_proc
-from pisc_msgs_py.processes import console_command
+from pisc_msgs_py.processes import console_command, stop_child
 
 __all__ = ["RunRecord", "run"]
 
@@ -140,12 +140,7 @@ def run(options: SoakOptions, out: Path, domain_id: int,
             except ValueError as exc:
                 probe_runs = str(exc)
         if observer is not None:
-            if observer.poll() is None:
-                observer.send_signal(signal.SIGTERM)
-            try:
-                observer.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                observer.kill()
+            stop_child(observer, signal.SIGTERM)
         if rig is not None:
             final = rig.stop()
         graph_log.close()

@@ -1,5 +1,6 @@
 """What the graph runner, the soak and the tests share about the processes they start
-(ROS-free): the command of a console entry point, and a ROS domain id claimed for a run.
+(ROS-free): the command of a console entry point, stopping a child, and a ROS domain id
+claimed for a run.
 """
 
 from __future__ import annotations
@@ -7,11 +8,13 @@ from __future__ import annotations
 import fcntl
 import os
 import shutil
+import signal
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-__all__ = ["DOMAIN_LOCKS", "DomainClaim", "console_command"]
+__all__ = ["DOMAIN_LOCKS", "DomainClaim", "console_command", "stop_child"]
 
 #: One lock file per ROS domain id 1..100; a claim holds an exclusive lock on one.
 DOMAIN_LOCKS = Path(tempfile.gettempdir()) / "pisc-ros-domains"
@@ -25,6 +28,20 @@ def console_command(executable: str, module: str) -> list[str]:
         return [str(beside)]
     path = shutil.which(executable)
     return [path] if path else [sys.executable, "-m", module]
+
+
+def stop_child(child: subprocess.Popen, sig: int = signal.SIGINT,
+               timeout_s: float = 30.0) -> None:
+    """Ask ``child`` to stop with ``sig`` (SIGINT: as on Ctrl-C, so a graph zeroes the
+    motor and ends its recorder) and kill it only if it has not ended after ``timeout_s``;
+    its pipes are read to the end either way."""
+    if child.poll() is None:
+        child.send_signal(sig)
+    try:
+        child.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.communicate()
 
 
 class DomainClaim:

@@ -48,6 +48,7 @@ from typing import Any
 
 from pisc_robust.commission_report import digest_files
 from pisc_msgs_py.config import ConfigError
+from pisc_msgs_py.processes import stop_child
 
 __all__ = ["RECORD", "STAGES", "CommissionError", "Context", "Plan", "Rig", "StageMismatch",
            "SwingUp", "commission", "digest_files", "draw_starts", "run_graph", "stage_dir",
@@ -328,11 +329,11 @@ def run_graph(rig: Rig, args: list[str], env: Mapping[str, str], duration_s: flo
     try:
         stdout, stderr = child.communicate(timeout=duration_s + GRAPH_SLACK_S)
     except subprocess.TimeoutExpired:
-        _stop(child)
+        stop_child(child)
         raise CommissionError(f"{' '.join(command[2:])}: no end after "
                               f"{duration_s + GRAPH_SLACK_S:.0f} s") from None
     except BaseException:  # Ctrl-C: the graph stops as it does on SIGINT (0 V first)
-        _stop(child)
+        stop_child(child)
         raise
     finally:
         if virtual is not None:
@@ -342,20 +343,6 @@ def run_graph(rig: Rig, args: list[str], env: Mapping[str, str], duration_s: flo
         raise CommissionError(f"{' '.join(command[2:])} did not run (exit "
                               f"{child.returncode}): {stderr.strip()[-1500:]}")
     return run
-
-
-def _stop(child: subprocess.Popen) -> None:
-    """Let a graph run stop as on Ctrl-C (it zeroes the motor and ends its recorder), and
-    kill it only if it has not after 30 s."""
-    import signal
-
-    if child.poll() is None:
-        child.send_signal(signal.SIGINT)
-        try:
-            child.communicate(timeout=30.0)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.communicate()
 
 
 def _experiment(ctx: Context, where: Path, scene: str, duration: float,
