@@ -1,7 +1,7 @@
 """pisc_bag: repair, play, regression-replay and analyse PISC bags.
 
     pisc_bag repair BAG                       finish a bag whose recorder was killed
-    pisc_bag play BAG [--rate R] [--loop]      publish its topics on /clock sim time
+    pisc_bag play BAG [--rate R]              publish its topics on /clock sim time
     pisc_bag replay BAG [--nodes] [--set NAME=VALUE ...] [--tolerance T]
                                               recompute every controller output, compare
     pisc_bag analyse BAG [--out DIR] [--overlay BAG2]
