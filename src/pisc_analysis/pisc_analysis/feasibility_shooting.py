@@ -137,7 +137,7 @@ class _Shooting:
         return knots, np.vstack([self.rig.y0[None, :], nodes])
 
     def segments(self, starts: np.ndarray, knots: np.ndarray) -> np.ndarray:
-        # batches of at most 256 rigs: the kernel's single-thread path (kernel.CHUNK),
+        # batches of at most 256 rigs: the kernel's single-thread path (kernel_batch.CHUNK),
         # several times faster per rig than its threaded one on a shared 2-core machine
         volts = expand(knots, self.kp)
         return np.concatenate([rollout(self.rig, volts[a: a + 256], y0=starts[a: a + 256])

@@ -265,7 +265,7 @@ class IndexedWriter:
 
 @dataclass(frozen=True)
 class IndexCounts:
-    """What :func:`pisc_bag.bag.index_problems` checks, counted."""
+    """What :func:`pisc_bag.bag_repair.index_problems` checks, counted."""
 
     messages: int
     in_chunks: int

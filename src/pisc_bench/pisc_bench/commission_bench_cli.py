@@ -7,7 +7,7 @@
 Draws rigs from ``thesis-rig`` (the seed's draws in order): each rig's masses, lengths,
 motor, friction and sensors' noise (not its start or latency: on the wall clock the
 latency is the machine's). A draw is kept only if a 3 s witness exists for it
-(:func:`pisc_analysis.feasibility.find_witness`, as ``pisc_feasibility`` searches: some
+(:func:`pisc_analysis.feasibility_search.find_witness`, as ``pisc_feasibility`` searches: some
 voltage sequence catches it by 3 s from hanging at rest in the middle and holds it, the
 fast tier). Each kept rig becomes a plant file (the plant's sections only) and is
 commissioned through ``pisc_virtual_rig`` on the wall clock with its sensors' noise, as on

@@ -414,7 +414,7 @@ def controllers_matched(nodes: Sequence[Node], recorded: Sequence[Topic],
 
 def awaiting(node: GraphNode, counted: Sequence[GraphNode],
              recorded: Sequence[Topic]) -> GraphNode:
-    """``node`` with ``start.await_subscribers`` (:class:`pisc_msgs_py.base_node.StartParams`)
+    """``node`` with ``start.await_subscribers`` (:class:`pisc_msgs_py.node_params.StartParams`)
     for a process of its own: each of its publications but /diagnostics and /clock waits
     for its subscribers among ``counted``, the recorder when the topic is recorded, and,
     for the voltage, the runner's tap (:class:`VoltageTap`)."""

@@ -13,7 +13,7 @@ import numpy as np
 
 from pisc_model.params import ModelParams, NoiseParams
 from pisc_msgs_py.config import ConfigError
-from pisc_plant import kernel_batch as kernel
+from pisc_plant import kernel_batch
 from pisc_plant.plant import Plant
 from pisc_plant.plant_config import PlantConfig, plant_set
 from pisc_robust.identify_data import (
@@ -125,11 +125,11 @@ class Problem:
         """Predicted (IR voltage, angle, current sensor voltage) (rigs, length, 3) of the
         segments ``rows`` (one per rig), rig k with ``values[key][k]`` and state ``y0[k]``.
 
-        Groups of at most ``kernel.CHUNK`` rigs, which the kernel steps on one thread:
+        Groups of at most ``kernel_batch.CHUNK`` rigs, which the kernel steps on one thread:
         its threads gain nothing at this size and, spinning, cost milliseconds a call."""
         out = np.empty((len(rows), self.seg.length, 3))
-        for lo in range(0, len(rows), kernel.CHUNK):
-            group = slice(lo, lo + kernel.CHUNK)
+        for lo in range(0, len(rows), kernel_batch.CHUNK):
+            group = slice(lo, lo + kernel_batch.CHUNK)
             out[group] = self._simulate({k: np.asarray(v)[group] for k, v in values.items()},
                                         y0[group], rows[group])
         return out
