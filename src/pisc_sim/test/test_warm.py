@@ -41,7 +41,7 @@ def test_unknown_scope_is_refused():
 
 
 def _pisc_kernel_sources() -> tuple[str, ...]:
-    text = (Path(__file__).parents[1] / "pisc").read_text()
+    text = (Path(__file__).resolve().parents[3] / "pisc").read_text()
     found = re.search(r"^KERNEL_SOURCES=\(([^)]*)\)", text, re.MULTILINE)
     assert found, "./pisc defines no KERNEL_SOURCES=(...)"
     return tuple(found.group(1).split())
