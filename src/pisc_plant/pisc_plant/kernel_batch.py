@@ -18,7 +18,7 @@ from pisc_plant.kernel_rhs import as_constants, stop_at_ends
 from pisc_plant.kernel_steps import as_operators, exprk4_step, rk4_step
 from pisc_plant.layout import ARM_FORCE, ARM_FULL, ARM_QUASI_STATIC, RK4
 
-__all__ = ["CHUNK", "ENTRY_POINTS"]
+__all__ = ["CHUNK", "ENTRY_POINTS", "in_chunks"]
 
 
 @inlined
@@ -175,71 +175,74 @@ CHUNK = 256
 
 
 @inlined
-def _chunks(advance, ys, us, p, stops, method, substeps, h, coef):
+def in_chunks(advance, ys, us, p, stops, method, substeps, a, b):
+    """``advance`` over the rows of ``ys`` in tasks of :data:`CHUNK` rigs, in parallel;
+    ``a`` and ``b`` are the advance's own last arguments (the step and its coefficients,
+    or a plant set's steps and tables)."""
     rows = ys.shape[0]
     for c in numba.prange((rows + CHUNK - 1) // CHUNK):
         advance(ys, us, c * CHUNK, min(rows, (c + 1) * CHUNK), p, stops, method, substeps,
-                h, coef)
+                a, b)
 
 
 @parallel
 def _many_full_filters(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_full_filters, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_full_filters, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_full_filters_coulomb(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_full_filters_coulomb, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_full_filters_coulomb, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_full(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_full, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_full, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_full_coulomb(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_full_coulomb, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_full_coulomb, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_quasi_static_filters(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_quasi_static_filters, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_quasi_static_filters, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_quasi_static_filters_coulomb(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_quasi_static_filters_coulomb, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_quasi_static_filters_coulomb, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_quasi_static(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_quasi_static, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_quasi_static, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_quasi_static_coulomb(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_quasi_static_coulomb, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_quasi_static_coulomb, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_force_filters(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_force_filters, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_force_filters, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_force_filters_coulomb(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_force_filters_coulomb, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_force_filters_coulomb, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_force(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_force, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_force, ys, us, p, stops, method, substeps, h, coef)
 
 
 @parallel
 def _many_force_coulomb(ys, us, p, stops, method, substeps, h, coef):
-    _chunks(_advance_force_coulomb, ys, us, p, stops, method, substeps, h, coef)
+    in_chunks(_advance_force_coulomb, ys, us, p, stops, method, substeps, h, coef)
 
 
 # (armature, filters, Coulomb friction): the uniform entry points; a plant set's above

@@ -3,11 +3,11 @@
 
 The uniform entry points (:mod:`pisc_plant.kernel_batch`) hold one set of constants and
 one operator table as tuples, in registers. A plant set gives each rig its own: 23
-constants, the exponential scheme's 13 x 14 operator scalars and a step. They are laid out in blocks of BLOCK
-rigs, each block's quantities row after row (``lanes``: block b holds quantity j of
-its rig l at [b, j * BLOCK + l]), so that the loop over a block's rigs reads each
-quantity from consecutive addresses (vector loads, four rigs at once) at distances the
-compiler knows. Measured while building it (10 000 rigs of the full-fidelity layout,
+constants, the exponential scheme's 13 x 14 operator scalars and a step. They are laid
+out in blocks of BLOCK rigs, each block's quantities row after row (``lanes``: block b
+holds quantity j of its rig l at [b, j * BLOCK + l]), so that the loop over a block's
+rigs reads each quantity from consecutive addresses (vector loads, four rigs at once) at
+distances the compiler knows. Measured while building it (10 000 rigs of the full-fidelity layout,
 one core, on a machine shared with other work: figures varied by +-15 % between runs):
 quantity-major columns over all rigs, (182, rigs), did not vectorise at all (LLVM:
 "too many memory checks needed": every row was a pointer of its own); in blocks of
@@ -27,7 +27,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from pisc_plant.kernel_batch import CHUNK
+from pisc_plant.kernel_batch import in_chunks
 from pisc_plant.kernel_jit import compiled, inlined, parallel
 from pisc_plant.kernel_operators import (
     N_OPERATORS, OP_WIDTH, armature_operators, armature_rate, step_operators,
@@ -254,42 +254,34 @@ def _set_force(ys, us, lo, hi, p, stops, method, substeps, hs, tables):
                       -1, -1, -1)
 
 
-@inlined
-def _set_chunks(advance, ys, us, p, stops, method, substeps, hs, tables):
-    rows = ys.shape[0]
-    for c in numba.prange((rows + CHUNK - 1) // CHUNK):
-        advance(ys, us, c * CHUNK, min(rows, (c + 1) * CHUNK), p, stops, method, substeps,
-                hs, tables)
-
-
 @parallel
 def _many_set_full_filters(ys, us, p, stops, method, substeps, hs, tables):
-    _set_chunks(_set_full_filters, ys, us, p, stops, method, substeps, hs, tables)
+    in_chunks(_set_full_filters, ys, us, p, stops, method, substeps, hs, tables)
 
 
 @parallel
 def _many_set_full(ys, us, p, stops, method, substeps, hs, tables):
-    _set_chunks(_set_full, ys, us, p, stops, method, substeps, hs, tables)
+    in_chunks(_set_full, ys, us, p, stops, method, substeps, hs, tables)
 
 
 @parallel
 def _many_set_quasi_static_filters(ys, us, p, stops, method, substeps, hs, tables):
-    _set_chunks(_set_quasi_static_filters, ys, us, p, stops, method, substeps, hs, tables)
+    in_chunks(_set_quasi_static_filters, ys, us, p, stops, method, substeps, hs, tables)
 
 
 @parallel
 def _many_set_quasi_static(ys, us, p, stops, method, substeps, hs, tables):
-    _set_chunks(_set_quasi_static, ys, us, p, stops, method, substeps, hs, tables)
+    in_chunks(_set_quasi_static, ys, us, p, stops, method, substeps, hs, tables)
 
 
 @parallel
 def _many_set_force_filters(ys, us, p, stops, method, substeps, hs, tables):
-    _set_chunks(_set_force_filters, ys, us, p, stops, method, substeps, hs, tables)
+    in_chunks(_set_force_filters, ys, us, p, stops, method, substeps, hs, tables)
 
 
 @parallel
 def _many_set_force(ys, us, p, stops, method, substeps, hs, tables):
-    _set_chunks(_set_force, ys, us, p, stops, method, substeps, hs, tables)
+    in_chunks(_set_force, ys, us, p, stops, method, substeps, hs, tables)
 
 
 SET_POINTS = {
